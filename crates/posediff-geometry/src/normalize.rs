@@ -1,0 +1,168 @@
+//! The official canonicalisation of ground-truth cameras (PoseDiffusion
+//! `util/normalize_cameras.py`, as `Co3dDataset` calls it for training and testing).
+//!
+//! 1. `p*` = least-squares intersection of the optical axes: `Σ(I − d dᵀ) p = Σ(I − d dᵀ) C`.
+//! 2. Move the world origin to `p*` and divide by `dist_0 = |C_0 − p*|`, the distance of
+//!    **camera 0** (not a median).
+//! 3. Re-express everything in camera 0's frame: camera 0 becomes `R = I, t = 0`.
+//!
+//! The three steps form one similarity transform of the world ([`Canonicalized`]), so the
+//! canonicalisation can be undone ([`Canonicalized::restore`]).
+//!
+//! # Pitfalls
+//! - The optical axis is camera +z whatever the principal point (the official code unprojects
+//!   the principal point at depth 1).
+//! - Parallel optical axes have no intersection; the official code would return a least-squares
+//!   solution of a singular system. Here that is an error.
+
+use nalgebra::{Matrix3, Point3, Vector3};
+
+use crate::alignment::Sim3;
+use crate::camera::Camera;
+use crate::error::{GeometryError, Result};
+
+/// Smallest eigenvalue of `Σ(I − d dᵀ)`, relative to the largest, below which the optical axes
+/// are taken as parallel.
+const PARALLEL_AXES_TOLERANCE: f64 = 1e-12;
+
+/// The least-squares intersection of the optical axes and each camera's distance to it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct OpticalAxisIntersection {
+    /// The point closest to all optical axes, in world coordinates.
+    pub point: Point3<f64>,
+    /// `|C_i − point|` for every camera.
+    pub distances: Vec<f64>,
+}
+
+/// Official `compute_optical_axis_intersection`.
+///
+/// # Errors
+/// Fewer than two cameras, non-finite poses, parallel optical axes.
+pub fn optical_axis_intersection(cameras: &[Camera]) -> Result<OpticalAxisIntersection> {
+    if cameras.len() < 2 {
+        return Err(GeometryError::TooFew {
+            what: "cameras for an optical-axis intersection",
+            needed: 2,
+            got: cameras.len(),
+        });
+    }
+    let mut a = Matrix3::zeros();
+    let mut b = Vector3::zeros();
+    for cam in cameras {
+        cam.cam_from_world.ensure_finite()?;
+        let d = cam.optical_axis().normalize();
+        let proj = Matrix3::identity() - d * d.transpose();
+        a += proj;
+        b += proj * cam.center().coords;
+    }
+    let eig = a.symmetric_eigenvalues();
+    let (lo, hi) = (eig.min(), eig.max());
+    if lo <= PARALLEL_AXES_TOLERANCE * hi {
+        return Err(GeometryError::Degenerate {
+            what: "optical-axis intersection",
+            reason: "the optical axes are parallel",
+        });
+    }
+    let Some(p) = a.lu().solve(&b) else {
+        return Err(GeometryError::Degenerate {
+            what: "optical-axis intersection",
+            reason: "singular system",
+        });
+    };
+    let point = Point3::from(p);
+    let distances = cameras
+        .iter()
+        .map(|c| (c.center() - point).norm())
+        .collect();
+    Ok(OpticalAxisIntersection { point, distances })
+}
+
+/// Cameras in the canonical frame and the similarity that took them there.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Canonicalized {
+    /// The cameras, camera 0 at the identity.
+    pub cameras: Vec<Camera>,
+    /// Maps original world points to canonical ones.
+    pub canonical_from_world: Sim3,
+}
+
+impl Canonicalized {
+    /// Cameras expressed in the canonical frame mapped back to the original world.
+    pub fn restore(&self, cameras: &[Camera]) -> Vec<Camera> {
+        let back = self.canonical_from_world.inverse();
+        cameras.iter().map(|c| back.transform_camera(c)).collect()
+    }
+}
+
+/// Step 3 on top of a first similarity: the frame of camera 0 after `first`.
+fn with_first_camera_frame(cameras: &[Camera], first: Sim3) -> Canonicalized {
+    let cam0 = first.transform_camera(&cameras[0]);
+    let canonical_from_world = Sim3::from_pose(&cam0.cam_from_world).compose(&first);
+    Canonicalized {
+        cameras: cameras
+            .iter()
+            .map(|c| canonical_from_world.transform_camera(c))
+            .collect(),
+        canonical_from_world,
+    }
+}
+
+/// Official `normalize_cameras(compute_optical=True, first_camera=True)`.
+///
+/// # Errors
+/// As [`optical_axis_intersection`]; also camera 0 lying on the intersection (zero scale).
+pub fn canonicalize(cameras: &[Camera]) -> Result<Canonicalized> {
+    let hit = optical_axis_intersection(cameras)?;
+    let scale = hit.distances[0];
+    if scale <= 0.0 {
+        return Err(GeometryError::Degenerate {
+            what: "canonicalisation",
+            reason: "camera 0 lies on the optical-axis intersection",
+        });
+    }
+    let to_origin = Sim3 {
+        rotation: Matrix3::identity(),
+        translation: -hit.point.coords,
+        scale: 1.0,
+    };
+    let shrink = Sim3 {
+        scale: 1.0 / scale,
+        ..Sim3::identity()
+    };
+    Ok(with_first_camera_frame(cameras, shrink.compose(&to_origin)))
+}
+
+/// Official `normalize_cameras(compute_optical=False, first_camera=True)`: every translation
+/// divided by `sqrt(‖T‖_F)` (the square root of the Frobenius norm of all translations, sic),
+/// then the first-camera frame.
+///
+/// # Errors
+/// No cameras, non-finite poses, all translations zero.
+pub fn canonicalize_without_optical_axis(cameras: &[Camera]) -> Result<Canonicalized> {
+    if cameras.is_empty() {
+        return Err(GeometryError::TooFew {
+            what: "cameras to canonicalise",
+            needed: 1,
+            got: 0,
+        });
+    }
+    for c in cameras {
+        c.cam_from_world.ensure_finite()?;
+    }
+    let frobenius = cameras
+        .iter()
+        .map(|c| c.cam_from_world.translation.norm_squared())
+        .sum::<f64>()
+        .sqrt();
+    if frobenius == 0.0 {
+        return Err(GeometryError::Degenerate {
+            what: "canonicalisation",
+            reason: "all translations are zero",
+        });
+    }
+    let shrink = Sim3 {
+        scale: 1.0 / frobenius.sqrt(),
+        ..Sim3::identity()
+    };
+    Ok(with_first_camera_frame(cameras, shrink))
+}
