@@ -67,14 +67,24 @@ impl Tensor {
     /// The values split into consecutive rows of `n` (e.g. `n = 9` for 3×3 matrices).
     #[track_caller]
     pub fn chunks(&self, n: usize) -> Vec<&[f64]> {
-        assert_eq!(self.data.len() % n, 0, "tensor of {:?} is not made of rows of {n}", self.shape);
+        assert_eq!(
+            self.data.len() % n,
+            0,
+            "tensor of {:?} is not made of rows of {n}",
+            self.shape
+        );
         self.data.chunks(n).collect()
     }
 
     /// The single value of a one-element tensor.
     #[track_caller]
     pub fn scalar(&self) -> f64 {
-        assert_eq!(self.data.len(), 1, "tensor of {:?} is not a scalar", self.shape);
+        assert_eq!(
+            self.data.len(),
+            1,
+            "tensor of {:?} is not a scalar",
+            self.shape
+        );
         self.data[0]
     }
 }
@@ -122,14 +132,19 @@ impl SafetensorsFixture {
                 .collect(),
             Dtype::I64 => raw
                 .chunks_exact(8)
-                .map(|b| i64::from_le_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]]) as f64)
+                .map(|b| {
+                    i64::from_le_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]]) as f64
+                })
                 .collect(),
             Dtype::I32 => raw
                 .chunks_exact(4)
                 .map(|b| f64::from(i32::from_le_bytes([b[0], b[1], b[2], b[3]])))
                 .collect(),
             Dtype::U8 => raw.iter().map(|&b| f64::from(b)).collect(),
-            other => panic!("{}: tensor {name} has unsupported dtype {other:?}", self.path.display()),
+            other => panic!(
+                "{}: tensor {name} has unsupported dtype {other:?}",
+                self.path.display()
+            ),
         };
         Tensor {
             shape: view.shape().to_vec(),
@@ -183,7 +198,13 @@ pub struct WorstError {
 /// Asserts `|a − e| ≤ atol + rtol·|e|` element-wise and returns the worst errors. The message
 /// names the first failing index. NaN never passes.
 #[track_caller]
-pub fn assert_close(what: &str, actual: &[f64], expected: &[f64], atol: f64, rtol: f64) -> WorstError {
+pub fn assert_close(
+    what: &str,
+    actual: &[f64],
+    expected: &[f64],
+    atol: f64,
+    rtol: f64,
+) -> WorstError {
     assert_eq!(
         actual.len(),
         expected.len(),
@@ -245,7 +266,11 @@ mod tests {
 
     #[test]
     fn copied_fixtures_are_present() {
-        for f in ["geometry_io.safetensors", "normalize_io.safetensors", "metrics_io.json"] {
+        for f in [
+            "geometry_io.safetensors",
+            "normalize_io.safetensors",
+            "metrics_io.json",
+        ] {
             assert!(fixture_path(&format!("reference/full/{f}")).is_file());
         }
     }

@@ -17,7 +17,9 @@ use anyhow::{Context, bail};
 use nalgebra::{Point2, Vector3};
 use posediff_geometry::camera_json::CameraRecord;
 use posediff_geometry::normalize::optical_axis_intersection;
-use posediff_geometry::{Camera, fundamental_from_cameras, sampson_error, symmetric_epipolar_distance_sq};
+use posediff_geometry::{
+    Camera, fundamental_from_cameras, sampson_error, symmetric_epipolar_distance_sq,
+};
 
 fn main() -> anyhow::Result<()> {
     let mut args = std::env::args().skip(1);
@@ -25,15 +27,25 @@ fn main() -> anyhow::Result<()> {
         args.next()
             .unwrap_or_else(|| "../shared/data/strecha_fountainP11".into()),
     );
-    let i: usize = args.next().map_or(Ok(0), |s| s.parse()).context("image index I")?;
-    let j: usize = args.next().map_or(Ok(1), |s| s.parse()).context("image index J")?;
+    let i: usize = args
+        .next()
+        .map_or(Ok(0), |s| s.parse())
+        .context("image index I")?;
+    let j: usize = args
+        .next()
+        .map_or(Ok(1), |s| s.parse())
+        .context("image index J")?;
 
     let path = dir.join("cameras.json");
-    let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+    let text =
+        std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
     let records: Vec<CameraRecord> =
         serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
     if i >= records.len() || j >= records.len() || i == j {
-        bail!("need two different image indices below {}, got {i} and {j}", records.len());
+        bail!(
+            "need two different image indices below {}, got {i} and {j}",
+            records.len()
+        );
     }
     let cameras = records
         .iter()
@@ -46,7 +58,10 @@ fn main() -> anyhow::Result<()> {
     let f_unit = f / f.norm();
     println!("data set   {}", dir.display());
     println!("pair       {} -> {}", records[i].image, records[j].image);
-    println!("baseline   {:.4} (world units)", (c1.center() - c2.center()).norm());
+    println!(
+        "baseline   {:.4} (world units)",
+        (c1.center() - c2.center()).norm()
+    );
     println!("F (x2^T F x1 = 0, scaled to unit Frobenius norm):");
     for r in 0..3 {
         println!(
@@ -59,7 +74,10 @@ fn main() -> anyhow::Result<()> {
 
     let target = optical_axis_intersection(&cameras)?.point;
     let radius = 0.1 * (c1.center() - target).norm();
-    println!("scene point (optical-axis intersection) {:.3} {:.3} {:.3}, radius {radius:.3}", target.x, target.y, target.z);
+    println!(
+        "scene point (optical-axis intersection) {:.3} {:.3} {:.3}, radius {radius:.3}",
+        target.x, target.y, target.z
+    );
     println!(
         "{:>22} {:>22} {:>12} {:>12} {:>14}",
         "x1 (px)", "x2 (px)", "Sampson px2", "sym. px2", "+2px Sampson"

@@ -110,7 +110,10 @@ fn check_pair(src: &[Point3<f64>], dst: &[Point3<f64>]) -> Result<()> {
             got: src.len(),
         });
     }
-    ensure_finite("Umeyama points", src.iter().chain(dst).flat_map(|p| p.iter()))
+    ensure_finite(
+        "Umeyama points",
+        src.iter().chain(dst).flat_map(|p| p.iter()),
+    )
 }
 
 fn mean(points: &[Point3<f64>]) -> Vector3<f64> {
@@ -119,7 +122,10 @@ fn mean(points: &[Point3<f64>]) -> Vector3<f64> {
 
 /// Umeyama (1991) least-squares alignment `dst ≈ s R src + t`. Returns the rotation, the
 /// Umeyama scale and the means.
-fn umeyama_impl(src: &[Point3<f64>], dst: &[Point3<f64>]) -> Result<(Matrix3<f64>, f64, Vector3<f64>, Vector3<f64>)> {
+fn umeyama_impl(
+    src: &[Point3<f64>],
+    dst: &[Point3<f64>],
+) -> Result<(Matrix3<f64>, f64, Vector3<f64>, Vector3<f64>)> {
     check_pair(src, dst)?;
     let n = src.len() as f64;
     let mu_src = mean(src);
@@ -327,7 +333,9 @@ mod tests {
             umeyama_with_scale(&[p, p, p], &[p, p, p]),
             Err(GeometryError::Degenerate { .. })
         ));
-        let line: Vec<_> = (0..5).map(|i| Point3::new(f64::from(i), 0.0, 0.0)).collect();
+        let line: Vec<_> = (0..5)
+            .map(|i| Point3::new(f64::from(i), 0.0, 0.0))
+            .collect();
         assert!(matches!(
             umeyama(&line, &line),
             Err(GeometryError::Degenerate { .. })
@@ -345,10 +353,15 @@ mod tests {
     #[test]
     fn rigid_umeyama_ignores_scale() {
         let s = sim();
-        let src: Vec<_> = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 2.0, 0.0], [0.0, 0.0, 3.0]]
-            .iter()
-            .map(|p| Point3::new(p[0], p[1], p[2]))
-            .collect();
+        let src: Vec<_> = [
+            [0.0, 0.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [0.0, 2.0, 0.0],
+            [0.0, 0.0, 3.0],
+        ]
+        .iter()
+        .map(|p| Point3::new(p[0], p[1], p[2]))
+        .collect();
         let rigid = Sim3 { scale: 1.0, ..s };
         let dst: Vec<_> = src.iter().map(|p| rigid.transform_point(p)).collect();
         let est = umeyama(&src, &dst).unwrap();

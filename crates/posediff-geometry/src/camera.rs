@@ -309,7 +309,11 @@ mod tests {
         let h = cam.projection_matrix() * x.to_homogeneous();
         let px = cam.project(&x).unwrap();
         assert!((Point2::new(h.x / h.z, h.y / h.z) - px).norm() < 1e-10);
-        assert!((cam.intrinsics.matrix() * cam.intrinsics.inverse_matrix() - Matrix3::identity()).norm() < 1e-15);
+        assert!(
+            (cam.intrinsics.matrix() * cam.intrinsics.inverse_matrix() - Matrix3::identity())
+                .norm()
+                < 1e-15
+        );
     }
 
     #[test]

@@ -44,7 +44,11 @@ impl PoseEncoding {
 
     /// The NDC focal lengths `clamp(exp(x + 1.8), 0.1, 20)`, entries 7..9.
     pub fn focal_ndc(&self) -> Vector2<f64> {
-        let f = |x: f64| (x + LOG_FOCAL_BIAS).exp().clamp(FOCAL_MIN_NDC, FOCAL_MAX_NDC);
+        let f = |x: f64| {
+            (x + LOG_FOCAL_BIAS)
+                .exp()
+                .clamp(FOCAL_MIN_NDC, FOCAL_MAX_NDC)
+        };
         Vector2::new(f(self.0[7]), f(self.0[8]))
     }
 

@@ -42,7 +42,7 @@ pub use alignment::{
     Sim3, align_cameras_by_centers, align_cameras_by_extrinsics, umeyama, umeyama_with_scale,
 };
 pub use camera::{Camera, ImageSize, Intrinsics, Pose};
-pub use encoding::{PoseEncoding, POSE_ENCODING_DIM};
+pub use encoding::{POSE_ENCODING_DIM, PoseEncoding};
 pub use epipolar::{
     essential_matrix, fundamental_from_cameras, fundamental_official, relative_pose, sampson_error,
     symmetric_epipolar_distance_sq,

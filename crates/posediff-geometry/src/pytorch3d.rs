@@ -30,7 +30,10 @@ fn axis_flip() -> Matrix3<f64> {
 /// Half the shorter side and the image centre `(W/2, H/2)`, the NDC scale and origin of
 /// PyTorch3D's screen conversion, for a (possibly fractional) size in pixels.
 fn ndc_frame(width: f64, height: f64) -> (f64, Vector2<f64>) {
-    (width.min(height) / 2.0, Vector2::new(width / 2.0, height / 2.0))
+    (
+        width.min(height) / 2.0,
+        Vector2::new(width / 2.0, height / 2.0),
+    )
 }
 
 /// Focal length and principal point in PyTorch3D NDC units (half the shorter image side).
@@ -120,7 +123,8 @@ impl Pytorch3dCamera {
     pub fn world_to_view_matrix(&self) -> Matrix4<f64> {
         let mut m = Matrix4::zeros();
         m.fixed_view_mut::<3, 3>(0, 0).copy_from(&self.r);
-        m.fixed_view_mut::<1, 3>(3, 0).copy_from(&self.t.transpose());
+        m.fixed_view_mut::<1, 3>(3, 0)
+            .copy_from(&self.t.transpose());
         m[(3, 3)] = 1.0;
         m
     }
@@ -141,10 +145,7 @@ impl Pytorch3dCamera {
     /// # Errors
     /// Non-finite values or non-positive focal lengths.
     pub fn to_opencv(&self, size: ImageSize) -> Result<Camera> {
-        ensure_finite(
-            "PyTorch3D camera",
-            self.r.iter().chain(self.t.iter()),
-        )?;
+        ensure_finite("PyTorch3D camera", self.r.iter().chain(self.t.iter()))?;
         let px = self
             .intrinsics
             .to_pixels(f64::from(size.width()), f64::from(size.height()));
@@ -215,7 +216,10 @@ mod tests {
         );
         let expected = Vector2::new(w / 2.0 - ndc.x * s, h / 2.0 - ndc.y * s);
         let got = cam.to_opencv(size).unwrap().project(&x).unwrap();
-        assert!((got.coords - expected).norm() < 1e-10, "{got} vs {expected}");
+        assert!(
+            (got.coords - expected).norm() < 1e-10,
+            "{got} vs {expected}"
+        );
     }
 
     #[test]

@@ -105,7 +105,12 @@ impl Quaternion {
             return Err(GeometryError::ZeroQuaternion);
         }
         let s = 2.0 / n2;
-        let Self { w: r, x: i, y: j, z: k } = self;
+        let Self {
+            w: r,
+            x: i,
+            y: j,
+            z: k,
+        } = self;
         Ok(Matrix3::new(
             1.0 - s * (j * j + k * k),
             s * (i * j - k * r),
@@ -198,7 +203,9 @@ mod tests {
     fn rotation_about_z_has_the_right_handedness() {
         // 90° about +z: (w, z) = (cos 45°, sin 45°) maps x to y.
         let h = std::f64::consts::FRAC_1_SQRT_2;
-        let m = Quaternion::new(h, 0.0, 0.0, h).to_rotation_matrix().unwrap();
+        let m = Quaternion::new(h, 0.0, 0.0, h)
+            .to_rotation_matrix()
+            .unwrap();
         let y = m * nalgebra::Vector3::x();
         assert!((y - nalgebra::Vector3::y()).norm() < 1e-15);
     }
@@ -208,8 +215,8 @@ mod tests {
         // A rotation whose largest component is x, with w < 0 in the first convention.
         let q = Quaternion::new(-0.2, 0.9, 0.3, -0.1);
         let m = q.to_rotation_matrix().unwrap();
-        let a = Quaternion::from_rotation_matrix(&m, QuaternionSign::LargestComponentPositive)
-            .unwrap();
+        let a =
+            Quaternion::from_rotation_matrix(&m, QuaternionSign::LargestComponentPositive).unwrap();
         let b = Quaternion::from_rotation_matrix(&m, QuaternionSign::NonNegativeReal).unwrap();
         assert!(a.x > 0.0 && a.w < 0.0);
         assert!(b.w >= 0.0 && b.x < 0.0);
