@@ -4,7 +4,9 @@
 //! 1. `p*` = least-squares intersection of the optical axes: `Σ(I − d dᵀ) p = Σ(I − d dᵀ) C`.
 //! 2. Move the world origin to `p*` and divide by `dist_0 = |C_0 − p*|`, the distance of
 //!    **camera 0** (not a median).
-//! 3. Re-express everything in camera 0's frame: camera 0 becomes `R = I, t = 0`.
+//! 3. Re-express everything in camera 0's **PyTorch3D** view frame: camera 0 becomes `R = I,
+//!    T = 0` as a PyTorch3D camera, i.e. `R = diag(−1, −1, 1)`, `t = 0` as an OpenCV [`Camera`].
+//!    This is the frame the official training targets (pose encodings) live in.
 //!
 //! The three steps form one similarity transform of the world ([`Canonicalized`]), so the
 //! canonicalisation can be undone ([`Canonicalized::restore`]).
@@ -18,8 +20,9 @@
 use nalgebra::{Matrix3, Point3, Vector3};
 
 use crate::alignment::Sim3;
-use crate::camera::Camera;
+use crate::camera::{Camera, Pose};
 use crate::error::{GeometryError, Result};
+use crate::pytorch3d::axis_flip;
 
 /// Smallest eigenvalue of `Σ(I − d dᵀ)`, relative to the largest, below which the optical axes
 /// are taken as parallel.
@@ -80,7 +83,7 @@ pub fn optical_axis_intersection(cameras: &[Camera]) -> Result<OpticalAxisInters
 /// Cameras in the canonical frame and the similarity that took them there.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Canonicalized {
-    /// The cameras, camera 0 at the identity.
+    /// The cameras; camera 0 is the PyTorch3D identity (`R = diag(−1, −1, 1)`, `t = 0` here).
     pub cameras: Vec<Camera>,
     /// Maps original world points to canonical ones.
     pub canonical_from_world: Sim3,
@@ -94,10 +97,12 @@ impl Canonicalized {
     }
 }
 
-/// Step 3 on top of a first similarity: the frame of camera 0 after `first`.
+/// Step 3 on top of a first similarity: the PyTorch3D view frame of camera 0 after `first`.
 fn with_first_camera_frame(cameras: &[Camera], first: Sim3) -> Canonicalized {
     let cam0 = first.transform_camera(&cameras[0]);
-    let canonical_from_world = Sim3::from_pose(&cam0.cam_from_world).compose(&first);
+    let flip = Pose::new(axis_flip(), Vector3::zeros());
+    let pytorch3d_view_from_world = flip.compose(&cam0.cam_from_world);
+    let canonical_from_world = Sim3::from_pose(&pytorch3d_view_from_world).compose(&first);
     Canonicalized {
         cameras: cameras
             .iter()

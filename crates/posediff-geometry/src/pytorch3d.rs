@@ -22,8 +22,8 @@ use crate::camera::{Camera, ImageSize, Intrinsics, Pose};
 use crate::error::{Result, ensure_finite};
 
 /// `diag(−1, −1, 1)`: the flip between PyTorch3D's (+X left, +Y up) and OpenCV's (+x right,
-/// +y down) camera axes.
-fn axis_flip() -> Matrix3<f64> {
+/// +y down) camera axes; its own inverse. A PyTorch3D view-space point is `axis_flip() · x_cv`.
+pub fn axis_flip() -> Matrix3<f64> {
     Matrix3::from_diagonal(&Vector3::new(-1.0, -1.0, 1.0))
 }
 
