@@ -12,6 +12,8 @@
 
 use std::path::{Path, PathBuf};
 
+pub use serde_json;
+
 /// The workspace root (two levels above this crate).
 pub fn workspace_root() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")

@@ -141,3 +141,87 @@ pub fn absolute_rotation_errors_deg(gt: &[Camera], pred: &[Camera]) -> Result<Ve
         })
         .collect())
 }
+
+#[cfg(test)]
+mod tests {
+    use nalgebra::Matrix3;
+    use posediff_geometry::{ImageSize, Intrinsics, Pose, Quaternion, Sim3};
+
+    use super::*;
+
+    fn camera_at(center: Vector3<f64>) -> Camera {
+        // Identity rotation: t = −C.
+        Camera::new(
+            Intrinsics::new(100.0, 100.0, 50.0, 50.0).unwrap(),
+            Pose::new(Matrix3::identity(), -center),
+            ImageSize::new(100, 100).unwrap(),
+        )
+    }
+
+    fn ring() -> Vec<Camera> {
+        (0..6)
+            .map(|i| {
+                let a = f64::from(i) * 1.1;
+                camera_at(Vector3::new(a.cos(), a.sin(), 0.3 * f64::from(i % 2)))
+            })
+            .collect()
+    }
+
+    fn similarity() -> Sim3 {
+        Sim3 {
+            rotation: Quaternion::new(0.6, 0.3, -0.2, 0.7)
+                .to_rotation_matrix()
+                .unwrap(),
+            translation: Vector3::new(3.0, -1.0, 2.0),
+            scale: 0.37,
+        }
+    }
+
+    #[test]
+    fn a_similar_prediction_is_fully_accurate_and_an_outlier_is_not() {
+        let gt = ring();
+        let sim = similarity();
+        let mut pred: Vec<Option<Camera>> =
+            gt.iter().map(|c| Some(sim.transform_camera(c))).collect();
+        let acc = camera_center_accuracy(&gt, &pred, RELPOSE_CENTER_THRESHOLD).unwrap();
+        assert!((acc - 1.0).abs() < 1e-12);
+        // Move one predicted centre far away (in the prediction's frame) and drop another.
+        let far = sim.transform_point(&Point3::new(0.0, 0.0, 5.0));
+        pred[2] = Some(camera_at(far.coords));
+        pred[4] = None;
+        let acc = camera_center_accuracy(&gt, &pred, RELPOSE_CENTER_THRESHOLD).unwrap();
+        assert!(acc <= 4.0 / 6.0 + 1e-12, "{acc}");
+        assert!(acc < 1.0);
+    }
+
+    #[test]
+    fn collinear_centres_still_align() {
+        let gt: Vec<Camera> = (0..5)
+            .map(|i| camera_at(Vector3::new(0.0, 0.0, f64::from(i))))
+            .collect();
+        let sim = similarity();
+        let pred: Vec<Option<Camera>> = gt.iter().map(|c| Some(sim.transform_camera(c))).collect();
+        let acc = camera_center_accuracy(&gt, &pred, 0.01).unwrap();
+        assert!((acc - 1.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn invalid_inputs_are_errors() {
+        let gt = ring();
+        assert!(camera_center_accuracy(&gt, &[None], 0.1).is_err());
+        let same = vec![camera_at(Vector3::zeros()); 3];
+        assert!(camera_center_accuracy(&same, &[None, None, None], 0.1).is_err());
+        let none: Vec<Option<Camera>> = vec![None; gt.len()];
+        assert_eq!(camera_center_accuracy(&gt, &none, 0.1).unwrap(), 0.0);
+    }
+
+    #[test]
+    fn absolute_rotation_error_of_a_similar_prediction_is_zero() {
+        let gt = ring();
+        let sim = similarity();
+        let pred: Vec<Camera> = gt.iter().map(|c| sim.transform_camera(c)).collect();
+        for e in absolute_rotation_errors_deg(&gt, &pred).unwrap() {
+            assert!(e < 1e-5, "{e}");
+        }
+    }
+}

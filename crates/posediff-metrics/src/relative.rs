@@ -37,9 +37,16 @@ pub const FAILED_ROTATION_DEG: f64 = 180.0;
 /// Translation error charged to every pair of a camera the method did not estimate.
 pub const FAILED_TRANSLATION_DEG: f64 = 90.0;
 
-/// PyTorch3D `acos_linear_extrapolation(x, (−bound, bound))`.
+/// PyTorch3D `acos_linear_extrapolation(x, (−bound, bound))`:
+/// `(x − x0)·dacos(x0) + acos(x0)` beyond the bounds. The official code evaluates `x − x0` on a
+/// float32 tensor, so `x0` enters the difference rounded to float32 (`0.9999` becomes
+/// `0.99989998`), while `dacos(x0)` and `acos(x0)` are Python doubles. We do the same; it is what
+/// makes identical rotations come out at exactly 0.4050717° (in exact arithmetic: 0.405139°).
 fn acos_linear_extrapolation(x: f64, bound: f64) -> f64 {
-    let tangent_at = |x0: f64| (x - x0) * (-1.0 / (1.0 - x0 * x0).sqrt()) + x0.acos();
+    let tangent_at = |x0: f64| {
+        let x0_in_tensor = f64::from(x0 as f32);
+        (x - x0_in_tensor) * (-1.0 / (1.0 - x0 * x0).sqrt()) + x0.acos()
+    };
     if x >= bound {
         tangent_at(bound)
     } else if x <= -bound {
@@ -171,7 +178,7 @@ mod tests {
     #[test]
     fn identical_rotations_give_the_extrapolated_floor() {
         let e = rotation_angle_deg(&Matrix3::identity(), &Matrix3::identity()).unwrap();
-        assert!((e - 0.405_071_7).abs() < 1e-6, "{e}");
+        assert!((e - 0.405_071_7).abs() < 1e-7, "{e}");
     }
 
     #[test]
@@ -188,7 +195,9 @@ mod tests {
     #[test]
     fn translation_angle_is_sign_ambiguous() {
         let a = Vector3::new(1.0, 0.0, 0.0);
-        assert!(translation_angle_deg(&a, &(-2.0 * a)).unwrap() < 1e-6);
+        // The 1e-15 norm offset and clamp floor leave a few 1e-6° in float64 (the official
+        // float32 rounds them to 0; the reference tolerance is 1e-3°).
+        assert!(translation_angle_deg(&a, &(-2.0 * a)).unwrap() < 1e-5);
         let e = translation_angle_deg(&Vector3::y(), &Vector3::new(0.0, 1.0, 1.0)).unwrap();
         assert!((e - 45.0).abs() < 1e-9);
         let zero = translation_angle_deg(&Vector3::zeros(), &a).unwrap();
@@ -214,6 +223,6 @@ mod tests {
         assert_eq!(e.len(), 3);
         assert_eq!(e[0].rotation_deg, FAILED_ROTATION_DEG);
         assert_eq!(e[2].rotation_deg, FAILED_ROTATION_DEG);
-        assert!(e[1].rotation_deg < 1.0 && e[1].translation_deg < 1e-6);
+        assert!(e[1].rotation_deg < 1.0 && e[1].translation_deg < 1e-5);
     }
 }
