@@ -1,1 +1,226 @@
-fn main() {}
+//! Project automation for posediff: `cargo xtask <task>`.
+//!
+//! - `ci`: what CI runs (the README's test command): system set-up, fmt check, clippy with
+//!   warnings denied, nextest, doc tests, docs with warnings denied, the dependency invariants,
+//!   and a build of `posediff-geometry` alone. Everything builds in the one `ci` profile.
+//! - `setup`: only the system set-up (Debian packages for the OpenCV bindings, cargo-nextest).
+//! - `deps-check`: only the dependency invariants.
+//!
+//! xtask stays light (std + anyhow): it shells out to cargo for the heavy work.
+
+use std::process::Command;
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+
+/// Debian packages the OpenCV bindings need at build time (BUILD_NOTES.md).
+const APT_PACKAGES: [&str; 4] = ["libopencv-dev", "clang", "libclang-dev", "pkg-config"];
+
+/// Crates that must never appear in the normal dependency tree of the light crates.
+const HEAVY_CRATES: [&str; 6] = ["candle-core", "candle-nn", "opencv", "faer", "rayon", "tch"];
+
+/// Crates downstream users import alone: they must stay free of [`HEAVY_CRATES`].
+const LIGHT_CRATES: [&str; 2] = ["posediff-geometry", "posediff-metrics"];
+
+/// The one cargo profile CI builds.
+const CI_PROFILE: &str = "ci";
+
+fn main() -> Result<()> {
+    let task = std::env::args().nth(1).unwrap_or_default();
+    match task.as_str() {
+        "ci" => ci(),
+        "setup" => setup(),
+        "deps-check" => deps_check(),
+        _ => {
+            eprintln!("usage: cargo xtask <ci | setup | deps-check>");
+            bail!("unknown task {task:?}")
+        }
+    }
+}
+
+/// Runs `program args…` in the workspace root, echoing it and its duration.
+fn run(program: &str, args: &[&str], envs: &[(&str, &str)]) -> Result<()> {
+    eprintln!("\n==> {program} {}", args.join(" "));
+    let start = Instant::now();
+    let status = Command::new(program)
+        .args(args)
+        .envs(envs.iter().copied())
+        .current_dir(workspace_root())
+        .status()
+        .with_context(|| format!("cannot start {program}"))?;
+    eprintln!("<== {:.1} s", start.elapsed().as_secs_f64());
+    if !status.success() {
+        bail!("`{program} {}` failed with {status}", args.join(" "));
+    }
+    Ok(())
+}
+
+fn output(program: &str, args: &[&str]) -> Result<String> {
+    let out = Command::new(program)
+        .args(args)
+        .current_dir(workspace_root())
+        .output()
+        .with_context(|| format!("cannot start {program}"))?;
+    if !out.status.success() {
+        bail!(
+            "`{program} {}` failed: {}",
+            args.join(" "),
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+    Ok(String::from_utf8_lossy(&out.stdout).into_owned())
+}
+
+fn workspace_root() -> std::path::PathBuf {
+    std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
+}
+
+fn ci() -> Result<()> {
+    let start = Instant::now();
+    setup()?;
+    let profile = ["--profile", CI_PROFILE];
+    run("cargo", &["fmt", "--all", "--", "--check"], &[])?;
+    run(
+        "cargo",
+        &[
+            &["clippy", "--workspace", "--all-targets", "--all-features"],
+            &profile[..],
+            &["--", "-D", "warnings"],
+        ]
+        .concat(),
+        &[],
+    )?;
+    run(
+        "cargo",
+        &[
+            "nextest",
+            "run",
+            "--workspace",
+            "--all-features",
+            "--cargo-profile",
+            CI_PROFILE,
+            "--no-fail-fast",
+        ],
+        &[],
+    )?;
+    run(
+        "cargo",
+        &[
+            &["test", "--doc", "--workspace", "--all-features"],
+            &profile[..],
+        ]
+        .concat(),
+        &[],
+    )?;
+    run(
+        "cargo",
+        &[
+            &["doc", "--workspace", "--no-deps", "--all-features"],
+            &profile[..],
+        ]
+        .concat(),
+        &[("RUSTDOCFLAGS", "-D warnings")],
+    )?;
+    deps_check()?;
+    // The geometry crate alone, default features, as a downstream user builds it.
+    run(
+        "cargo",
+        &[&["build", "-p", "posediff-geometry"], &profile[..]].concat(),
+        &[],
+    )?;
+    eprintln!("\nci passed in {:.0} s", start.elapsed().as_secs_f64());
+    Ok(())
+}
+
+fn is_root() -> bool {
+    output("id", &["-u"]).is_ok_and(|s| s.trim() == "0")
+}
+
+/// Installs what the build needs on a fresh Debian machine, when it is missing.
+fn setup() -> Result<()> {
+    let missing: Vec<&str> = APT_PACKAGES
+        .iter()
+        .copied()
+        .filter(|p| {
+            !Command::new("dpkg-query")
+                .args(["-W", "-f=${Status}", p])
+                .output()
+                .is_ok_and(|o| String::from_utf8_lossy(&o.stdout).contains("install ok installed"))
+        })
+        .collect();
+    if missing.is_empty() {
+        eprintln!("system packages present: {}", APT_PACKAGES.join(", "));
+    } else if is_root() {
+        run("apt-get", &["update", "-qq"], &[])?;
+        run(
+            "apt-get",
+            &[
+                &["install", "-y", "-qq", "--no-install-recommends"],
+                &missing[..],
+            ]
+            .concat(),
+            &[("DEBIAN_FRONTEND", "noninteractive")],
+        )?;
+    } else {
+        bail!(
+            "missing Debian packages {}: run `sudo apt-get install -y --no-install-recommends {}`",
+            missing.join(", "),
+            missing.join(" ")
+        );
+    }
+    if output("cargo", &["nextest", "--version"]).is_err() {
+        run("cargo", &["install", "--locked", "cargo-nextest"], &[])?;
+    }
+    Ok(())
+}
+
+/// Fails if a light crate pulls in a heavy one.
+fn deps_check() -> Result<()> {
+    let mut bad = Vec::new();
+    for krate in LIGHT_CRATES {
+        let tree = output(
+            "cargo",
+            &[
+                "tree", "-p", krate, "-e", "normal", "--prefix", "none", "--format", "{p}",
+            ],
+        )?;
+        for line in tree.lines() {
+            let name = line.split_whitespace().next().unwrap_or_default();
+            if HEAVY_CRATES.contains(&name) {
+                bad.push(format!("{krate} depends on {name}"));
+            }
+        }
+        eprintln!(
+            "{krate}: {} crates in its normal dependency tree",
+            tree.lines().count()
+        );
+    }
+    // The metrics crate may use the geometry crate, and no other workspace crate.
+    let metrics = output(
+        "cargo",
+        &[
+            "tree",
+            "-p",
+            "posediff-metrics",
+            "-e",
+            "normal",
+            "--prefix",
+            "none",
+            "--depth",
+            "1",
+            "--format",
+            "{p}",
+        ],
+    )?;
+    for line in metrics.lines().skip(1) {
+        let name = line.split_whitespace().next().unwrap_or_default();
+        if name.starts_with("posediff") && name != "posediff-geometry" {
+            bad.push(format!("posediff-metrics depends on {name}"));
+        }
+    }
+    if !bad.is_empty() {
+        bail!("dependency invariants broken:\n  {}", bad.join("\n  "));
+    }
+    eprintln!("dependency invariants hold");
+    Ok(())
+}

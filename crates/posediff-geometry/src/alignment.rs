@@ -120,12 +120,16 @@ fn mean(points: &[Point3<f64>]) -> Vector3<f64> {
     points.iter().map(|p| p.coords).sum::<Vector3<f64>>() / points.len() as f64
 }
 
-/// Umeyama (1991) least-squares alignment `dst ≈ s R src + t`. Returns the rotation, the
-/// Umeyama scale and the means.
-fn umeyama_impl(
-    src: &[Point3<f64>],
-    dst: &[Point3<f64>],
-) -> Result<(Matrix3<f64>, f64, Vector3<f64>, Vector3<f64>)> {
+/// The parts of an Umeyama fit.
+struct UmeyamaFit {
+    rotation: Matrix3<f64>,
+    scale: f64,
+    mu_src: Vector3<f64>,
+    mu_dst: Vector3<f64>,
+}
+
+/// Umeyama (1991) least-squares alignment `dst ≈ s R src + t`.
+fn umeyama_impl(src: &[Point3<f64>], dst: &[Point3<f64>]) -> Result<UmeyamaFit> {
     check_pair(src, dst)?;
     let n = src.len() as f64;
     let mu_src = mean(src);
@@ -166,7 +170,12 @@ fn umeyama_impl(
     }
     let rotation = u * Matrix3::from_diagonal(&s) * v_t;
     let scale = d.dot(&s) / var_src;
-    Ok((rotation, scale, mu_src, mu_dst))
+    Ok(UmeyamaFit {
+        rotation,
+        scale,
+        mu_src,
+        mu_dst,
+    })
 }
 
 /// Rigid alignment (rotation + translation, no scale) with `dst ≈ R src + t`, by Umeyama's
@@ -175,10 +184,10 @@ fn umeyama_impl(
 /// # Errors
 /// Fewer than three points, different lengths, non-finite values, coincident or collinear points.
 pub fn umeyama(src: &[Point3<f64>], dst: &[Point3<f64>]) -> Result<Sim3> {
-    let (rotation, _, mu_src, mu_dst) = umeyama_impl(src, dst)?;
+    let fit = umeyama_impl(src, dst)?;
     Ok(Sim3 {
-        rotation,
-        translation: mu_dst - rotation * mu_src,
+        rotation: fit.rotation,
+        translation: fit.mu_dst - fit.rotation * fit.mu_src,
         scale: 1.0,
     })
 }
@@ -189,7 +198,12 @@ pub fn umeyama(src: &[Point3<f64>], dst: &[Point3<f64>]) -> Result<Sim3> {
 /// # Errors
 /// As [`umeyama`]; also a zero scale (all target points coincide).
 pub fn umeyama_with_scale(src: &[Point3<f64>], dst: &[Point3<f64>]) -> Result<Sim3> {
-    let (rotation, scale, mu_src, mu_dst) = umeyama_impl(src, dst)?;
+    let UmeyamaFit {
+        rotation,
+        scale,
+        mu_src,
+        mu_dst,
+    } = umeyama_impl(src, dst)?;
     if scale <= 0.0 || !scale.is_finite() {
         return Err(GeometryError::Degenerate {
             what: "Umeyama alignment",

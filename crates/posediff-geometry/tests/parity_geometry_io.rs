@@ -7,6 +7,9 @@
 //! rounding of the reference: ~1e-6 relative for single operations (README "~1e-6 relative"),
 //! scaled by the magnitude of what is compared.
 
+// Test helpers outside #[test] functions unwrap too: a failure is the test failing.
+#![allow(clippy::unwrap_used)]
+
 use nalgebra::{Matrix3, Point2, Vector2};
 use posediff_fixtures::{SafetensorsFixture, Tensor, assert_close, fixture_path};
 use posediff_geometry::{

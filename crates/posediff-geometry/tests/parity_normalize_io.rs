@@ -5,6 +5,9 @@
 //!
 //! The fixture is float32; values are compared at float32 precision scaled by their magnitude.
 
+// Test helpers outside #[test] functions unwrap too: a failure is the test failing.
+#![allow(clippy::unwrap_used)]
+
 use nalgebra::{Matrix3, Vector2, Vector3};
 use posediff_fixtures::{SafetensorsFixture, assert_close, fixture_path};
 use posediff_geometry::normalize::optical_axis_intersection;

@@ -1,5 +1,8 @@
 //! Property tests (seeded): round trips and invariants that must hold for any input.
 
+// Test helpers outside #[test] functions unwrap too: a failure is the test failing.
+#![allow(clippy::unwrap_used)]
+
 use nalgebra::{Matrix3, Point2, Point3, Vector2, Vector3};
 use posediff_geometry::{
     Camera, ImageSize, Intrinsics, Pose, PoseEncoding, Pytorch3dCamera, Quaternion, QuaternionSign,

@@ -3,6 +3,9 @@
 //! cameras, and hand-checkable correspondences (projections of points the cameras look at) have
 //! sub-pixel Sampson errors while a 1-px shift across the epipolar line does not.
 
+// Test helpers outside #[test] functions unwrap too: a failure is the test failing.
+#![allow(clippy::unwrap_used)]
+
 use nalgebra::{Point2, Vector2, Vector3};
 use posediff_fixtures::shared_path;
 use posediff_geometry::camera_json::CameraRecord;

@@ -5,6 +5,9 @@
 //! Tolerance: the README's "compare angles to ~1e-3 degrees (float32 acos near 0)"; the
 //! accuracies and mAA are compared exactly (they count pairs).
 
+// Test helpers outside #[test] functions unwrap too: a failure is the test failing.
+#![allow(clippy::unwrap_used)]
+
 use nalgebra::{Matrix3, Vector2, Vector3};
 use posediff_fixtures::serde_json;
 use posediff_fixtures::{assert_close, fixture_path, json_f64s, read_json};
