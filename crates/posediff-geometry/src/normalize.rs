@@ -28,6 +28,11 @@ use crate::pytorch3d::axis_flip;
 /// are taken as parallel.
 const PARALLEL_AXES_TOLERANCE: f64 = 1e-12;
 
+/// Distance of camera 0 to the intersection, relative to the largest camera distance, below
+/// which camera 0 is taken to sit on the intersection (the official code only rejects exact 0
+/// and would divide by rounding noise).
+const MIN_RELATIVE_SCALE: f64 = 1e-9;
+
 /// The least-squares intersection of the optical axes and each camera's distance to it.
 #[derive(Debug, Clone, PartialEq)]
 pub struct OpticalAxisIntersection {
@@ -119,7 +124,8 @@ fn with_first_camera_frame(cameras: &[Camera], first: Sim3) -> Canonicalized {
 pub fn canonicalize(cameras: &[Camera]) -> Result<Canonicalized> {
     let hit = optical_axis_intersection(cameras)?;
     let scale = hit.distances[0];
-    if scale <= 0.0 {
+    let largest = hit.distances.iter().copied().fold(0.0, f64::max);
+    if scale <= MIN_RELATIVE_SCALE * largest {
         return Err(GeometryError::Degenerate {
             what: "canonicalisation",
             reason: "camera 0 lies on the optical-axis intersection",
@@ -170,4 +176,79 @@ pub fn canonicalize_without_optical_axis(cameras: &[Camera]) -> Result<Canonical
         ..Sim3::identity()
     };
     Ok(with_first_camera_frame(cameras, shrink))
+}
+
+#[cfg(test)]
+mod tests {
+    use nalgebra::Point3;
+
+    use super::*;
+    use crate::camera::{ImageSize, Intrinsics};
+
+    /// A camera at `center` looking at `target` (OpenCV axes, y down roughly along −world z).
+    fn look_at(center: Point3<f64>, target: Point3<f64>) -> Camera {
+        let z = (target - center).normalize();
+        let x = z.cross(&Vector3::z()).normalize();
+        let y = z.cross(&x);
+        let r = Matrix3::from_rows(&[x.transpose(), y.transpose(), z.transpose()]);
+        Camera::new(
+            Intrinsics::new(200.0, 200.0, 100.0, 100.0).unwrap(),
+            Pose::new(r, -(r * center.coords)),
+            ImageSize::new(200, 200).unwrap(),
+        )
+    }
+
+    #[test]
+    fn cameras_looking_at_a_point_intersect_there() {
+        let target = Point3::new(0.5, -0.2, 0.1);
+        let cams: Vec<Camera> = [[4.0, 0.0, 1.0], [0.0, 3.0, 0.5], [-2.0, -2.0, 2.0]]
+            .iter()
+            .map(|c| look_at(Point3::new(c[0], c[1], c[2]), target))
+            .collect();
+        let hit = optical_axis_intersection(&cams).unwrap();
+        assert!((hit.point - target).norm() < 1e-12);
+        let canon = canonicalize(&cams).unwrap();
+        // Camera 0 at unit distance from the intersection, which is on its +z axis.
+        let c0 = &canon.cameras[0];
+        assert!(c0.center().coords.norm() < 1e-12);
+        let t = canon.canonical_from_world.transform_point(&target);
+        assert!((t.coords.norm() - 1.0).abs() < 1e-12);
+        assert!((c0.cam_from_world.transform_point(&t).coords - Vector3::z()).norm() < 1e-12);
+    }
+
+    #[test]
+    fn degenerate_configurations_are_errors() {
+        let target = Point3::new(0.0, 0.0, 0.0);
+        let one = [look_at(Point3::new(3.0, 0.0, 0.0), target)];
+        assert!(matches!(
+            optical_axis_intersection(&one),
+            Err(GeometryError::TooFew { .. })
+        ));
+        // Parallel optical axes: translated copies of one camera.
+        let a = look_at(Point3::new(3.0, 0.0, 0.0), target);
+        let mut b = a;
+        b.cam_from_world.translation += Vector3::new(0.5, 0.0, 0.0);
+        assert!(matches!(
+            optical_axis_intersection(&[a, b]),
+            Err(GeometryError::Degenerate { .. })
+        ));
+        // Camera 0 sits on the intersection of the others' axes and its own.
+        let cams = [
+            look_at(Point3::new(0.0, 0.0, 0.0), Point3::new(1.0, 0.0, 0.0)),
+            look_at(Point3::new(0.0, 3.0, 0.0), Point3::new(0.0, 0.0, 0.0)),
+            look_at(Point3::new(0.0, -3.0, 1.0), Point3::new(0.0, 0.0, 0.0)),
+        ];
+        assert!(matches!(
+            canonicalize(&cams),
+            Err(GeometryError::Degenerate { .. })
+        ));
+        let zero = [Camera {
+            cam_from_world: Pose::identity(),
+            ..a
+        }];
+        assert!(matches!(
+            canonicalize_without_optical_axis(&zero),
+            Err(GeometryError::Degenerate { .. })
+        ));
+    }
 }

@@ -175,8 +175,8 @@ proptest! {
     }
 
     #[test]
-    fn fundamental_matrix_is_asymmetric(c1 in camera(), c2 in camera(), x in vector(0.5)) {
-        // x2ᵀ F x1 = 0 for the projections, and the transposed F does not hold in general.
+    fn fundamental_matrix_has_rank_two_and_vanishes_on_projections(c1 in camera(), c2 in camera(), x in vector(0.5)) {
+        // x2ᵀ F x1 = 0 for the projections of any point (asymmetry: see the test below).
         let x = Point3::from(x);
         let (Some(p1), Some(p2)) = (c1.project(&x), c2.project(&x)) else { return Ok(()) };
         let f = fundamental_from_cameras(&c1, &c2);
