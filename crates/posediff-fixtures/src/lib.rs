@@ -186,6 +186,19 @@ pub fn json_f64s(value: &serde_json::Value) -> Vec<f64> {
     }
 }
 
+/// Concatenates fixed-size rows (vectors, encodings) into one row-major list.
+pub fn flat<const N: usize>(rows: impl IntoIterator<Item = [f64; N]>) -> Vec<f64> {
+    rows.into_iter().flatten().collect()
+}
+
+/// The mean of some values (NaN for none).
+pub fn mean(values: impl IntoIterator<Item = f64>) -> f64 {
+    let (sum, n) = values
+        .into_iter()
+        .fold((0.0, 0usize), |(s, n), v| (s + v, n + 1));
+    sum / n as f64
+}
+
 /// The worst element-wise error of `actual` against `expected` under `|a − e| ≤ atol + rtol·|e|`.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct WorstError {

@@ -11,7 +11,7 @@
 #![allow(clippy::unwrap_used)]
 
 use nalgebra::{Matrix3, Point2, Vector2};
-use posediff_fixtures::{SafetensorsFixture, Tensor, assert_close, fixture_path};
+use posediff_fixtures::{SafetensorsFixture, Tensor, assert_close, fixture_path, flat, mean};
 use posediff_geometry::{
     Camera, ImageSize, PoseEncoding, Pytorch3dCamera, QuaternionSign, fundamental_from_cameras,
     fundamental_official, sampson_error,
@@ -65,12 +65,9 @@ fn decode_matches_official_pose_encoding_to_camera() {
         1e-6,
         0.0,
     );
-    let t: Vec<f64> = cams.iter().flat_map(|c| c.t.iter().copied()).collect();
+    let t = flat(cams.iter().map(|c| c.t.into()));
     assert_close("T", &t, &fx.tensor("T").data, 0.0, 0.0);
-    let f: Vec<f64> = cams
-        .iter()
-        .flat_map(|c| c.intrinsics.focal.iter().copied())
-        .collect();
+    let f = flat(cams.iter().map(|c| c.intrinsics.focal.into()));
     let expected = fx.tensor("focal_length");
     assert_close("focal_length", &f, &expected.data, 0.0, 1e-6);
     // Cameras 4 and 5 are clamped to the focal range.
@@ -89,10 +86,7 @@ fn decode_matches_official_pose_encoding_to_camera() {
         0.0,
     );
     let centers = fx.tensor("camera_centers");
-    let c: Vec<f64> = cams
-        .iter()
-        .flat_map(|c| c.camera_center().iter().copied().collect::<Vec<_>>())
-        .collect();
+    let c = flat(cams.iter().map(|c| c.camera_center().into()));
     assert_close(
         "camera_centers",
         &c,
@@ -106,14 +100,11 @@ fn decode_matches_official_pose_encoding_to_camera() {
 fn encode_matches_official_camera_to_pose_encoding_both_sign_conventions() {
     let fx = fixture();
     let cams = decoded(&fx);
-    let v074: Vec<f64> = cams
-        .iter()
-        .flat_map(|c| {
-            PoseEncoding::encode(c, QuaternionSign::LargestComponentPositive)
-                .unwrap()
-                .0
-        })
-        .collect();
+    let v074 = flat(cams.iter().map(|c| {
+        PoseEncoding::encode(c, QuaternionSign::LargestComponentPositive)
+            .unwrap()
+            .0
+    }));
     assert_close(
         "roundtrip_encoding_pt3d_v074",
         &v074,
@@ -121,15 +112,12 @@ fn encode_matches_official_camera_to_pose_encoding_both_sign_conventions() {
         2e-6,
         0.0,
     );
-    let std: Vec<f64> = cams
-        .iter()
-        .flat_map(|c| {
-            PoseEncoding::encode(c, QuaternionSign::NonNegativeReal)
-                .unwrap()
-                .quaternion()
-                .to_wxyz()
-        })
-        .collect();
+    let std = flat(cams.iter().map(|c| {
+        PoseEncoding::encode(c, QuaternionSign::NonNegativeReal)
+            .unwrap()
+            .quaternion()
+            .to_wxyz()
+    }));
     assert_close(
         "roundtrip_quat_standardized",
         &std,
@@ -161,16 +149,7 @@ fn check_opencv(fx: &SafetensorsFixture, size: ImageSize, suffix: &str) {
         1e-6,
         0.0,
     );
-    let t: Vec<f64> = cams
-        .iter()
-        .flat_map(|c| {
-            c.cam_from_world
-                .translation
-                .iter()
-                .copied()
-                .collect::<Vec<_>>()
-        })
-        .collect();
+    let t = flat(cams.iter().map(|c| c.cam_from_world.translation.into()));
     assert_close(
         &format!("opencv_t_{suffix}"),
         &t,
@@ -392,42 +371,42 @@ fn sampson_errors_match_official_compute_sampson_distance() {
     );
     // Means: each value may be off by (√s + b)² − s = 2√s·b + b².
     let value_bound = |s: f64, b: f64| 2.0 * s.sqrt() * b + b * b;
-    let clamped = ours.iter().map(|s| s.min(10.0)).sum::<f64>() / ours.len() as f64;
-    let clamped_bound = ours
-        .iter()
-        .zip(&bounds)
-        .map(|(s, b)| value_bound(s.min(10.0), *b))
-        .sum::<f64>()
-        / ours.len() as f64;
-    assert_close(
-        "sampson_print_clamped_mean",
-        &[clamped],
-        &fx.tensor("sampson_print_clamped_mean").data,
-        clamped_bound,
-        0.0,
+    let clamped = mean(ours.iter().map(|s| s.min(10.0)));
+    let clamped_bound = mean(
+        ours.iter()
+            .zip(&bounds)
+            .map(|(s, b)| value_bound(s.min(10.0), *b)),
     );
-    let loss = valid.iter().sum::<f64>() / valid.len() as f64;
-    let loss_bound = valid
-        .iter()
-        .zip(&valid_bounds)
-        .map(|(s, b)| value_bound(*s, *b))
-        .sum::<f64>()
-        / valid.len() as f64;
-    assert_close(
-        "loss_all",
-        &[loss],
-        &fx.tensor("loss_all").data,
-        loss_bound,
-        0.0,
+    let loss = mean(valid.iter().copied());
+    let loss_bound = mean(
+        valid
+            .iter()
+            .zip(&valid_bounds)
+            .map(|(s, b)| value_bound(*s, *b)),
     );
+    for (name, ours, bound) in [
+        ("sampson_print_clamped_mean", clamped, clamped_bound),
+        ("loss_all", loss, loss_bound),
+    ] {
+        assert_close(name, &[ours], &fx.tensor(name).data, bound, 0.0);
+    }
 }
 
-fn count_outside_bounds(ours: &[f64], bounds: &[f64], expected: &[f64]) -> usize {
-    ours.iter()
+/// Asserts that most Sampson errors of a deliberately wrong computation fall outside the
+/// parity bounds: the parity check would catch that mistake.
+#[track_caller]
+fn assert_parity_would_fail(wrong: &[f64], bounds: &[f64], expected: &[f64]) {
+    let off = wrong
+        .iter()
         .zip(bounds)
         .zip(expected)
         .filter(|((s, b), e)| (s.sqrt() - e.sqrt()).abs() > **b)
-        .count()
+        .count();
+    assert!(
+        off > expected.len() / 2,
+        "only {off} of {} differ",
+        expected.len()
+    );
 }
 
 #[test]
@@ -435,12 +414,7 @@ fn a_transposed_fundamental_matrix_would_fail_the_parity_check() {
     let fx = fixture();
     let (wrong, bounds) = sampson_all(&fx, true);
     let expected = fx.tensor("sampson_all").data;
-    let off = count_outside_bounds(&wrong, &bounds, &expected);
-    assert!(
-        off > expected.len() / 2,
-        "only {off} of {} differ",
-        expected.len()
-    );
+    assert_parity_would_fail(&wrong, &bounds, &expected);
 }
 
 #[test]
@@ -469,10 +443,5 @@ fn flipped_pytorch3d_signs_would_fail_the_parity_check() {
         })
         .collect();
     let expected = fx.tensor("sampson_all").data;
-    let off = count_outside_bounds(&wrong, &bounds, &expected);
-    assert!(
-        off > expected.len() / 2,
-        "only {off} of {} differ",
-        expected.len()
-    );
+    assert_parity_would_fail(&wrong, &bounds, &expected);
 }

@@ -9,7 +9,7 @@
 #![allow(clippy::unwrap_used)]
 
 use nalgebra::{Matrix3, Vector2, Vector3};
-use posediff_fixtures::{SafetensorsFixture, assert_close, fixture_path};
+use posediff_fixtures::{SafetensorsFixture, assert_close, fixture_path, flat};
 use posediff_geometry::normalize::optical_axis_intersection;
 use posediff_geometry::pytorch3d::CropBox;
 use posediff_geometry::{
@@ -71,20 +71,8 @@ fn opencv(cams: &[Pytorch3dCamera]) -> Vec<Camera> {
 fn crop_and_resize_of_ndc_intrinsics_match_the_official_loader() {
     let fx = fixture();
     let cams = cropped_cameras(&fx);
-    let f: Vec<f64> = cams
-        .iter()
-        .flat_map(|c| c.intrinsics.focal.iter().copied().collect::<Vec<_>>())
-        .collect();
-    let p: Vec<f64> = cams
-        .iter()
-        .flat_map(|c| {
-            c.intrinsics
-                .principal_point
-                .iter()
-                .copied()
-                .collect::<Vec<_>>()
-        })
-        .collect();
+    let f = flat(cams.iter().map(|c| c.intrinsics.focal.into()));
+    let p = flat(cams.iter().map(|c| c.intrinsics.principal_point.into()));
     assert_close(
         "focal_after_crop_resize",
         &f,
@@ -132,9 +120,10 @@ fn check_canonical(
         .iter()
         .map(Pytorch3dCamera::from_opencv)
         .collect();
+    // Row-major: nalgebra stores columns, so the transpose's storage is R's rows.
     let r: Vec<f64> = back
         .iter()
-        .flat_map(|c| c.r.transpose().iter().copied().collect::<Vec<_>>())
+        .flat_map(|c| c.r.transpose().as_slice().to_vec())
         .collect();
     assert_close(
         &format!("{prefix}_R"),
@@ -143,10 +132,7 @@ fn check_canonical(
         2e-6,
         0.0,
     );
-    let t: Vec<f64> = back
-        .iter()
-        .flat_map(|c| c.t.iter().copied().collect::<Vec<_>>())
-        .collect();
+    let t = flat(back.iter().map(|c| c.t.into()));
     assert_close(
         &format!("{prefix}_T"),
         &t,
@@ -185,30 +171,15 @@ fn canonicalisation_matches_official_normalize_cameras() {
         .iter()
         .map(Pytorch3dCamera::from_opencv)
         .collect();
-    let f: Vec<f64> = back
-        .iter()
-        .flat_map(|c| c.intrinsics.focal.iter().copied().collect::<Vec<_>>())
-        .collect();
+    let f = flat(back.iter().map(|c| c.intrinsics.focal.into()));
     assert_close("norm_focal", &f, &fx.tensor("norm_focal").data, 0.0, 1e-6);
-    let p: Vec<f64> = back
-        .iter()
-        .flat_map(|c| {
-            c.intrinsics
-                .principal_point
-                .iter()
-                .copied()
-                .collect::<Vec<_>>()
-        })
-        .collect();
+    let p = flat(back.iter().map(|c| c.intrinsics.principal_point.into()));
     assert_close("norm_pp", &p, &fx.tensor("norm_pp").data, 1e-6, 0.0);
-    let enc: Vec<f64> = back
-        .iter()
-        .flat_map(|c| {
-            PoseEncoding::encode(c, QuaternionSign::LargestComponentPositive)
-                .unwrap()
-                .0
-        })
-        .collect();
+    let enc = flat(back.iter().map(|c| {
+        PoseEncoding::encode(c, QuaternionSign::LargestComponentPositive)
+            .unwrap()
+            .0
+    }));
     assert_close(
         "norm_pose_encoding",
         &enc,
