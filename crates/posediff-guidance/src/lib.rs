@@ -1,0 +1,19 @@
+//! Geometry-guided sampling (GGS) for PoseDiffusion: the official five-phase SGD on the mean
+//! Sampson error of keypoint matches, with analytic gradients in plain Rust.
+//!
+//! - [`MatchSet`]: matches grouped by ordered frame pair, structure of arrays.
+//! - [`SampsonObjective`]: loss and gradient with respect to the 9-D pose encodings.
+//! - [`GgsSolver`] / [`geometry_guided_sampling`]: the official schedule ([`GgsConfig`]'s
+//!   `Default` is the official configuration).
+#![deny(missing_docs)]
+#![forbid(unsafe_code)]
+
+pub mod error;
+pub mod ggs;
+pub mod matches;
+pub mod sampson;
+
+pub use error::{GuidanceError, Result};
+pub use ggs::{GgsConfig, GgsReport, GgsSolver, IterationRecord, geometry_guided_sampling};
+pub use matches::{MatchSet, PairGroup};
+pub use sampson::{Evaluation, SampsonObjective, UpdateMask};
