@@ -86,7 +86,7 @@ impl GgsConfig {
                 reason: "alpha must be non-negative and finite",
             });
         }
-        if !(self.min_matches >= 0.0) {
+        if self.min_matches.is_nan() || self.min_matches < 0.0 {
             return Err(GuidanceError::InvalidConfig {
                 reason: "min_matches must be non-negative",
             });

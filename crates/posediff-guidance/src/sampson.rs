@@ -150,7 +150,8 @@ fn pair_sums(f: &[f64; 9], u1: &[f64], v1: &[f64], u2: &[f64], v2: &[f64], max: 
         let s = e * e / d;
         out.print += s.min(PRINT_CLAMP_PX2);
         // `s < max` is false for NaN (d = 0): such matches are dropped, as officially.
-        if !(s < max) {
+        let valid = s < max;
+        if !valid {
             continue;
         }
         out.loss += s;
@@ -243,7 +244,7 @@ impl<'m> SampsonObjective<'m> {
     /// # Errors
     /// A non-positive or NaN `sampson_max`.
     pub fn new(matches: &'m MatchSet, image_size: ImageSize, sampson_max: f64) -> Result<Self> {
-        if !(sampson_max > 0.0) {
+        if sampson_max.is_nan() || sampson_max <= 0.0 {
             return Err(GuidanceError::InvalidConfig {
                 reason: "sampson_max must be positive",
             });
