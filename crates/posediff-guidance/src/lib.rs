@@ -6,12 +6,14 @@
 //! - [`GgsSolver`] / [`geometry_guided_sampling`]: the official schedule ([`GgsConfig`]'s
 //!   `Default` is the official configuration).
 #![deny(missing_docs)]
-#![forbid(unsafe_code)]
+// Unsafe only for runtime SIMD dispatch (`sampson::pair_sums`), with the check beside it.
+#![deny(unsafe_code)]
 
 pub mod error;
 pub mod ggs;
 pub mod matches;
 pub mod sampson;
+pub mod synthetic;
 
 pub use error::{GuidanceError, Result};
 pub use ggs::{GgsConfig, GgsReport, GgsSolver, IterationRecord, geometry_guided_sampling};

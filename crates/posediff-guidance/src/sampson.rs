@@ -140,42 +140,129 @@ fn match_terms(f: &[f64; 9], u1: f64, v1: f64, u2: f64, v2: f64) -> (f64, f64, f
     (e, d, l2x, l2y, l1x, l1y)
 }
 
-/// Sums the Sampson errors of one pair's matches and their gradient with respect to `F`.
-fn pair_sums(f: &[f64; 9], u1: &[f64], v1: &[f64], u2: &[f64], v2: &[f64], max: f64) -> PairSums {
-    let mut out = PairSums::default();
-    let g = &mut out.grad_f;
-    for k in 0..u1.len() {
-        let (a1, b1, a2, b2) = (u1[k], v1[k], u2[k], v2[k]);
-        let (e, d, l2x, l2y, l1x, l1y) = match_terms(f, a1, b1, a2, b2);
-        let s = e * e / d;
-        out.print += s.min(PRINT_CLAMP_PX2);
-        // `s < max` is false for NaN (d = 0): such matches are dropped, as officially.
-        let valid = s < max;
-        if !valid {
-            continue;
+/// Lane accumulators of [`pair_sums`]: one partial sum per SIMD lane, so that the loop has
+/// no loop-carried dependency on a single register and vectorises without reassociation.
+struct Lanes<const L: usize> {
+    loss: [f64; L],
+    n_valid: [f64; L],
+    print: [f64; L],
+    grad_f: [[f64; L]; 9],
+}
+
+impl<const L: usize> Lanes<L> {
+    fn new() -> Self {
+        Self {
+            loss: [0.0; L],
+            n_valid: [0.0; L],
+            print: [0.0; L],
+            grad_f: [[0.0; L]; 9],
         }
-        out.loss += s;
-        out.n_valid += 1;
-        // ∂s/∂F_ij = a x2_i x1_j + b (l2_i x1_j [i<2] + x2_i l1_j [j<2]),
-        // a = 2e/d, b = −2e²/d² = −2s/d.
-        let inv_d = 1.0 / d;
-        let a = 2.0 * e * inv_d;
-        let b = -2.0 * s * inv_d;
-        let c0 = a * a2 + b * l2x;
-        let c1 = a * b2 + b * l2y;
-        let c2 = a;
-        let (p0, p1) = (b * l1x, b * l1y);
-        g[0] += c0 * a1 + a2 * p0;
-        g[1] += c0 * b1 + a2 * p1;
-        g[2] += c0;
-        g[3] += c1 * a1 + b2 * p0;
-        g[4] += c1 * b1 + b2 * p1;
-        g[5] += c1;
-        g[6] += c2 * a1 + p0;
-        g[7] += c2 * b1 + p1;
-        g[8] += c2;
     }
+
+    /// Adds `L` matches, branch-free.
+    #[inline(always)]
+    fn add(&mut self, f: &[f64; 9], m: (&[f64; L], &[f64; L], &[f64; L], &[f64; L]), max: f64) {
+        let (u1, v1, u2, v2) = m;
+        for l in 0..L {
+            let (a1, b1, a2, b2) = (u1[l], v1[l], u2[l], v2[l]);
+            let (e, d, l2x, l2y, l1x, l1y) = match_terms(f, a1, b1, a2, b2);
+            let inv_d = 1.0 / d;
+            let s = e * e * inv_d;
+            self.print[l] += s.min(PRINT_CLAMP_PX2);
+            // `s < max` is false for NaN (d = 0): such matches are dropped, as officially.
+            let valid = s < max;
+            self.loss[l] += if valid { s } else { 0.0 };
+            self.n_valid[l] += if valid { 1.0 } else { 0.0 };
+            // ∂s/∂F_ij = a x2_i x1_j + b (l2_i x1_j [i<2] + x2_i l1_j [j<2]),
+            // a = 2e/d, b = −2e²/d² = −2s/d.
+            let a = if valid { 2.0 * e * inv_d } else { 0.0 };
+            let b = if valid { -2.0 * s * inv_d } else { 0.0 };
+            let c0 = a * a2 + b * l2x;
+            let c1 = a * b2 + b * l2y;
+            let (p0, p1) = (b * l1x, b * l1y);
+            let g = &mut self.grad_f;
+            g[0][l] += c0 * a1 + a2 * p0;
+            g[1][l] += c0 * b1 + a2 * p1;
+            g[2][l] += c0;
+            g[3][l] += c1 * a1 + b2 * p0;
+            g[4][l] += c1 * b1 + b2 * p1;
+            g[5][l] += c1;
+            g[6][l] += a * a1 + p0;
+            g[7][l] += a * b1 + p1;
+            g[8][l] += a;
+        }
+    }
+
+    fn reduce_into(&self, out: &mut PairSums) {
+        for l in 0..L {
+            out.loss += self.loss[l];
+            out.n_valid += self.n_valid[l] as usize;
+            out.print += self.print[l];
+            for (o, g) in out.grad_f.iter_mut().zip(&self.grad_f) {
+                *o += g[l];
+            }
+        }
+    }
+}
+
+/// SIMD width the kernel is written for (4 × f64 = one AVX2 register).
+const LANES: usize = 8;
+
+/// Sums the Sampson errors of one pair's matches and their gradient with respect to `F`.
+#[inline(always)]
+fn pair_sums_generic(f: &[f64; 9], m: (&[f64], &[f64], &[f64], &[f64]), max: f64) -> PairSums {
+    let (u1, u1_tail) = m.0.as_chunks::<LANES>();
+    let (v1, v1_tail) = m.1.as_chunks::<LANES>();
+    let (u2, u2_tail) = m.2.as_chunks::<LANES>();
+    let (v2, v2_tail) = m.3.as_chunks::<LANES>();
+    let mut lanes = Lanes::<LANES>::new();
+    for (((a1, b1), a2), b2) in u1.iter().zip(v1).zip(u2).zip(v2) {
+        lanes.add(f, (a1, b1, a2, b2), max);
+    }
+    let mut tail = Lanes::<1>::new();
+    for (((a1, b1), a2), b2) in u1_tail.iter().zip(v1_tail).zip(u2_tail).zip(v2_tail) {
+        tail.add(f, (&[*a1], &[*b1], &[*a2], &[*b2]), max);
+    }
+    let mut out = PairSums::default();
+    lanes.reduce_into(&mut out);
+    tail.reduce_into(&mut out);
     out
+}
+
+/// [`pair_sums_generic`] compiled for AVX2 + FMA.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+fn pair_sums_avx2(f: &[f64; 9], m: (&[f64], &[f64], &[f64], &[f64]), max: f64) -> PairSums {
+    pair_sums_generic(f, m, max)
+}
+
+/// [`pair_sums_generic`] compiled for AVX-512 (8 × f64 per register).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512vl,avx512dq,avx2,fma")]
+fn pair_sums_avx512(f: &[f64; 9], m: (&[f64], &[f64], &[f64], &[f64]), max: f64) -> PairSums {
+    pair_sums_generic(f, m, max)
+}
+
+/// Sums the Sampson errors of one pair's matches and their gradient with respect to `F`,
+/// with the widest instruction set the CPU has.
+#[allow(unsafe_code)]
+fn pair_sums(f: &[f64; 9], m: (&[f64], &[f64], &[f64], &[f64]), max: f64) -> PairSums {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx512f")
+        && std::arch::is_x86_feature_detected!("avx512vl")
+        && std::arch::is_x86_feature_detected!("avx512dq")
+        && std::arch::is_x86_feature_detected!("fma")
+    {
+        // SAFETY: `pair_sums_avx512` requires exactly the features detected here.
+        return unsafe { pair_sums_avx512(f, m, max) };
+    }
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+        // SAFETY: `pair_sums_avx2` only requires AVX2 and FMA, which were just detected on
+        // this CPU. This is the crate's only unsafe code: runtime SIMD dispatch.
+        return unsafe { pair_sums_avx2(f, m, max) };
+    }
+    pair_sums_generic(f, m, max)
 }
 
 fn row_major(m: &Matrix3<f64>) -> [f64; 9] {
@@ -359,10 +446,7 @@ impl<'m> SampsonObjective<'m> {
             let r = g.start..g.end;
             *out = pair_sums(
                 &row_major(f),
-                &m.u1[r.clone()],
-                &m.v1[r.clone()],
-                &m.u2[r.clone()],
-                &m.v2[r],
+                (&m.u1[r.clone()], &m.v1[r.clone()], &m.u2[r.clone()], &m.v2[r]),
                 max,
             );
         };

@@ -147,8 +147,8 @@ fn finite_difference_check(enc: &[PoseEncoding], m: &MatchSet, mask: UpdateMask,
     let mut grad = vec![[0.0; 9]; enc.len()];
     obj.gradient(mask, &mut grad).unwrap();
     let h = 1e-6;
-    for i in 0..enc.len() {
-        for c in 0..9 {
+    for (i, row) in grad.iter().enumerate() {
+        for (c, &g) in row.iter().enumerate() {
             let active = match c {
                 0..=2 => mask.translation,
                 3..=6 => mask.rotation,
@@ -167,7 +167,6 @@ fn finite_difference_check(enc: &[PoseEncoding], m: &MatchSet, mask: UpdateMask,
             } else {
                 0.0
             };
-            let g = grad[i][c];
             assert!(
                 (g - fd).abs() <= 1e-5 * (1.0 + fd.abs()),
                 "frame {i} entry {c} ({mask:?}): analytic {g}, finite difference {fd}"
