@@ -16,11 +16,27 @@ use anyhow::{Context, Result, bail};
 /// Debian packages the OpenCV bindings need at build time (BUILD_NOTES.md).
 const APT_PACKAGES: [&str; 4] = ["libopencv-dev", "clang", "libclang-dev", "pkg-config"];
 
-/// Crates that must never appear in the normal dependency tree of the light crates.
+/// Heavy back ends the light crates must never pull in (ARCHITECTURE.md, invariants).
 const HEAVY_CRATES: [&str; 6] = ["candle-core", "candle-nn", "opencv", "faer", "rayon", "tch"];
 
-/// Crates downstream users import alone: they must stay free of [`HEAVY_CRATES`].
-const LIGHT_CRATES: [&str; 2] = ["posediff-geometry", "posediff-metrics"];
+/// Per crate: the crates that must not appear in its normal dependency tree. Downstream users
+/// import the geometry and metrics crates alone; guidance may use rayon (and faer), never the
+/// tensor or image back ends.
+const FORBIDDEN: [(&str, &[&str]); 3] = [
+    ("posediff-geometry", &HEAVY_CRATES),
+    ("posediff-metrics", &HEAVY_CRATES),
+    (
+        "posediff-guidance",
+        &["candle-core", "candle-nn", "opencv", "tch"],
+    ),
+];
+
+/// Per crate: the workspace crates it may depend on.
+const ALLOWED_WORKSPACE_DEPS: [(&str, &[&str]); 3] = [
+    ("posediff-geometry", &[]),
+    ("posediff-metrics", &["posediff-geometry"]),
+    ("posediff-guidance", &["posediff-geometry"]),
+];
 
 /// The one cargo profile CI builds.
 const CI_PROFILE: &str = "ci";
@@ -174,10 +190,10 @@ fn setup() -> Result<()> {
     Ok(())
 }
 
-/// Fails if a light crate pulls in a heavy one.
+/// Fails if a crate pulls in a back end or a workspace crate it must not use.
 fn deps_check() -> Result<()> {
     let mut bad = Vec::new();
-    for krate in LIGHT_CRATES {
+    for (krate, forbidden) in FORBIDDEN {
         let tree = output(
             "cargo",
             &[
@@ -186,7 +202,7 @@ fn deps_check() -> Result<()> {
         )?;
         for line in tree.lines() {
             let name = line.split_whitespace().next().unwrap_or_default();
-            if HEAVY_CRATES.contains(&name) {
+            if forbidden.contains(&name) {
                 bad.push(format!("{krate} depends on {name}"));
             }
         }
@@ -195,27 +211,19 @@ fn deps_check() -> Result<()> {
             tree.lines().count()
         );
     }
-    // The metrics crate may use the geometry crate, and no other workspace crate.
-    let metrics = output(
-        "cargo",
-        &[
-            "tree",
-            "-p",
-            "posediff-metrics",
-            "-e",
-            "normal",
-            "--prefix",
-            "none",
-            "--depth",
-            "1",
-            "--format",
-            "{p}",
-        ],
-    )?;
-    for line in metrics.lines().skip(1) {
-        let name = line.split_whitespace().next().unwrap_or_default();
-        if name.starts_with("posediff") && name != "posediff-geometry" {
-            bad.push(format!("posediff-metrics depends on {name}"));
+    for (krate, allowed) in ALLOWED_WORKSPACE_DEPS {
+        let direct = output(
+            "cargo",
+            &[
+                "tree", "-p", krate, "-e", "normal", "--prefix", "none", "--depth", "1",
+                "--format", "{p}",
+            ],
+        )?;
+        for line in direct.lines().skip(1) {
+            let name = line.split_whitespace().next().unwrap_or_default();
+            if name.starts_with("posediff") && !allowed.contains(&name) {
+                bad.push(format!("{krate} depends on {name}"));
+            }
         }
     }
     if !bad.is_empty() {

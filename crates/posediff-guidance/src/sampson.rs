@@ -446,7 +446,12 @@ impl<'m> SampsonObjective<'m> {
             let r = g.start..g.end;
             *out = pair_sums(
                 &row_major(f),
-                (&m.u1[r.clone()], &m.v1[r.clone()], &m.u2[r.clone()], &m.v2[r]),
+                (
+                    &m.u1[r.clone()],
+                    &m.v1[r.clone()],
+                    &m.u2[r.clone()],
+                    &m.v2[r],
+                ),
                 max,
             );
         };

@@ -96,8 +96,14 @@ pub fn ring_problem(
                 let (Some(a), Some(b)) = (cameras[i].project(&x), cameras[j].project(&x)) else {
                     continue;
                 };
-                kp1.push([a.x + pixel_noise * rng.normal(), a.y + pixel_noise * rng.normal()]);
-                kp2.push([b.x + pixel_noise * rng.normal(), b.y + pixel_noise * rng.normal()]);
+                kp1.push([
+                    a.x + pixel_noise * rng.normal(),
+                    a.y + pixel_noise * rng.normal(),
+                ]);
+                kp2.push([
+                    b.x + pixel_noise * rng.normal(),
+                    b.y + pixel_noise * rng.normal(),
+                ]);
                 frames.push((i, j));
                 made += 1;
             }
