@@ -1,0 +1,48 @@
+//! The error type of the diffusion crate.
+
+use std::path::PathBuf;
+
+/// Everything that can go wrong in `posediff-diffusion`.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum DiffusionError {
+    /// A checkpoint file could not be read.
+    #[error("cannot read checkpoint {path}: {source}")]
+    CheckpointRead {
+        /// The file.
+        path: PathBuf,
+        /// What the reader said.
+        source: candle_core::Error,
+    },
+    /// The file is neither a PyTorch zip checkpoint nor safetensors.
+    #[error("{path} is neither a PyTorch (.pth, zip) nor a safetensors checkpoint")]
+    UnknownFormat {
+        /// The file.
+        path: PathBuf,
+    },
+    /// The checkpoint's keys do not describe a PoseDiffusion model.
+    #[error("checkpoint does not match the PoseDiffusion layout:\n{}", .problems.join("\n"))]
+    CheckpointLayout {
+        /// Every missing, unexpected or mis-shaped key, one per line.
+        problems: Vec<String>,
+    },
+    /// Inputs with the wrong shape.
+    #[error("{what}: expected shape {expected}, got {got:?}")]
+    Shape {
+        /// Which input.
+        what: &'static str,
+        /// The expected shape, in words.
+        expected: &'static str,
+        /// The shape given.
+        got: Vec<usize>,
+    },
+    /// An invalid argument.
+    #[error("{0}")]
+    Invalid(&'static str),
+    /// A tensor operation failed.
+    #[error(transparent)]
+    Candle(#[from] candle_core::Error),
+}
+
+/// Shorthand for results of this crate.
+pub type Result<T> = std::result::Result<T, DiffusionError>;

@@ -1,0 +1,84 @@
+//! The PoseDiffusion network on candle, loading the official checkpoints unchanged.
+//!
+//! - [`checkpoint`]: `.pth` / safetensors loading, layout validation, depth detection, converter.
+//! - [`features`] + [`vit`]: the multi-scale DINO ViT-S/16 feature extractor.
+//! - [`denoiser`]: the transformer that predicts the noise of pose encodings.
+//! - [`schedule`] + [`sampler`]: the DDPM schedule and the official reverse-diffusion loop with
+//!   an injectable noise source and a mean hook for geometry-guided sampling.
+//!
+//! Everything runs in the dtype the model is loaded with (F32 for use, F64 for parity checks).
+#![deny(missing_docs)]
+#![forbid(unsafe_code)]
+
+pub mod checkpoint;
+pub mod denoiser;
+pub mod error;
+pub mod features;
+pub mod norm;
+pub mod resize;
+pub mod sampler;
+pub mod schedule;
+pub mod vit;
+
+use std::path::Path;
+
+use candle_core::{DType, Device, Tensor};
+
+pub use checkpoint::{Checkpoint, ModelDepths};
+pub use denoiser::Denoiser;
+pub use error::{DiffusionError, Result};
+pub use features::ImageFeatureExtractor;
+pub use sampler::{MeanHook, NoiseSource, ReplayNoise, SeededNoise, sample};
+pub use schedule::Schedule;
+
+/// The whole model: feature extractor, denoiser and schedule.
+#[derive(Debug, Clone)]
+pub struct PoseDiffusionModel {
+    /// Image features.
+    pub extractor: ImageFeatureExtractor,
+    /// Noise prediction.
+    pub denoiser: Denoiser,
+    /// Diffusion coefficients (from the checkpoint when it stores them).
+    pub schedule: Schedule,
+    depths: ModelDepths,
+}
+
+impl PoseDiffusionModel {
+    /// Builds the model from a validated checkpoint, computing in `dtype` on `device`.
+    ///
+    /// # Errors
+    /// Tensor errors.
+    pub fn from_checkpoint(checkpoint: &Checkpoint, dtype: DType, device: &Device) -> Result<Self> {
+        let depths = checkpoint.depths();
+        let vb = checkpoint.var_builder(dtype, device);
+        Ok(Self {
+            extractor: ImageFeatureExtractor::new(depths.vit_blocks, vb.clone())?,
+            denoiser: Denoiser::new(depths.trunk_layers, vb)?,
+            schedule: Schedule::from_checkpoint(checkpoint)?,
+            depths,
+        })
+    }
+
+    /// Loads a checkpoint file (`.pth` or safetensors).
+    ///
+    /// # Errors
+    /// As [`Checkpoint::load`] and [`Self::from_checkpoint`].
+    pub fn load(path: &Path, dtype: DType, device: &Device) -> Result<Self> {
+        Self::from_checkpoint(&Checkpoint::load(path, device)?, dtype, device)
+    }
+
+    /// The depths read from the checkpoint.
+    pub fn depths(&self) -> ModelDepths {
+        self.depths
+    }
+
+    /// Features `(B, N, 384)` of `B` image sets of `N` images each, `(B, N, 3, H, W)` in `[0, 1]`.
+    ///
+    /// # Errors
+    /// Wrong shapes, tensor errors.
+    pub fn image_features(&self, images: &Tensor) -> Result<Tensor> {
+        let (b, n, c, h, w) = images.dims5()?;
+        let f = self.extractor.forward(&images.reshape((b * n, c, h, w))?)?;
+        Ok(f.reshape((b, n, checkpoint::VIT_DIM))?)
+    }
+}

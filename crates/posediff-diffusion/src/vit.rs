@@ -1,0 +1,216 @@
+//! DINO ViT-S/16 (facebookresearch/dino `vision_transformer.py`) as the official feature
+//! extractor uses it: patch 16, width 384, 6 heads, MLP 1536 with exact (erf) GELU, pre-LN blocks
+//! with LayerNorm eps 1e-6, output = final-LayerNorm'ed CLS token. For inputs other than 224 px
+//! the 14×14 positional table is resized bicubically with DINO's `+0.1` scale factor
+//! (`interpolate_pos_encoding`).
+
+use candle_core::{DType, Device, IndexOp, Module, Tensor};
+use candle_nn::{Linear, VarBuilder};
+
+use crate::norm::LayerNorm;
+
+use crate::checkpoint::{VIT_DIM, VIT_MLP_DIM, VIT_POS_TOKENS};
+use crate::error::Result;
+use crate::resize::bicubic_matrix;
+
+/// Patch size.
+pub const PATCH: usize = 16;
+/// Attention heads.
+const HEADS: usize = 6;
+/// LayerNorm epsilon of the ViT.
+const LN_EPS: f64 = 1e-6;
+/// Side of the positional-embedding grid (224 / 16).
+const POS_GRID: usize = 14;
+/// DINO adds this to the target grid size before computing the bicubic scale factor.
+const POS_SCALE_OFFSET: f64 = 0.1;
+
+/// A matrix as a tensor of `dtype`.
+pub(crate) fn matrix(
+    values: Vec<f64>,
+    rows: usize,
+    cols: usize,
+    dtype: DType,
+    device: &Device,
+) -> Result<Tensor> {
+    Ok(Tensor::from_vec(values, (rows, cols), device)?.to_dtype(dtype)?)
+}
+
+/// `M_h · X · M_wᵀ` for `X` of shape `(B, H, W)`, `m_h` `(h, H)`, `m_w` `(w, W)`.
+pub(crate) fn resize_separable(x: &Tensor, m_h: &Tensor, m_w: &Tensor) -> Result<Tensor> {
+    let y = m_h.broadcast_matmul(x)?;
+    Ok(y.broadcast_matmul(&m_w.t()?)?)
+}
+
+/// Multi-head self-attention with a packed qkv projection.
+#[derive(Debug, Clone)]
+struct Attention {
+    qkv: Linear,
+    proj: Linear,
+}
+
+impl Attention {
+    fn new(vb: VarBuilder) -> Result<Self> {
+        Ok(Self {
+            qkv: candle_nn::linear(VIT_DIM, 3 * VIT_DIM, vb.pp("qkv"))?,
+            proj: candle_nn::linear(VIT_DIM, VIT_DIM, vb.pp("proj"))?,
+        })
+    }
+
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let (b, n, c) = x.dims3()?;
+        let head_dim = c / HEADS;
+        let qkv = self
+            .qkv
+            .forward(x)?
+            .reshape((b, n, 3, HEADS, head_dim))?
+            .permute((2, 0, 3, 1, 4))?;
+        let q = qkv.i(0)?.contiguous()?;
+        let k = qkv.i(1)?.contiguous()?;
+        let v = qkv.i(2)?.contiguous()?;
+        let scale = (head_dim as f64).powf(-0.5);
+        let attn = (q.matmul(&k.t()?)? * scale)?;
+        let attn = candle_nn::ops::softmax_last_dim(&attn)?;
+        let out = attn.matmul(&v)?.transpose(1, 2)?.reshape((b, n, c))?;
+        Ok(self.proj.forward(&out)?)
+    }
+}
+
+/// One pre-LN transformer block.
+#[derive(Debug, Clone)]
+pub struct Block {
+    norm1: LayerNorm,
+    attn: Attention,
+    norm2: LayerNorm,
+    fc1: Linear,
+    fc2: Linear,
+}
+
+impl Block {
+    fn new(vb: VarBuilder) -> Result<Self> {
+        Ok(Self {
+            norm1: LayerNorm::new(VIT_DIM, LN_EPS, vb.pp("norm1"))?,
+            attn: Attention::new(vb.pp("attn"))?,
+            norm2: LayerNorm::new(VIT_DIM, LN_EPS, vb.pp("norm2"))?,
+            fc1: candle_nn::linear(VIT_DIM, VIT_MLP_DIM, vb.pp("mlp").pp("fc1"))?,
+            fc2: candle_nn::linear(VIT_MLP_DIM, VIT_DIM, vb.pp("mlp").pp("fc2"))?,
+        })
+    }
+
+    /// `x + attn(LN1(x))`, then `+ fc2(GELU(fc1(LN2(x))))`.
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let x = (x + self.attn.forward(&self.norm1.forward(x)?)?)?;
+        let h = self.fc1.forward(&self.norm2.forward(&x)?)?.gelu_erf()?;
+        Ok((&x + self.fc2.forward(&h)?)?)
+    }
+}
+
+/// The DINO ViT-S/16 trunk (`image_feature_extractor._net`).
+#[derive(Debug, Clone)]
+pub struct VisionTransformer {
+    cls_token: Tensor,
+    pos_embed: Tensor,
+    patch_weight: Tensor,
+    patch_bias: Tensor,
+    blocks: Vec<Block>,
+    norm: LayerNorm,
+}
+
+impl VisionTransformer {
+    /// Loads `depth` blocks from `vb` (at `image_feature_extractor._net`).
+    ///
+    /// # Errors
+    /// Missing or mis-shaped weights.
+    pub fn new(depth: usize, vb: VarBuilder) -> Result<Self> {
+        Ok(Self {
+            cls_token: vb.get((1, 1, VIT_DIM), "cls_token")?,
+            pos_embed: vb.get((1, VIT_POS_TOKENS, VIT_DIM), "pos_embed")?,
+            patch_weight: vb.get((VIT_DIM, 3, PATCH, PATCH), "patch_embed.proj.weight")?,
+            patch_bias: vb.get(VIT_DIM, "patch_embed.proj.bias")?,
+            blocks: (0..depth)
+                .map(|i| Block::new(vb.pp("blocks").pp(i)))
+                .collect::<Result<_>>()?,
+            norm: LayerNorm::new(VIT_DIM, LN_EPS, vb.pp("norm"))?,
+        })
+    }
+
+    /// The transformer blocks.
+    pub fn blocks(&self) -> &[Block] {
+        &self.blocks
+    }
+
+    /// DINO `interpolate_pos_encoding` for an input of `height × width` pixels: the table itself
+    /// at 224², else the 14×14 grid resized bicubically to `(height/16) × (width/16)`.
+    ///
+    /// # Errors
+    /// Tensor errors.
+    pub fn interpolate_pos_encoding(&self, height: usize, width: usize) -> Result<Tensor> {
+        let (gh, gw) = (height / PATCH, width / PATCH);
+        if gh == POS_GRID && gw == POS_GRID {
+            return Ok(self.pos_embed.clone());
+        }
+        let (dtype, device) = (self.pos_embed.dtype(), self.pos_embed.device());
+        let cls = self.pos_embed.i((.., 0..1, ..))?;
+        let grid = self
+            .pos_embed
+            .i((0, 1.., ..))?
+            .reshape((POS_GRID, POS_GRID, VIT_DIM))?
+            .permute((2, 0, 1))?
+            .contiguous()?;
+        let factor = |g: usize| (g as f64 + POS_SCALE_OFFSET) / POS_GRID as f64;
+        let m_h = matrix(
+            bicubic_matrix(POS_GRID, gh, factor(gh)),
+            gh,
+            POS_GRID,
+            dtype,
+            device,
+        )?;
+        let m_w = matrix(
+            bicubic_matrix(POS_GRID, gw, factor(gw)),
+            gw,
+            POS_GRID,
+            dtype,
+            device,
+        )?;
+        let resized = resize_separable(&grid, &m_h, &m_w)?
+            .permute((1, 2, 0))?
+            .reshape((1, gh * gw, VIT_DIM))?;
+        Ok(Tensor::cat(&[&cls, &resized], 1)?)
+    }
+
+    /// Patch embedding (16×16 stride-16 convolution; trailing pixels ignored), CLS token and
+    /// positional embedding: `(B, 3, H, W)` → `(B, 1 + (H/16)(W/16), 384)`.
+    ///
+    /// # Errors
+    /// Tensor errors.
+    pub fn prepare_tokens(&self, x: &Tensor) -> Result<Tensor> {
+        let (b, _, h, w) = x.dims4()?;
+        let patches = x
+            .conv2d(&self.patch_weight, 0, PATCH, 1, 1)?
+            .broadcast_add(&self.patch_bias.reshape((1, VIT_DIM, 1, 1))?)?
+            .flatten_from(2)?
+            .transpose(1, 2)?;
+        let cls = self.cls_token.broadcast_as((b, 1, VIT_DIM))?;
+        let tokens = Tensor::cat(&[&cls, &patches], 1)?;
+        Ok(tokens.broadcast_add(&self.interpolate_pos_encoding(h, w)?)?)
+    }
+
+    /// The CLS token after all blocks, before the final LayerNorm: `(B, 384)`.
+    ///
+    /// # Errors
+    /// Tensor errors.
+    pub fn cls_before_norm(&self, x: &Tensor) -> Result<Tensor> {
+        let mut t = self.prepare_tokens(x)?;
+        for block in &self.blocks {
+            t = block.forward(&t)?;
+        }
+        Ok(t.i((.., 0, ..))?)
+    }
+
+    /// The ViT output: the final-LayerNorm'ed CLS token, `(B, 384)`.
+    ///
+    /// # Errors
+    /// Tensor errors.
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        self.norm.forward(&self.cls_before_norm(x)?)
+    }
+}
