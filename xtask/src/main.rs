@@ -5,6 +5,8 @@
 //!   and a build of `posediff-geometry` alone. Everything builds in the one `ci` profile.
 //! - `setup`: only the system set-up (Debian packages for the OpenCV bindings, cargo-nextest).
 //! - `deps-check`: only the dependency invariants.
+//! - `convert-checkpoint IN OUT`: an official `.pth` (or safetensors) checkpoint to validated
+//!   safetensors with the official keys.
 //!
 //! xtask stays light (std + anyhow): it shells out to cargo for the heavy work.
 
@@ -52,8 +54,23 @@ fn main() -> Result<()> {
         "ci" => ci(),
         "setup" => setup(),
         "deps-check" => deps_check(),
+        "convert-checkpoint" => {
+            let rest: Vec<String> = std::env::args().skip(2).collect();
+            let mut args = vec![
+                "run",
+                "--release",
+                "--quiet",
+                "-p",
+                "posediff-diffusion",
+                "--example",
+                "convert_checkpoint",
+                "--",
+            ];
+            args.extend(rest.iter().map(String::as_str));
+            run("cargo", &args, &[])
+        }
         _ => {
-            eprintln!("usage: cargo xtask <ci | setup | deps-check>");
+            eprintln!("usage: cargo xtask <ci | setup | deps-check | convert-checkpoint IN OUT>");
             bail!("unknown task {task:?}")
         }
     }

@@ -155,6 +155,35 @@ pub fn expected_parameters(depths: ModelDepths) -> Vec<(String, Vec<usize>)> {
     keys
 }
 
+/// Every tensor of a PyTorch `.pth` (zip archive; the pickle is read, never executed) or
+/// safetensors file, on the CPU, in its stored dtype, keys as stored.
+///
+/// # Errors
+/// Unreadable files, unknown formats.
+pub fn read_tensors(path: &Path) -> Result<Vec<(String, Tensor)>> {
+    let read_err = |source| DiffusionError::CheckpointRead {
+        path: path.to_owned(),
+        source,
+    };
+    let mut magic = [0u8; 2];
+    {
+        use std::io::Read;
+        let mut f = std::fs::File::open(path).map_err(|e| read_err(e.into()))?;
+        f.read_exact(&mut magic).map_err(|e| read_err(e.into()))?;
+    }
+    // PyTorch ≥ 1.6 writes a zip archive ("PK"); anything else must parse as safetensors.
+    if &magic == b"PK" {
+        candle_core::pickle::read_all(path).map_err(read_err)
+    } else {
+        Ok(candle_core::safetensors::load(path, &Device::Cpu)
+            .map_err(|_| DiffusionError::UnknownFormat {
+                path: path.to_owned(),
+            })?
+            .into_iter()
+            .collect())
+    }
+}
+
 /// Counts `prefix.{i}.` indices among the keys: `max + 1`, or 0.
 fn count_indexed(keys: &BTreeSet<String>, prefix: &str) -> usize {
     keys.iter()
@@ -178,33 +207,13 @@ pub struct Checkpoint {
 }
 
 impl Checkpoint {
-    /// Reads a `.pth` (zip) or safetensors file (detected from its first bytes) onto `device`.
+    /// Reads a `.pth` (zip) or safetensors file (detected from its first bytes) onto `device`
+    /// and validates it.
     ///
     /// # Errors
     /// Unreadable files, unknown formats, keys or shapes that do not match the layout.
     pub fn load(path: &Path, device: &Device) -> Result<Self> {
-        let read_err = |source| DiffusionError::CheckpointRead {
-            path: path.to_owned(),
-            source,
-        };
-        let mut magic = [0u8; 2];
-        {
-            use std::io::Read;
-            let mut f = std::fs::File::open(path).map_err(|e| read_err(e.into()))?;
-            f.read_exact(&mut magic).map_err(|e| read_err(e.into()))?;
-        }
-        // PyTorch ≥ 1.6 writes a zip archive ("PK"); anything else must parse as safetensors.
-        let tensors: Vec<(String, Tensor)> = if &magic == b"PK" {
-            candle_core::pickle::read_all(path).map_err(read_err)?
-        } else {
-            candle_core::safetensors::load(path, &Device::Cpu)
-                .map_err(|_| DiffusionError::UnknownFormat {
-                    path: path.to_owned(),
-                })?
-                .into_iter()
-                .collect()
-        };
-        let tensors = tensors
+        let tensors = read_tensors(path)?
             .into_iter()
             .map(|(k, t)| Ok((k, t.to_device(device)?)))
             .collect::<Result<Vec<_>>>()?;
