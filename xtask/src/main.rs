@@ -55,7 +55,12 @@ fn main() -> Result<()> {
         "setup" => setup(),
         "deps-check" => deps_check(),
         "convert-checkpoint" => {
-            let rest: Vec<String> = std::env::args().skip(2).collect();
+            // Paths are the caller's, relative to where they ran the command.
+            let cwd = std::env::current_dir()?;
+            let rest: Vec<String> = std::env::args()
+                .skip(2)
+                .map(|a| cwd.join(a).to_string_lossy().into_owned())
+                .collect();
             let mut args = vec![
                 "run",
                 "--release",
