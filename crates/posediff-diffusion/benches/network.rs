@@ -1,0 +1,65 @@
+//! Network speed on the CPU (F32, the full official architecture with the random-weight
+//! checkpoint of `../shared/reference/full`): the backbone per image (three scales) and one
+//! denoiser step for N = 10, 20, 50, 100 frames.
+//!
+//! `cargo bench -p posediff-diffusion --bench network`
+
+use candle_core::{DType, Device, Tensor};
+use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
+use posediff_diffusion::PoseDiffusionModel;
+
+fn model() -> PoseDiffusionModel {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../../shared/reference/full/model_random.safetensors");
+    match PoseDiffusionModel::load(&path, DType::F32, &Device::Cpu) {
+        Ok(m) => m,
+        Err(e) => panic!("{}: {e}", path.display()),
+    }
+}
+
+fn backbone(c: &mut Criterion) {
+    let m = model();
+    let mut group = c.benchmark_group("backbone_3_scales");
+    group.sample_size(10);
+    for n in [1, 4] {
+        let Ok(images) = Tensor::rand(0f32, 1f32, (n, 3, 224, 224), &Device::Cpu) else {
+            panic!("images");
+        };
+        group.bench_function(BenchmarkId::new("images", n), |b| {
+            b.iter(|| match m.extractor.forward(&images) {
+                Ok(f) => f,
+                Err(e) => panic!("{e}"),
+            });
+        });
+    }
+    group.finish();
+}
+
+fn denoiser_step(c: &mut Criterion) {
+    let m = model();
+    let mut group = c.benchmark_group("denoiser_step");
+    for n in [10, 20, 50, 100] {
+        let (Ok(x), Ok(z)) = (
+            Tensor::randn(0f32, 1f32, (1, n, 9), &Device::Cpu),
+            Tensor::randn(0f32, 1f32, (1, n, 384), &Device::Cpu),
+        ) else {
+            panic!("inputs");
+        };
+        group.bench_function(BenchmarkId::new("frames", n), |b| {
+            b.iter(|| match m.denoiser.forward(&x, &[50], &z) {
+                Ok(e) => e,
+                Err(e) => panic!("{e}"),
+            });
+        });
+    }
+    group.finish();
+}
+
+// criterion_group! generates an undocumented public function.
+#[allow(missing_docs)]
+mod group {
+    use super::*;
+    criterion_group!(benches, backbone, denoiser_step);
+}
+use group::benches;
+criterion_main!(benches);

@@ -1,0 +1,106 @@
+//! The sampler with GGS plugged into its mean hook against the official run
+//! (`reference/full/sampling_ggs_io.safetensors`: `iter_num 3`, `sampson_max 1e12`,
+//! `min_matches 0`, GGS at t < 10, no noise there), teacher-forced per step: each of the last ten
+//! steps starts from the reference's `pose_process[k]` and must land on `pose_process[k+1]`.
+
+// Test helpers outside #[test] functions unwrap too: a failure is the test failing.
+#![allow(clippy::unwrap_used)]
+
+use candle_core::{DType, Device, IndexOp, Tensor};
+use posediff_diffusion::sampler::{GGS_START_STEP, MeanHook, denoise_step};
+use posediff_diffusion::{DiffusionError, PoseDiffusionModel};
+use posediff_fixtures::{SafetensorsFixture, assert_close, shared_path};
+use posediff_geometry::PoseEncoding;
+use posediff_guidance::{GgsConfig, GgsSolver, MatchSet};
+
+/// The official GGS as the sampler's mean hook, for one image set (B = 1).
+struct GgsHook<'m> {
+    solver: GgsSolver<'m>,
+}
+
+impl MeanHook for GgsHook<'_> {
+    fn replace_mean(&mut self, mean: &Tensor, _t: usize) -> posediff_diffusion::Result<Tensor> {
+        let (b, n, d) = mean.dims3()?;
+        let flat: Vec<f64> = mean.flatten_all()?.to_dtype(DType::F64)?.to_vec1()?;
+        let mut enc: Vec<PoseEncoding> = flat
+            .chunks(d)
+            .map(|c| PoseEncoding(<[f64; 9]>::try_from(c).unwrap_or([0.0; 9])))
+            .collect();
+        self.solver
+            .run(&mut enc, None)
+            .map_err(|_| DiffusionError::Invalid("GGS failed"))?;
+        let out: Vec<f64> = enc.iter().flat_map(|e| e.0).collect();
+        Ok(Tensor::from_vec(out, (b, n, d), mean.device())?.to_dtype(mean.dtype())?)
+    }
+}
+
+fn tensor(fx: &SafetensorsFixture, name: &str) -> Tensor {
+    let t = fx.tensor(name);
+    Tensor::from_vec(t.data, t.shape, &Device::Cpu).unwrap()
+}
+
+#[test]
+fn ggs_steps_of_the_sampler_match_the_official_run() {
+    let model = PoseDiffusionModel::load(
+        &shared_path("reference/full/model_random.safetensors"),
+        DType::F64,
+        &Device::Cpu,
+    )
+    .unwrap();
+    let run = SafetensorsFixture::open(&shared_path("reference/full/sampling_ggs_io.safetensors"));
+    let io = SafetensorsFixture::open(&shared_path("reference/full/sampling_io.safetensors"));
+    let ggs = SafetensorsFixture::open(&shared_path("reference/full/ggs_io.safetensors"));
+    let pts = |name: &str| -> Vec<[f64; 2]> {
+        ggs.tensor(name)
+            .chunks(2)
+            .iter()
+            .map(|c| [c[0], c[1]])
+            .collect()
+    };
+    let frames: Vec<(usize, usize)> = ggs
+        .tensor("i12")
+        .chunks(2)
+        .iter()
+        .map(|c| (c[0] as usize, c[1] as usize))
+        .collect();
+    let matches = MatchSet::new(5, &pts("kp1"), &pts("kp2"), &frames).unwrap();
+    let config = GgsConfig {
+        iter_num: 3,
+        sampson_max: 1e12,
+        min_matches: 0.0,
+        ..GgsConfig::default()
+    };
+    let mut hook = GgsHook {
+        solver: GgsSolver::new(&matches, config).unwrap(),
+    };
+    let z = tensor(&io, "z");
+    let process = tensor(&run, "pose_process");
+    for k in (100 - GGS_START_STEP)..100 {
+        let t = 99 - k;
+        let step = denoise_step(
+            &model.denoiser,
+            &model.schedule,
+            &process.i(k).unwrap(),
+            t,
+            &z,
+        )
+        .unwrap();
+        let next = hook.replace_mean(&step.model_mean, t).unwrap();
+        let ours: Vec<f64> = next.flatten_all().unwrap().to_vec1().unwrap();
+        let expected: Vec<f64> = process
+            .i(k + 1)
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1()
+            .unwrap();
+        // The per-step sampling tolerance of the fixture READMEs (1e-5 abs on x).
+        assert_close(
+            &format!("pose_process[{}] (GGS, t = {t})", k + 1),
+            &ours,
+            &expected,
+            1e-5,
+            0.0,
+        );
+    }
+}
