@@ -31,6 +31,7 @@ pub mod alignment;
 pub mod camera;
 #[cfg(feature = "serde")]
 pub mod camera_json;
+pub mod crop;
 pub mod encoding;
 pub mod epipolar;
 pub mod error;
@@ -42,6 +43,7 @@ pub use alignment::{
     Sim3, align_cameras_by_centers, align_cameras_by_extrinsics, umeyama, umeyama_with_scale,
 };
 pub use camera::{Camera, ImageSize, Intrinsics, Pose};
+pub use crop::{CenterCrop, MODEL_INPUT_SIDE};
 pub use encoding::{POSE_ENCODING_DIM, PoseEncoding};
 pub use epipolar::{
     essential_matrix, fundamental_from_cameras, fundamental_official, relative_pose, sampson_error,
