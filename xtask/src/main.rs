@@ -5,6 +5,8 @@
 //!   and a build of `posediff-geometry` alone. Everything builds in the one `ci` profile.
 //! - `setup`: only the system set-up (Debian packages for the OpenCV bindings, cargo-nextest).
 //! - `deps-check`: only the dependency invariants.
+//! - `bench-matching --data ../shared/data --out report.json`: match quality and speed on the
+//!   real sets (JSON + Markdown), with the OpenCV-python baseline when python3 has cv2.
 //! - `convert-checkpoint IN OUT`: an official `.pth` (or safetensors) checkpoint to validated
 //!   safetensors with the official keys.
 //!
@@ -34,11 +36,12 @@ const FORBIDDEN: [(&str, &[&str]); 3] = [
 ];
 
 /// Per crate: the workspace crates it may depend on.
-const ALLOWED_WORKSPACE_DEPS: [(&str, &[&str]); 4] = [
+const ALLOWED_WORKSPACE_DEPS: [(&str, &[&str]); 5] = [
     ("posediff-geometry", &[]),
     ("posediff-metrics", &["posediff-geometry"]),
     ("posediff-guidance", &["posediff-geometry"]),
     ("posediff-diffusion", &["posediff-geometry"]),
+    ("posediff-matching", &["posediff-geometry"]),
 ];
 
 /// The one cargo profile CI builds.
@@ -54,6 +57,32 @@ fn main() -> Result<()> {
         "ci" => ci(),
         "setup" => setup(),
         "deps-check" => deps_check(),
+        "bench-matching" => {
+            let cwd = std::env::current_dir()?;
+            // Flag values that are paths are the caller's.
+            let mut rest: Vec<String> = Vec::new();
+            let mut path_next = false;
+            for a in std::env::args().skip(2) {
+                rest.push(if path_next {
+                    cwd.join(&a).to_string_lossy().into_owned()
+                } else {
+                    a.clone()
+                });
+                path_next = a == "--data" || a == "--out";
+            }
+            let mut args = vec![
+                "run",
+                "--release",
+                "--quiet",
+                "-p",
+                "posediff-matching",
+                "--example",
+                "bench_matching",
+                "--",
+            ];
+            args.extend(rest.iter().map(String::as_str));
+            run("cargo", &args, &[])
+        }
         "convert-checkpoint" => {
             // Paths are the caller's, relative to where they ran the command.
             let cwd = std::env::current_dir()?;
@@ -75,7 +104,9 @@ fn main() -> Result<()> {
             run("cargo", &args, &[])
         }
         _ => {
-            eprintln!("usage: cargo xtask <ci | setup | deps-check | convert-checkpoint IN OUT>");
+            eprintln!(
+                "usage: cargo xtask <ci | setup | deps-check | convert-checkpoint IN OUT | bench-matching --data D --out F.json>"
+            );
             bail!("unknown task {task:?}")
         }
     }
