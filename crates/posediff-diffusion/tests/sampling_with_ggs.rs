@@ -50,20 +50,13 @@ fn ggs_steps_of_the_sampler_match_the_official_run() {
     let run = SafetensorsFixture::open(&shared_path("reference/full/sampling_ggs_io.safetensors"));
     let io = SafetensorsFixture::open(&shared_path("reference/full/sampling_io.safetensors"));
     let ggs = SafetensorsFixture::open(&shared_path("reference/full/ggs_io.safetensors"));
-    let pts = |name: &str| -> Vec<[f64; 2]> {
-        ggs.tensor(name)
-            .chunks(2)
-            .iter()
-            .map(|c| [c[0], c[1]])
-            .collect()
-    };
-    let frames: Vec<(usize, usize)> = ggs
-        .tensor("i12")
-        .chunks(2)
-        .iter()
-        .map(|c| (c[0] as usize, c[1] as usize))
-        .collect();
-    let matches = MatchSet::new(5, &pts("kp1"), &pts("kp2"), &frames).unwrap();
+    let matches = MatchSet::new(
+        5,
+        &ggs.rows::<2>("kp1"),
+        &ggs.rows::<2>("kp2"),
+        &ggs.index_pairs("i12"),
+    )
+    .unwrap();
     let config = GgsConfig {
         iter_num: 3,
         sampson_max: 1e12,

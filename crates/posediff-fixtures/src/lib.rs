@@ -155,6 +155,31 @@ impl SafetensorsFixture {
     }
 }
 
+impl SafetensorsFixture {
+    /// Tensor `name` as rows of `N` values (e.g. `N = 2` keypoints, `N = 9` pose encodings).
+    #[track_caller]
+    pub fn rows<const N: usize>(&self, name: &str) -> Vec<[f64; N]> {
+        self.tensor(name)
+            .chunks(N)
+            .iter()
+            .map(|c| {
+                let mut row = [0.0; N];
+                row.copy_from_slice(c);
+                row
+            })
+            .collect()
+    }
+
+    /// Tensor `name` (`M × 2` integers) as index pairs, e.g. the frames `i12` of matches.
+    #[track_caller]
+    pub fn index_pairs(&self, name: &str) -> Vec<(usize, usize)> {
+        self.rows::<2>(name)
+            .iter()
+            .map(|r| (r[0] as usize, r[1] as usize))
+            .collect()
+    }
+}
+
 /// IEEE half precision to f64.
 fn f16_to_f64(h: u16) -> f64 {
     let sign = if h & 0x8000 != 0 { -1.0 } else { 1.0 };

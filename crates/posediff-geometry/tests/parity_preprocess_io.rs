@@ -30,14 +30,10 @@ fn crop_boxes_and_keypoint_mapping_match_official() {
     );
 
     // Matches of image ids 1 and 2 (COLMAP convention), converted to OpenCV keypoints.
-    let colmap = |name: &str| -> Vec<[f64; 2]> {
-        fx.tensor(name)
-            .chunks(2)
-            .iter()
-            .map(|c| [c[0], c[1]])
-            .collect()
-    };
-    let (k1, k2) = (colmap("colmap_kp_img1"), colmap("colmap_kp_img2"));
+    let (k1, k2) = (
+        fx.rows::<2>("colmap_kp_img1"),
+        fx.rows::<2>("colmap_kp_img2"),
+    );
     let pairs = fx.tensor("colmap_matches_1_2");
     let mut ours1 = Vec::new();
     let mut ours2 = Vec::new();

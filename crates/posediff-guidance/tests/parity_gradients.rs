@@ -15,28 +15,17 @@ fn fixture() -> SafetensorsFixture {
 }
 
 fn encodings(fx: &SafetensorsFixture, name: &str) -> Vec<PoseEncoding> {
-    fx.tensor(name)
-        .chunks(9)
-        .iter()
-        .map(|c| PoseEncoding(<[f64; 9]>::try_from(*c).unwrap()))
-        .collect()
+    fx.rows::<9>(name).into_iter().map(PoseEncoding).collect()
 }
 
 fn matches(fx: &SafetensorsFixture) -> MatchSet {
-    let pts = |name: &str| -> Vec<[f64; 2]> {
-        fx.tensor(name)
-            .chunks(2)
-            .iter()
-            .map(|c| [c[0], c[1]])
-            .collect()
-    };
-    let frames: Vec<(usize, usize)> = fx
-        .tensor("i12")
-        .chunks(2)
-        .iter()
-        .map(|c| (c[0] as usize, c[1] as usize))
-        .collect();
-    MatchSet::new(6, &pts("kp1"), &pts("kp2"), &frames).unwrap()
+    MatchSet::new(
+        6,
+        &fx.rows::<2>("kp1"),
+        &fx.rows::<2>("kp2"),
+        &fx.index_pairs("i12"),
+    )
+    .unwrap()
 }
 
 fn size224() -> ImageSize {
