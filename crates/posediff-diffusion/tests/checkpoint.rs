@@ -5,21 +5,16 @@
 // Test helpers outside #[test] functions unwrap too: a failure is the test failing.
 #![allow(clippy::unwrap_used)]
 
+mod common;
+
+use common::values;
+
 use std::collections::HashMap;
 
 use candle_core::{DType, Device, Tensor};
 use posediff_diffusion::checkpoint::{ModelDepths, read_tensors};
 use posediff_diffusion::{Checkpoint, DiffusionError};
 use posediff_fixtures::{fixture_path, shared_path};
-
-fn values(t: &Tensor) -> Vec<f64> {
-    t.flatten_all()
-        .unwrap()
-        .to_dtype(DType::F64)
-        .unwrap()
-        .to_vec1()
-        .unwrap()
-}
 
 fn tiny_safetensors() -> HashMap<String, Tensor> {
     read_tensors(&shared_path("reference/tiny/model_tiny.safetensors"))

@@ -15,6 +15,10 @@
 // Test helpers outside #[test] functions unwrap too: a failure is the test failing.
 #![allow(clippy::unwrap_used)]
 
+mod common;
+
+use common::{tensor, values};
+
 use candle_core::{DType, Device, IndexOp, Tensor};
 use posediff_diffusion::checkpoint::ModelDepths;
 use posediff_diffusion::sampler::{SamplingTrace, denoise_step};
@@ -67,20 +71,6 @@ fn model(size: &Size) -> PoseDiffusionModel {
     let ckpt = Checkpoint::load(&shared_path(size.model), &Device::Cpu).unwrap();
     assert_eq!(ckpt.depths(), size.depths);
     PoseDiffusionModel::from_checkpoint(&ckpt, DType::F64, &Device::Cpu).unwrap()
-}
-
-fn tensor(fx: &SafetensorsFixture, name: &str) -> Tensor {
-    let t = fx.tensor(name);
-    Tensor::from_vec(t.data, t.shape, &Device::Cpu).unwrap()
-}
-
-fn values(t: &Tensor) -> Vec<f64> {
-    t.flatten_all()
-        .unwrap()
-        .to_dtype(DType::F64)
-        .unwrap()
-        .to_vec1()
-        .unwrap()
 }
 
 fn max_abs(v: &[f64]) -> f64 {

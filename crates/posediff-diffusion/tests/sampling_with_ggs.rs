@@ -6,6 +6,10 @@
 // Test helpers outside #[test] functions unwrap too: a failure is the test failing.
 #![allow(clippy::unwrap_used)]
 
+mod common;
+
+use common::tensor;
+
 use candle_core::{DType, Device, IndexOp, Tensor};
 use posediff_diffusion::sampler::{GGS_START_STEP, MeanHook, denoise_step};
 use posediff_diffusion::{DiffusionError, PoseDiffusionModel};
@@ -32,11 +36,6 @@ impl MeanHook for GgsHook<'_> {
         let out: Vec<f64> = enc.iter().flat_map(|e| e.0).collect();
         Ok(Tensor::from_vec(out, (b, n, d), mean.device())?.to_dtype(mean.dtype())?)
     }
-}
-
-fn tensor(fx: &SafetensorsFixture, name: &str) -> Tensor {
-    let t = fx.tensor(name);
-    Tensor::from_vec(t.data, t.shape, &Device::Cpu).unwrap()
 }
 
 #[test]
