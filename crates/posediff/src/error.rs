@@ -1,0 +1,43 @@
+//! The error type of the umbrella crate.
+
+use std::path::PathBuf;
+
+/// Everything that can go wrong in `posediff`.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum PosediffError {
+    /// A folder without images.
+    #[error("no .png/.jpg/.jpeg images in {0}")]
+    NoImages(PathBuf),
+    /// Fewer images than the method needs.
+    #[error("need at least {needed} images, got {got}")]
+    TooFewImages {
+        /// The minimum.
+        needed: usize,
+        /// How many were found.
+        got: usize,
+    },
+    /// An image that cannot be decoded.
+    #[error("cannot read image {0}: missing, unreadable or not an image")]
+    UnreadableImage(PathBuf),
+    /// Writing an output failed.
+    #[error("cannot write {path}: {source}")]
+    Write {
+        /// The file.
+        path: PathBuf,
+        /// Why.
+        source: std::io::Error,
+    },
+    /// A camera could not be converted.
+    #[error(transparent)]
+    Geometry(#[from] posediff_geometry::GeometryError),
+    /// OpenCV reported an error.
+    #[error("OpenCV: {0}")]
+    OpenCv(#[from] opencv::Error),
+    /// JSON could not be written.
+    #[error("JSON: {0}")]
+    Json(#[from] serde_json::Error),
+}
+
+/// Shorthand for results of this crate.
+pub type Result<T> = std::result::Result<T, PosediffError>;

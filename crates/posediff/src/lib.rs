@@ -1,0 +1,12 @@
+//! posediff: camera poses from a handful of photos.
+//!
+//! - [`loader`]: the official image loader (sorted files, centre crop, 224 px).
+//! - [`export`]: cameras.json, COLMAP text, nerfstudio and PyTorch3D writers and readers.
+#![deny(missing_docs)]
+#![forbid(unsafe_code)]
+
+pub mod error;
+pub mod export;
+pub mod loader;
+
+pub use error::{PosediffError, Result};

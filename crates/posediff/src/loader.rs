@@ -1,0 +1,138 @@
+//! The official demo/test image loader (`util/load_img_folder.py`, SPEC.md §7.1): files ending in
+//! .png/.jpg/.jpeg (any case) sorted by path, RGB in `[0, 1]`, the centre square of side
+//! `min(W, H)` ([`CenterCrop`]), resized to 224 px bilinearly by size (`align_corners=False`, no
+//! antialiasing): output index `d` samples the crop at `(d + 0.5)·m/224 − 0.5`, clamped at 0.
+
+use std::path::{Path, PathBuf};
+
+use opencv::core::Mat;
+use opencv::prelude::*;
+use posediff_geometry::{CenterCrop, ImageSize, MODEL_INPUT_SIDE};
+
+use crate::error::{PosediffError, Result};
+
+/// The extensions the official loader accepts (compared case-insensitively).
+const EXTENSIONS: [&str; 3] = ["png", "jpg", "jpeg"];
+
+/// One loaded image.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LoadedImage {
+    /// The file.
+    pub path: PathBuf,
+    /// Its size.
+    pub size: ImageSize,
+    /// The crop that produced the model input.
+    pub crop: CenterCrop,
+    /// `3 × 224 × 224` RGB in `[0, 1]`, channel-major.
+    pub pixels: Vec<f32>,
+}
+
+/// The image files of a folder, sorted by path, as the official loader picks them.
+///
+/// # Errors
+/// An unreadable folder, or one without images.
+pub fn image_files(folder: &Path) -> Result<Vec<PathBuf>> {
+    let entries =
+        std::fs::read_dir(folder).map_err(|_| PosediffError::NoImages(folder.to_owned()))?;
+    let mut files: Vec<PathBuf> = entries
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| {
+            p.is_file()
+                && p.extension()
+                    .and_then(|e| e.to_str())
+                    .is_some_and(|e| EXTENSIONS.contains(&e.to_ascii_lowercase().as_str()))
+        })
+        .collect();
+    files.sort();
+    if files.is_empty() {
+        return Err(PosediffError::NoImages(folder.to_owned()));
+    }
+    Ok(files)
+}
+
+/// Taps of a size-based bilinear resize: for each output index, `(i0, i1, w0, w1)`. The source
+/// coordinate is computed in float32 as PyTorch's CPU kernel does (`(float)in/out`, then
+/// `scale·(d + 0.5) − 0.5`): in float64 the weights would differ by up to ~5e-6 at 300 px.
+fn bilinear_taps(len_in: usize, len_out: usize) -> Vec<(usize, usize, f64, f64)> {
+    let scale = len_in as f32 / len_out as f32;
+    (0..len_out)
+        .map(|d| {
+            let src = (scale * (d as f32 + 0.5) - 0.5).max(0.0);
+            let i0 = (src.floor() as usize).min(len_in - 1);
+            let i1 = (i0 + 1).min(len_in - 1);
+            let l1 = f64::from(src - i0 as f32);
+            (i0, i1, 1.0 - l1, l1)
+        })
+        .collect()
+}
+
+/// The official preprocessing of interleaved RGB bytes (`H × W × 3`): crop, scale to `[0, 1]`,
+/// resize to `target`. Returns `3 × target × target`, channel-major.
+pub fn preprocess_rgb(rgb: &[u8], size: ImageSize, target: u32) -> (CenterCrop, Vec<f32>) {
+    let crop = CenterCrop::official(size, target);
+    let (w, m, t) = (size.width() as usize, crop.side as usize, target as usize);
+    let (left, top) = (crop.left as usize, crop.top as usize);
+    let taps = bilinear_taps(m, t);
+    let mut out = vec![0f32; 3 * t * t];
+    // Rows first (m × m → t × m), then columns, per channel.
+    let mut rows = vec![0f64; t * m];
+    for c in 0..3 {
+        let px = |y: usize, x: usize| f64::from(rgb[((top + y) * w + left + x) * 3 + c]) / 255.0;
+        for (r, &(i0, i1, w0, w1)) in taps.iter().enumerate() {
+            for x in 0..m {
+                rows[r * m + x] = w0 * px(i0, x) + w1 * px(i1, x);
+            }
+        }
+        for r in 0..t {
+            for (col, &(j0, j1, w0, w1)) in taps.iter().enumerate() {
+                out[(c * t + r) * t + col] = (w0 * rows[r * m + j0] + w1 * rows[r * m + j1]) as f32;
+            }
+        }
+    }
+    (crop, out)
+}
+
+/// Reads an image as interleaved RGB bytes.
+///
+/// # Errors
+/// [`PosediffError::UnreadableImage`] naming the file.
+pub fn read_rgb(path: &Path) -> Result<(ImageSize, Vec<u8>)> {
+    let unreadable = || PosediffError::UnreadableImage(path.to_owned());
+    if !path.is_file() {
+        return Err(unreadable());
+    }
+    let bgr = opencv::imgcodecs::imread(path.as_os_str(), opencv::imgcodecs::IMREAD_COLOR)
+        .map_err(|_| unreadable())?;
+    if bgr.empty() {
+        return Err(unreadable());
+    }
+    let mut rgb = Mat::default();
+    opencv::imgproc::cvt_color_def(&bgr, &mut rgb, opencv::imgproc::COLOR_BGR2RGB)?;
+    let rgb = if rgb.is_continuous() {
+        rgb
+    } else {
+        rgb.try_clone()?
+    };
+    let size = ImageSize::new(rgb.cols() as u32, rgb.rows() as u32).map_err(|_| unreadable())?;
+    Ok((size, rgb.data_bytes()?.to_vec()))
+}
+
+/// Loads and preprocesses images in the given order.
+///
+/// # Errors
+/// Unreadable images, named.
+pub fn load_images(paths: &[PathBuf]) -> Result<Vec<LoadedImage>> {
+    paths
+        .iter()
+        .map(|p| {
+            let (size, rgb) = read_rgb(p)?;
+            let (crop, pixels) = preprocess_rgb(&rgb, size, MODEL_INPUT_SIDE);
+            Ok(LoadedImage {
+                path: p.clone(),
+                size,
+                crop,
+                pixels,
+            })
+        })
+        .collect()
+}
