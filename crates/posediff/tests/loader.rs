@@ -84,7 +84,7 @@ fn files_are_found_sorted_read_as_rgb_and_bad_input_is_named() {
 
     let corrupt = dir.join("c.jpg");
     std::fs::write(&corrupt, b"\xff\xd8\xff broken").unwrap();
-    let err = load_images(&[corrupt.clone()]).unwrap_err();
+    let err = load_images(std::slice::from_ref(&corrupt)).unwrap_err();
     assert!(
         matches!(&err, PosediffError::UnreadableImage(p) if p == &corrupt),
         "{err}"
