@@ -14,7 +14,8 @@
 //!   one by `0.5 (r − 1)` px; we keep the official one so that official checkpoints see what they
 //!   were tuned with.
 
-use crate::camera::ImageSize;
+use crate::camera::{Camera, ImageSize, Intrinsics};
+use crate::error::Result;
 
 /// The official model input side.
 pub const MODEL_INPUT_SIDE: u32 = 224;
@@ -78,6 +79,41 @@ impl CenterCrop {
     }
 }
 
+impl CenterCrop {
+    /// A camera of the model's input frame as a camera of the original image, consistent with
+    /// [`Self::from_model`]: `f ↦ f/r`, `c ↦ c/r + (left, top)` (a principal point at the
+    /// model frame's centre lands on the crop centre).
+    ///
+    /// # Errors
+    /// Invalid intrinsics.
+    pub fn camera_from_model(&self, camera: &Camera, original: ImageSize) -> Result<Camera> {
+        let k = &camera.intrinsics;
+        let r = self.scale();
+        let c = self.from_model([k.cx(), k.cy()]);
+        Ok(Camera::new(
+            Intrinsics::new(k.fx() / r, k.fy() / r, c[0], c[1])?,
+            camera.cam_from_world,
+            original,
+        ))
+    }
+
+    /// An original-image camera as a camera of the model's input frame (the inverse of
+    /// [`Self::camera_from_model`]).
+    ///
+    /// # Errors
+    /// A zero target size, invalid intrinsics.
+    pub fn camera_to_model(&self, camera: &Camera) -> Result<Camera> {
+        let k = &camera.intrinsics;
+        let r = self.scale();
+        let c = self.to_model([k.cx(), k.cy()]);
+        Ok(Camera::new(
+            Intrinsics::new(k.fx() * r, k.fy() * r, c[0], c[1])?,
+            camera.cam_from_world,
+            ImageSize::new(self.target, self.target)?,
+        ))
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -93,5 +129,32 @@ mod tests {
         assert!((back[0] - kp[0]).abs() < 1e-12 && (back[1] - kp[1]).abs() < 1e-12);
         // The crop's corner pixel maps to the model frame's origin.
         assert_eq!(c.to_model([50.0, 0.0]), [0.0, 0.0]);
+    }
+
+    #[test]
+    fn cameras_map_like_keypoints() {
+        use nalgebra::{Point3, Vector3};
+
+        use crate::camera::Pose;
+        let size = ImageSize::new(400, 300).unwrap();
+        let c = CenterCrop::official(size, 224);
+        let model = Camera::new(
+            Intrinsics::new(250.0, 260.0, 112.0, 112.0).unwrap(),
+            Pose::new(nalgebra::Matrix3::identity(), Vector3::new(0.1, -0.2, 3.0)),
+            ImageSize::new(224, 224).unwrap(),
+        );
+        let original = c.camera_from_model(&model, size).unwrap();
+        // The model frame's centre is the crop's centre.
+        assert_eq!(
+            (original.intrinsics.cx(), original.intrinsics.cy()),
+            (200.0, 150.0)
+        );
+        // Projections agree through the keypoint mapping.
+        let x = Point3::new(0.3, 0.2, 1.0);
+        let (a, b) = (model.project(&x).unwrap(), original.project(&x).unwrap());
+        let mapped = c.from_model([a.x, a.y]);
+        assert!((mapped[0] - b.x).abs() < 1e-12 && (mapped[1] - b.y).abs() < 1e-12);
+        let back = c.camera_to_model(&original).unwrap();
+        assert!((back.intrinsics.matrix() - model.intrinsics.matrix()).norm() < 1e-12);
     }
 }
