@@ -34,6 +34,18 @@ pub enum PosediffError {
     /// OpenCV reported an error.
     #[error("OpenCV: {0}")]
     OpenCv(#[from] opencv::Error),
+    /// The network failed (checkpoint layout, shapes).
+    #[error(transparent)]
+    Model(#[from] posediff_diffusion::DiffusionError),
+    /// Matching failed.
+    #[error(transparent)]
+    Matching(#[from] posediff_matching::MatchingError),
+    /// GGS failed.
+    #[error(transparent)]
+    Guidance(#[from] posediff_guidance::GuidanceError),
+    /// A tensor operation failed.
+    #[error(transparent)]
+    Tensor(#[from] candle_core::Error),
     /// JSON could not be written.
     #[error("JSON: {0}")]
     Json(#[from] serde_json::Error),

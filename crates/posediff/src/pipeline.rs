@@ -1,0 +1,285 @@
+//! The whole estimation: images → matches (original pixels, mapped into the 224 crops) → DINO
+//! features → reverse diffusion with GGS on the last steps → cameras in each original image.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use candle_core::{DType, Device, Tensor};
+use posediff_diffusion::sampler::MeanHook;
+use posediff_diffusion::{NoiseSource, PoseDiffusionModel, SeededNoise, sample};
+use posediff_geometry::{CenterCrop, ImageSize, MODEL_INPUT_SIDE, PoseEncoding};
+use posediff_guidance::{GgsConfig, GgsSolver, MatchSet};
+use posediff_matching::{MatchConfig, PairMatches, match_images};
+
+use crate::error::{PosediffError, Result};
+use crate::export::NamedCamera;
+use crate::loader::{LoadedImage, load_images};
+
+/// Estimation settings; `Default` is the official demo's behaviour (one sample, GGS on).
+#[derive(Debug, Clone)]
+pub struct EstimateConfig {
+    /// Seed of the sampler's noise.
+    pub seed: u64,
+    /// Samples per image set (a batch dimension).
+    pub samples: usize,
+    /// Geometry-guided sampling on the last steps; skipped with a warning without matches.
+    pub ggs: bool,
+    /// GGS settings (official defaults).
+    pub ggs_config: GgsConfig,
+    /// Matching settings.
+    pub matching: MatchConfig,
+}
+
+impl Default for EstimateConfig {
+    fn default() -> Self {
+        Self {
+            seed: 0,
+            samples: 1,
+            ggs: true,
+            ggs_config: GgsConfig::default(),
+            matching: MatchConfig::default(),
+        }
+    }
+}
+
+/// Wall-clock seconds per stage.
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
+pub struct StageTimes {
+    /// Reading and preprocessing images.
+    pub load: f64,
+    /// Keypoints and matching.
+    pub matching: f64,
+    /// Image features.
+    pub features: f64,
+    /// Reverse diffusion, GGS included.
+    pub sampling: f64,
+    /// Of `sampling`, the time spent in GGS.
+    pub ggs: f64,
+}
+
+/// The result of one estimation.
+#[derive(Debug, Clone)]
+pub struct Estimate {
+    /// Per sample, one camera per image (original pixels, OpenCV convention), in image order.
+    pub samples: Vec<Vec<NamedCamera>>,
+    /// The crop of each image (for `pytorch3d.json`).
+    pub crops: Vec<CenterCrop>,
+    /// Per matched pair: `(first, second, matches)`.
+    pub matches_per_pair: Vec<(usize, usize, usize)>,
+    /// Stage timings.
+    pub times: StageTimes,
+    /// Things the user should know (e.g. GGS skipped).
+    pub warnings: Vec<String>,
+}
+
+/// GGS as the sampler's mean hook, each sample of the batch on its own.
+struct GgsHook<'m> {
+    solver: GgsSolver<'m>,
+    seconds: f64,
+}
+
+impl MeanHook for GgsHook<'_> {
+    fn replace_mean(&mut self, mean: &Tensor, _t: usize) -> posediff_diffusion::Result<Tensor> {
+        let start = Instant::now();
+        let (b, n, d) = mean.dims3()?;
+        let flat: Vec<f64> = mean.flatten_all()?.to_dtype(DType::F64)?.to_vec1()?;
+        let mut out = Vec::with_capacity(flat.len());
+        for sample in flat.chunks(n * d) {
+            let mut enc: Vec<PoseEncoding> = sample
+                .chunks(d)
+                .map(|c| {
+                    let mut row = [0.0; 9];
+                    row.copy_from_slice(c);
+                    PoseEncoding(row)
+                })
+                .collect();
+            self.solver.run(&mut enc, None).map_err(|_| {
+                posediff_diffusion::DiffusionError::Invalid("GGS failed on the posterior mean")
+            })?;
+            out.extend(enc.iter().flat_map(|e| e.0));
+        }
+        self.seconds += start.elapsed().as_secs_f64();
+        Ok(Tensor::from_vec(out, (b, n, d), mean.device())?.to_dtype(mean.dtype())?)
+    }
+}
+
+/// A loaded model and its settings.
+#[derive(Debug)]
+pub struct Estimator {
+    model: PoseDiffusionModel,
+    device: Device,
+    config: EstimateConfig,
+}
+
+impl Estimator {
+    /// Loads a checkpoint (`.pth` or safetensors) to run in F32 on `device`.
+    ///
+    /// # Errors
+    /// Unreadable or mis-shaped checkpoints.
+    pub fn load(weights: &Path, device: Device, config: EstimateConfig) -> Result<Self> {
+        let model = PoseDiffusionModel::load(weights, DType::F32, &device)?;
+        Ok(Self {
+            model,
+            device,
+            config,
+        })
+    }
+
+    /// An estimator around an already loaded model.
+    pub fn from_model(model: PoseDiffusionModel, device: Device, config: EstimateConfig) -> Self {
+        Self {
+            model,
+            device,
+            config,
+        }
+    }
+
+    /// Samples encodings `(samples, N, 9)` for preprocessed images `(N, 3, 224, 224)` in `[0,1]`,
+    /// with GGS on `matches` (224-crop pixels) when given.
+    ///
+    /// # Errors
+    /// Shape, model or GGS errors.
+    pub fn sample_encodings(
+        &self,
+        images: &Tensor,
+        matches: Option<&MatchSet>,
+        noise: &mut dyn NoiseSource,
+        times: &mut StageTimes,
+    ) -> Result<Tensor> {
+        let start = Instant::now();
+        let n = images.dim(0)?;
+        let z = self.model.image_features(&images.unsqueeze(0)?)?;
+        let z = z
+            .broadcast_as((self.config.samples, n, z.dim(2)?))?
+            .contiguous()?;
+        times.features = start.elapsed().as_secs_f64();
+        let start = Instant::now();
+        let out = match matches {
+            Some(m) => {
+                let mut hook = GgsHook {
+                    solver: GgsSolver::new(m, self.config.ggs_config)?,
+                    seconds: 0.0,
+                };
+                let start_step = self.config.ggs_config.start_step;
+                let x = sample(
+                    &self.model.denoiser,
+                    &self.model.schedule,
+                    &z,
+                    noise,
+                    Some((&mut hook, start_step)),
+                    None,
+                )?;
+                times.ggs = hook.seconds;
+                x
+            }
+            None => sample(
+                &self.model.denoiser,
+                &self.model.schedule,
+                &z,
+                noise,
+                None,
+                None,
+            )?,
+        };
+        times.sampling = start.elapsed().as_secs_f64();
+        Ok(out)
+    }
+
+    /// Estimates the cameras of `images` (at least two files); names are relative to `root`.
+    ///
+    /// # Errors
+    /// Too few or unreadable images, matching, model or GGS errors.
+    pub fn estimate(&self, images: &[PathBuf], root: Option<&Path>) -> Result<Estimate> {
+        if images.len() < 2 {
+            return Err(PosediffError::TooFewImages {
+                needed: 2,
+                got: images.len(),
+            });
+        }
+        let mut times = StageTimes::default();
+        let mut warnings = Vec::new();
+        let start = Instant::now();
+        let loaded = load_images(images)?;
+        let side = MODEL_INPUT_SIDE as usize;
+        let pixels: Vec<f32> = loaded
+            .iter()
+            .flat_map(|l| l.pixels.iter().copied())
+            .collect();
+        let tensor = Tensor::from_vec(pixels, (loaded.len(), 3, side, side), &self.device)?;
+        times.load = start.elapsed().as_secs_f64();
+
+        let mut matches_per_pair = Vec::new();
+        let match_set = if self.config.ggs {
+            let start = Instant::now();
+            let (_, pairs) = match_images(images, None, &self.config.matching)?;
+            times.matching = start.elapsed().as_secs_f64();
+            matches_per_pair = pairs.iter().map(|p| (p.first, p.second, p.len())).collect();
+            let set = model_frame_matches(&pairs, &loaded)?;
+            if set.is_empty() {
+                warnings.push("GGS skipped: no image pair has verified matches".to_owned());
+                None
+            } else {
+                Some(set)
+            }
+        } else {
+            None
+        };
+        let mut noise = SeededNoise::new(self.config.seed);
+        let encodings =
+            self.sample_encodings(&tensor, match_set.as_ref(), &mut noise, &mut times)?;
+        let flat: Vec<f64> = encodings.flatten_all()?.to_dtype(DType::F64)?.to_vec1()?;
+        let model_size = ImageSize::new(MODEL_INPUT_SIDE, MODEL_INPUT_SIDE)?;
+        let names: Vec<String> = images.iter().map(|p| relative_name(p, root)).collect();
+        let samples = flat
+            .chunks(loaded.len() * 9)
+            .map(|sample| {
+                sample
+                    .chunks(9)
+                    .zip(&loaded)
+                    .zip(&names)
+                    .map(|((e, l), name)| {
+                        let mut row = [0.0; 9];
+                        row.copy_from_slice(e);
+                        let at_224 = PoseEncoding(row).to_camera(model_size)?;
+                        Ok(NamedCamera {
+                            image: name.clone(),
+                            camera: l.crop.camera_from_model(&at_224, l.size)?,
+                        })
+                    })
+                    .collect::<Result<Vec<_>>>()
+            })
+            .collect::<Result<Vec<_>>>()?;
+        Ok(Estimate {
+            samples,
+            crops: loaded.iter().map(|l| l.crop).collect(),
+            matches_per_pair,
+            times,
+            warnings,
+        })
+    }
+}
+
+/// A path relative to `root` when under it, else its file name.
+fn relative_name(path: &Path, root: Option<&Path>) -> String {
+    root.and_then(|r| path.strip_prefix(r).ok())
+        .or_else(|| path.file_name().map(Path::new))
+        .unwrap_or(path)
+        .to_string_lossy()
+        .into_owned()
+}
+
+/// Matches in original pixels → the 224-crop frame of each image, as a GGS match set.
+///
+/// # Errors
+/// Invalid pairs.
+pub fn model_frame_matches(pairs: &[PairMatches], images: &[LoadedImage]) -> Result<MatchSet> {
+    let (mut kp1, mut kp2, mut frames) = (Vec::new(), Vec::new(), Vec::new());
+    for p in pairs {
+        for (a, b) in p.kp1.iter().zip(&p.kp2) {
+            kp1.push(images[p.first].crop.to_model(*a));
+            kp2.push(images[p.second].crop.to_model(*b));
+            frames.push((p.first, p.second));
+        }
+    }
+    Ok(MatchSet::new(images.len(), &kp1, &kp2, &frames)?)
+}

@@ -1,0 +1,199 @@
+//! The pipeline end to end: the official end-to-end result on the reference images with the
+//! tiny model and the official noise, and the `posediff estimate` command on the 20 apple
+//! frames writing all four formats, read back.
+
+// Test helpers outside #[test] functions unwrap too: a failure is the test failing.
+#![allow(clippy::unwrap_used)]
+
+use std::process::Command;
+
+use candle_core::{DType, Device, IndexOp, Tensor};
+use posediff::export::{Pytorch3dRecord, read_cameras_json, read_colmap_text, read_nerfstudio};
+use posediff::{EstimateConfig, Estimator, StageTimes};
+use posediff_diffusion::{PoseDiffusionModel, ReplayNoise};
+use posediff_fixtures::{SafetensorsFixture, assert_close, shared_path};
+use posediff_geometry::PoseEncoding;
+
+fn tensor(fx: &SafetensorsFixture, name: &str) -> Tensor {
+    let t = fx.tensor(name);
+    Tensor::from_vec(t.data, t.shape, &Device::Cpu).unwrap()
+}
+
+fn values(t: &Tensor) -> Vec<f64> {
+    t.flatten_all()
+        .unwrap()
+        .to_dtype(DType::F64)
+        .unwrap()
+        .to_vec1()
+        .unwrap()
+}
+
+#[test]
+fn pipeline_reproduces_the_official_end_to_end_sample() {
+    let model = PoseDiffusionModel::load(
+        &shared_path("reference/tiny/model_tiny.safetensors"),
+        DType::F64,
+        &Device::Cpu,
+    )
+    .unwrap();
+    let io = SafetensorsFixture::open(&shared_path("reference/tiny/denoiser_io_tiny.safetensors"));
+    let run = SafetensorsFixture::open(&shared_path("reference/tiny/sampling_io_tiny.safetensors"));
+    let estimator = Estimator::from_model(model, Device::Cpu, EstimateConfig::default());
+    let noise = tensor(&run, "step_noise");
+    let draws: Vec<Vec<f64>> = std::iter::once(values(&tensor(&run, "x_T")))
+        .chain((0..99).map(|k| values(&noise.i(k).unwrap())))
+        .collect();
+    let mut times = StageTimes::default();
+    let x = estimator
+        .sample_encodings(
+            &tensor(&io, "images"),
+            None,
+            &mut ReplayNoise::new(draws),
+            &mut times,
+        )
+        .unwrap();
+    let cams: Vec<_> = values(&x)
+        .chunks(9)
+        .map(|e| {
+            PoseEncoding(<[f64; 9]>::try_from(e).unwrap())
+                .decode()
+                .unwrap()
+        })
+        .collect();
+    let r: Vec<f64> = cams
+        .iter()
+        .flat_map(|c| c.r.transpose().as_slice().to_vec())
+        .collect();
+    let t: Vec<f64> = cams.iter().flat_map(|c| c.t.as_slice().to_vec()).collect();
+    let f: Vec<f64> = cams
+        .iter()
+        .flat_map(|c| c.intrinsics.focal.as_slice().to_vec())
+        .collect();
+    // Free-running tolerances of the tiny README: 2e-2 on R, 0.3 abs on T and on the encoding
+    // (so log-focal within 0.3: focal within a factor e^0.3).
+    assert_close("e2e_R", &r, &run.tensor("e2e_R").data, 2e-2, 0.0);
+    assert_close("e2e_T", &t, &run.tensor("e2e_T").data, 0.3, 0.0);
+    assert_close(
+        "e2e_focal_length",
+        &f,
+        &run.tensor("e2e_focal_length").data,
+        0.0,
+        0.3f64.exp() - 1.0,
+    );
+}
+
+fn posediff() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_posediff"))
+}
+
+#[test]
+fn estimate_on_the_apple_frames_writes_four_formats_that_read_back_alike() {
+    let out = std::env::temp_dir().join(format!("posediff-e2e-{}", std::process::id()));
+    let status = posediff()
+        .arg("estimate")
+        .arg(shared_path("data/co3d_apple_posediffusion/images"))
+        .arg("--weights")
+        .arg(shared_path("reference/tiny/model_tiny.safetensors"))
+        .arg("--out")
+        .arg(&out)
+        .arg("--quiet")
+        .status()
+        .unwrap();
+    assert!(status.success());
+    let json = read_cameras_json(&out.join("cameras.json")).unwrap();
+    assert_eq!(json.len(), 20);
+    assert_eq!(json[0].image, "frame000007.jpg");
+    assert_eq!(
+        (
+            json[0].camera.image_size.width(),
+            json[0].camera.image_size.height()
+        ),
+        (576, 1024)
+    );
+    // The principal point sits at the centre of the crop (the 576-px square at top 224).
+    assert!((json[0].camera.intrinsics.cx() - 288.0).abs() < 1e-9);
+    assert!((json[0].camera.intrinsics.cy() - (224.0 + 288.0)).abs() < 1e-9);
+    for other in [
+        read_colmap_text(&out).unwrap(),
+        read_nerfstudio(&out.join("transforms.json")).unwrap(),
+    ] {
+        assert_eq!(other.len(), json.len());
+        for (a, b) in json.iter().zip(&other) {
+            assert_eq!(a.image, b.image);
+            assert!(
+                (a.camera.cam_from_world.rotation - b.camera.cam_from_world.rotation).norm() < 1e-9
+            );
+            assert!(
+                (a.camera.cam_from_world.translation - b.camera.cam_from_world.translation).norm()
+                    < 1e-9 * (1.0 + a.camera.cam_from_world.translation.norm())
+            );
+            assert!(
+                (a.camera.intrinsics.matrix() - b.camera.intrinsics.matrix()).norm()
+                    < 1e-9 * a.camera.intrinsics.fx()
+            );
+        }
+    }
+    let p3d: Vec<Pytorch3dRecord> =
+        serde_json::from_str(&std::fs::read_to_string(out.join("pytorch3d.json")).unwrap())
+            .unwrap();
+    assert_eq!(p3d.len(), 20);
+    // The model's principal point is the crop centre: NDC (0, 0).
+    assert!(
+        p3d.iter()
+            .all(|r| r.principal_point[0].abs() < 1e-9 && r.principal_point[1].abs() < 1e-9)
+    );
+    let run: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("run.json")).unwrap()).unwrap();
+    assert_eq!(run["matches_per_pair"].as_array().unwrap().len(), 190);
+    std::fs::remove_dir_all(&out).unwrap();
+}
+
+#[test]
+fn bad_invocations_fail_with_a_message() {
+    let one = shared_path("data/strecha_fountainP11/images/0000.jpg");
+    let weights = shared_path("reference/tiny/model_tiny.safetensors");
+    let out = std::env::temp_dir().join(format!("posediff-bad-{}", std::process::id()));
+    let cases: [(Vec<std::ffi::OsString>, &str); 3] = [
+        (
+            vec![
+                "estimate".into(),
+                one.clone().into(),
+                "--weights".into(),
+                weights.clone().into(),
+                "--out".into(),
+                out.clone().into(),
+            ],
+            "at least 2 images",
+        ),
+        (
+            vec![
+                "estimate".into(),
+                one.clone().into(),
+                one.clone().into(),
+                "--weights".into(),
+                "missing.pth".into(),
+                "--out".into(),
+                out.clone().into(),
+            ],
+            "missing.pth",
+        ),
+        (
+            vec![
+                "estimate".into(),
+                std::env::temp_dir().join("posediff-no-such-folder").into(),
+                one.clone().into(),
+                "--weights".into(),
+                weights.into(),
+                "--out".into(),
+                out.into(),
+            ],
+            "posediff-no-such-folder",
+        ),
+    ];
+    for (args, needle) in cases {
+        let o = posediff().args(&args).output().unwrap();
+        assert!(!o.status.success(), "{args:?} succeeded");
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(err.contains(needle), "{args:?}: {err}");
+    }
+}
