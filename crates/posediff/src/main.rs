@@ -153,6 +153,9 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         "seconds": {"load_weights": load_weights, "load_images": estimate.times.load, "matching": estimate.times.matching,
                     "features": estimate.times.features, "sampling": estimate.times.sampling, "ggs": estimate.times.ggs, "export": export},
         "matches_per_pair": estimate.matches_per_pair.iter().map(|(a, b, n)| serde_json::json!({"first": a, "second": b, "matches": n})).collect::<Vec<_>>(),
+        "sample_spread": first.iter().zip(estimate.spread()?).map(|(c, s)| serde_json::json!({
+            "image": c.image, "rotation_deg_max": s.rotation_deg_max, "center_distance_max": s.center_distance_max,
+        })).collect::<Vec<_>>(),
         "warnings": estimate.warnings,
     });
     std::fs::write(out.join("run.json"), serde_json::to_string_pretty(&run)?)

@@ -72,6 +72,58 @@ pub struct Estimate {
     pub warnings: Vec<String>,
 }
 
+/// How far the samples of one camera disagree.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct CameraSpread {
+    /// Largest rotation angle between a sample and sample 0, degrees.
+    pub rotation_deg_max: f64,
+    /// Largest distance between a sample's camera centre and sample 0's, in sample 0's units.
+    pub center_distance_max: f64,
+}
+
+impl Estimate {
+    /// Per camera, the spread of the samples around sample 0, after aligning each sample's world
+    /// to sample 0's (PyTorch3D's extrinsics alignment, as the official demo aligns). Empty for
+    /// one sample.
+    ///
+    /// # Errors
+    /// Degenerate alignments.
+    pub fn spread(&self) -> Result<Vec<CameraSpread>> {
+        let Some((first, rest)) = self.samples.split_first() else {
+            return Ok(Vec::new());
+        };
+        if rest.is_empty() {
+            return Ok(Vec::new());
+        }
+        let base: Vec<_> = first.iter().map(|c| c.camera).collect();
+        let mut out = vec![
+            CameraSpread {
+                rotation_deg_max: 0.0,
+                center_distance_max: 0.0,
+            };
+            base.len()
+        ];
+        for sample in rest {
+            let cams: Vec<_> = sample.iter().map(|c| c.camera).collect();
+            let sim = posediff_geometry::align_cameras_by_extrinsics(&cams, &base)?;
+            for ((o, c), b) in out.iter_mut().zip(&cams).zip(&base) {
+                let aligned = sim.transform_camera(c);
+                // The aligned camera frame is scaled by the similarity; its centre is not.
+                let rel = b.cam_from_world.rotation.transpose() * aligned.cam_from_world.rotation;
+                let angle = ((rel.trace() - 1.0) / 2.0)
+                    .clamp(-1.0, 1.0)
+                    .acos()
+                    .to_degrees();
+                o.rotation_deg_max = o.rotation_deg_max.max(angle);
+                o.center_distance_max = o
+                    .center_distance_max
+                    .max((aligned.center() - b.center()).norm());
+            }
+        }
+        Ok(out)
+    }
+}
+
 /// GGS as the sampler's mean hook, each sample of the batch on its own.
 struct GgsHook<'m> {
     solver: GgsSolver<'m>,

@@ -96,7 +96,7 @@ fn estimate_on_the_apple_frames_writes_four_formats_that_read_back_alike() {
         .arg(shared_path("reference/tiny/model_tiny.safetensors"))
         .arg("--out")
         .arg(&out)
-        .arg("--quiet")
+        .args(["--quiet", "--samples", "2"])
         .status()
         .unwrap();
     assert!(status.success());
@@ -145,6 +145,18 @@ fn estimate_on_the_apple_frames_writes_four_formats_that_read_back_alike() {
     let run: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("run.json")).unwrap()).unwrap();
     assert_eq!(run["matches_per_pair"].as_array().unwrap().len(), 190);
+    // Two samples: a spread per camera, finite, and not all zero (the samples differ).
+    let spread = run["sample_spread"].as_array().unwrap();
+    assert_eq!(spread.len(), 20);
+    let rot: Vec<f64> = spread
+        .iter()
+        .map(|s| s["rotation_deg_max"].as_f64().unwrap())
+        .collect();
+    assert!(
+        rot.iter()
+            .all(|r| r.is_finite() && *r >= 0.0 && *r <= 180.0)
+    );
+    assert!(rot.iter().any(|r| *r > 0.0));
     std::fs::remove_dir_all(&out).unwrap();
 }
 
