@@ -5,8 +5,6 @@
 // Test helpers outside #[test] functions unwrap too: a failure is the test failing.
 #![allow(clippy::unwrap_used)]
 
-mod common;
-
 use common::values;
 
 use std::collections::HashMap;

@@ -15,9 +15,7 @@
 // Test helpers outside #[test] functions unwrap too: a failure is the test failing.
 #![allow(clippy::unwrap_used)]
 
-mod common;
-
-use common::{tensor, values};
+use posediff_fixtures::tensors::{tensor, values};
 
 use candle_core::{DType, Device, IndexOp, Tensor};
 use posediff_diffusion::checkpoint::ModelDepths;

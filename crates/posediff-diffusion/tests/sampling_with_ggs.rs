@@ -6,8 +6,6 @@
 // Test helpers outside #[test] functions unwrap too: a failure is the test failing.
 #![allow(clippy::unwrap_used)]
 
-mod common;
-
 use common::tensor;
 
 use candle_core::{DType, Device, IndexOp, Tensor};

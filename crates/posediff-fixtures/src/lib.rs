@@ -180,6 +180,30 @@ impl SafetensorsFixture {
     }
 }
 
+/// Candle conversions (feature `candle`).
+#[cfg(feature = "candle")]
+pub mod tensors {
+    use candle_core::{DType, Device, Tensor};
+
+    use crate::SafetensorsFixture;
+
+    /// A fixture tensor as an F64 candle tensor on the CPU.
+    #[track_caller]
+    pub fn tensor(fx: &SafetensorsFixture, name: &str) -> Tensor {
+        let t = fx.tensor(name);
+        Tensor::from_vec(t.data, t.shape, &Device::Cpu).unwrap_or_else(|e| panic!("{name}: {e}"))
+    }
+
+    /// A tensor's values as f64, row-major.
+    #[track_caller]
+    pub fn values(t: &Tensor) -> Vec<f64> {
+        t.flatten_all()
+            .and_then(|t| t.to_dtype(DType::F64))
+            .and_then(|t| t.to_vec1())
+            .unwrap_or_else(|e| panic!("tensor values: {e}"))
+    }
+}
+
 /// IEEE half precision to f64.
 fn f16_to_f64(h: u16) -> f64 {
     let sign = if h & 0x8000 != 0 { -1.0 } else { 1.0 };

@@ -7,26 +7,13 @@
 
 use std::process::Command;
 
-use candle_core::{DType, Device, IndexOp, Tensor};
+use candle_core::{DType, Device, IndexOp};
 use posediff::export::{Pytorch3dRecord, read_cameras_json, read_colmap_text, read_nerfstudio};
 use posediff::{EstimateConfig, Estimator, StageTimes};
 use posediff_diffusion::{PoseDiffusionModel, ReplayNoise};
+use posediff_fixtures::tensors::{tensor, values};
 use posediff_fixtures::{SafetensorsFixture, assert_close, shared_path};
 use posediff_geometry::PoseEncoding;
-
-fn tensor(fx: &SafetensorsFixture, name: &str) -> Tensor {
-    let t = fx.tensor(name);
-    Tensor::from_vec(t.data, t.shape, &Device::Cpu).unwrap()
-}
-
-fn values(t: &Tensor) -> Vec<f64> {
-    t.flatten_all()
-        .unwrap()
-        .to_dtype(DType::F64)
-        .unwrap()
-        .to_vec1()
-        .unwrap()
-}
 
 #[test]
 fn pipeline_reproduces_the_official_end_to_end_sample() {
