@@ -5,7 +5,7 @@
 // Test helpers outside #[test] functions unwrap too: a failure is the test failing.
 #![allow(clippy::unwrap_used)]
 
-use common::values;
+use posediff_fixtures::tensors::values;
 
 use std::collections::HashMap;
 

@@ -6,7 +6,7 @@
 // Test helpers outside #[test] functions unwrap too: a failure is the test failing.
 #![allow(clippy::unwrap_used)]
 
-use common::tensor;
+use posediff_fixtures::tensors::tensor;
 
 use candle_core::{DType, Device, IndexOp, Tensor};
 use posediff_diffusion::sampler::{GGS_START_STEP, MeanHook, denoise_step};
