@@ -125,9 +125,27 @@ impl Estimate {
 }
 
 /// GGS as the sampler's mean hook, each sample of the batch on its own.
-struct GgsHook<'m> {
+pub struct GgsHook<'m> {
     solver: GgsSolver<'m>,
     seconds: f64,
+}
+
+impl<'m> GgsHook<'m> {
+    /// A hook running `config`'s GGS on `matches` (224-crop pixels).
+    ///
+    /// # Errors
+    /// An invalid GGS configuration.
+    pub fn new(matches: &'m MatchSet, config: GgsConfig) -> Result<Self> {
+        Ok(Self {
+            solver: GgsSolver::new(matches, config)?,
+            seconds: 0.0,
+        })
+    }
+
+    /// Seconds spent in GGS so far.
+    pub fn seconds(&self) -> f64 {
+        self.seconds
+    }
 }
 
 impl MeanHook for GgsHook<'_> {
@@ -208,10 +226,7 @@ impl Estimator {
         let start = Instant::now();
         let out = match matches {
             Some(m) => {
-                let mut hook = GgsHook {
-                    solver: GgsSolver::new(m, self.config.ggs_config)?,
-                    seconds: 0.0,
-                };
+                let mut hook = GgsHook::new(m, self.config.ggs_config)?;
                 let start_step = self.config.ggs_config.start_step;
                 let x = sample(
                     &self.model.denoiser,

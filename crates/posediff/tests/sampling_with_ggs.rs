@@ -1,4 +1,4 @@
-//! The sampler with GGS plugged into its mean hook against the official run
+//! The sampler with the pipeline's GGS mean hook against the official run
 //! (`reference/full/sampling_ggs_io.safetensors`: `iter_num 3`, `sampson_max 1e12`,
 //! `min_matches 0`, GGS at t < 10, no noise there), teacher-forced per step: each of the last ten
 //! steps starts from the reference's `pose_process[k]` and must land on `pose_process[k+1]`.
@@ -8,33 +8,12 @@
 
 use posediff_fixtures::tensors::tensor;
 
-use candle_core::{DType, Device, IndexOp, Tensor};
+use candle_core::{DType, Device, IndexOp};
+use posediff::GgsHook;
+use posediff_diffusion::PoseDiffusionModel;
 use posediff_diffusion::sampler::{GGS_START_STEP, MeanHook, denoise_step};
-use posediff_diffusion::{DiffusionError, PoseDiffusionModel};
 use posediff_fixtures::{SafetensorsFixture, assert_close, shared_path};
-use posediff_geometry::PoseEncoding;
-use posediff_guidance::{GgsConfig, GgsSolver, MatchSet};
-
-/// The official GGS as the sampler's mean hook, for one image set (B = 1).
-struct GgsHook<'m> {
-    solver: GgsSolver<'m>,
-}
-
-impl MeanHook for GgsHook<'_> {
-    fn replace_mean(&mut self, mean: &Tensor, _t: usize) -> posediff_diffusion::Result<Tensor> {
-        let (b, n, d) = mean.dims3()?;
-        let flat: Vec<f64> = mean.flatten_all()?.to_dtype(DType::F64)?.to_vec1()?;
-        let mut enc: Vec<PoseEncoding> = flat
-            .chunks(d)
-            .map(|c| PoseEncoding(<[f64; 9]>::try_from(c).unwrap_or([0.0; 9])))
-            .collect();
-        self.solver
-            .run(&mut enc, None)
-            .map_err(|_| DiffusionError::Invalid("GGS failed"))?;
-        let out: Vec<f64> = enc.iter().flat_map(|e| e.0).collect();
-        Ok(Tensor::from_vec(out, (b, n, d), mean.device())?.to_dtype(mean.dtype())?)
-    }
-}
+use posediff_guidance::{GgsConfig, MatchSet};
 
 #[test]
 fn ggs_steps_of_the_sampler_match_the_official_run() {
@@ -60,9 +39,7 @@ fn ggs_steps_of_the_sampler_match_the_official_run() {
         min_matches: 0.0,
         ..GgsConfig::default()
     };
-    let mut hook = GgsHook {
-        solver: GgsSolver::new(&matches, config).unwrap(),
-    };
+    let mut hook = GgsHook::new(&matches, config).unwrap();
     let z = tensor(&io, "z");
     let process = tensor(&run, "pose_process");
     for k in (100 - GGS_START_STEP)..100 {
