@@ -152,6 +152,26 @@ fn bad_invocations_fail_with_a_message() {
     let one = shared_path("data/strecha_fountainP11/images/0000.jpg");
     let weights = shared_path("reference/tiny/model_tiny.safetensors");
     let out = std::env::temp_dir().join(format!("posediff-bad-{}", std::process::id()));
+    // An output "folder" that is a file cannot be created.
+    let blocker =
+        std::env::temp_dir().join(format!("posediff-out-is-a-file-{}", std::process::id()));
+    std::fs::write(&blocker, "x").unwrap();
+    let two = [
+        one.clone(),
+        shared_path("data/strecha_fountainP11/images/0001.jpg"),
+    ];
+    let o = posediff()
+        .arg("estimate")
+        .args(&two)
+        .args(["--no-ggs", "--quiet", "--weights"])
+        .arg(&weights)
+        .arg("--out")
+        .arg(&blocker)
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("posediff-out-is-a-file"));
+    std::fs::remove_file(&blocker).unwrap();
     let cases: [(Vec<std::ffi::OsString>, &str); 3] = [
         (
             vec![
