@@ -89,6 +89,10 @@ pub trait MeanHook {
     /// # Errors
     /// Whatever the hook reports.
     fn replace_mean(&mut self, mean: &Tensor, t: usize) -> Result<Tensor>;
+
+    /// Called after every step `t` (from T−1 down to 0), whether or not the mean was replaced:
+    /// progress reporting. Does nothing by default.
+    fn step_done(&mut self, _t: usize) {}
 }
 
 /// The values of one reverse step.
@@ -176,6 +180,9 @@ pub fn sample(
             }
             _ => step.model_mean.clone(),
         };
+        if let Some((h, _)) = hook.as_mut() {
+            h.step_done(t);
+        }
         if let Some(tr) = trace.as_deref_mut() {
             tr.pose_process.push(x.clone());
             tr.steps.push(step);

@@ -12,4 +12,4 @@ pub mod loader;
 pub mod pipeline;
 
 pub use error::{PosediffError, Result};
-pub use pipeline::{Estimate, EstimateConfig, Estimator, GgsHook, StageTimes};
+pub use pipeline::{Estimate, EstimateConfig, Estimator, GgsHook, Progress, Silent, StageTimes};

@@ -10,7 +10,7 @@ use candle_core::Device;
 use clap::{Parser, Subcommand, ValueEnum};
 use posediff::export::{write_cameras_json, write_colmap_text, write_nerfstudio, write_pytorch3d};
 use posediff::loader::image_files;
-use posediff::{EstimateConfig, Estimator};
+use posediff::{EstimateConfig, Estimator, Progress, Silent};
 use posediff_matching::Detector;
 
 #[derive(Parser)]
@@ -68,6 +68,44 @@ enum Command {
         #[arg(long)]
         quiet: bool,
     },
+}
+
+/// Progress bars on stderr (drawn only on a terminal).
+#[derive(Default)]
+struct Bars {
+    bar: Option<indicatif::ProgressBar>,
+}
+
+impl Progress for Bars {
+    fn start(&mut self, stage: &str, total: u64) {
+        let bar = if total > 0 {
+            let b = indicatif::ProgressBar::new(total);
+            if let Ok(style) = indicatif::ProgressStyle::with_template(
+                "{msg:>10} [{bar:40}] {pos}/{len} {elapsed}",
+            ) {
+                b.set_style(style.progress_chars("=> "));
+            }
+            b
+        } else {
+            let b = indicatif::ProgressBar::new_spinner();
+            b.enable_steady_tick(std::time::Duration::from_millis(120));
+            b
+        };
+        bar.set_message(stage.to_owned());
+        self.bar = Some(bar);
+    }
+
+    fn advance(&mut self) {
+        if let Some(b) = &self.bar {
+            b.inc(1);
+        }
+    }
+
+    fn finish(&mut self) {
+        if let Some(b) = self.bar.take() {
+            b.finish_and_clear();
+        }
+    }
 }
 
 fn main() -> ExitCode {
@@ -128,7 +166,9 @@ fn run(cli: Cli) -> anyhow::Result<()> {
     let estimator = Estimator::load(&weights, device, config.clone())
         .with_context(|| format!("loading weights {}", weights.display()))?;
     let load_weights = load_start.elapsed().as_secs_f64();
-    let estimate = estimator.estimate(&images, root.as_deref())?;
+    let mut bars = Bars::default();
+    let progress: &mut dyn Progress = if quiet { &mut Silent } else { &mut bars };
+    let estimate = estimator.estimate_with(&images, root.as_deref(), progress)?;
     std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
     let export_start = std::time::Instant::now();
     let first = &estimate.samples[0];

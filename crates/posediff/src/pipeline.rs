@@ -72,6 +72,41 @@ pub struct Estimate {
     pub warnings: Vec<String>,
 }
 
+/// Progress of an estimation, stage by stage (the CLI draws bars; the default does nothing).
+pub trait Progress {
+    /// A stage begins; `total` steps, 0 when it has no steps to count.
+    fn start(&mut self, _stage: &str, _total: u64) {}
+    /// One step of the current stage is done.
+    fn advance(&mut self) {}
+    /// The current stage is done.
+    fn finish(&mut self) {}
+}
+
+/// No progress output.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Silent;
+
+impl Progress for Silent {}
+
+/// Reports sampler steps to a [`Progress`], replacing means with GGS where it has a solver.
+struct SamplingProgress<'a, 'm> {
+    ggs: Option<GgsHook<'m>>,
+    progress: &'a mut dyn Progress,
+}
+
+impl MeanHook for SamplingProgress<'_, '_> {
+    fn replace_mean(&mut self, mean: &Tensor, t: usize) -> posediff_diffusion::Result<Tensor> {
+        match self.ggs.as_mut() {
+            Some(h) => h.replace_mean(mean, t),
+            None => Ok(mean.clone()),
+        }
+    }
+
+    fn step_done(&mut self, _t: usize) {
+        self.progress.advance();
+    }
+}
+
 /// How far the samples of one camera disagree.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
 pub struct CameraSpread {
@@ -216,6 +251,22 @@ impl Estimator {
         noise: &mut dyn NoiseSource,
         times: &mut StageTimes,
     ) -> Result<Tensor> {
+        self.sample_encodings_with(images, matches, noise, times, &mut Silent)
+    }
+
+    /// [`Self::sample_encodings`] reporting to `progress` (stages "features" and "sampling").
+    ///
+    /// # Errors
+    /// As [`Self::sample_encodings`].
+    pub fn sample_encodings_with(
+        &self,
+        images: &Tensor,
+        matches: Option<&MatchSet>,
+        noise: &mut dyn NoiseSource,
+        times: &mut StageTimes,
+        progress: &mut dyn Progress,
+    ) -> Result<Tensor> {
+        progress.start("features", 0);
         let start = Instant::now();
         let n = images.dim(0)?;
         let z = self.model.image_features(&images.unsqueeze(0)?)?;
@@ -223,32 +274,30 @@ impl Estimator {
             .broadcast_as((self.config.samples, n, z.dim(2)?))?
             .contiguous()?;
         times.features = start.elapsed().as_secs_f64();
+        progress.finish();
+        progress.start("sampling", self.model.schedule.len() as u64);
         let start = Instant::now();
-        let out = match matches {
-            Some(m) => {
-                let mut hook = GgsHook::new(m, self.config.ggs_config)?;
-                let start_step = self.config.ggs_config.start_step;
-                let x = sample(
-                    &self.model.denoiser,
-                    &self.model.schedule,
-                    &z,
-                    noise,
-                    Some((&mut hook, start_step)),
-                    None,
-                )?;
-                times.ggs = hook.seconds;
-                x
-            }
-            None => sample(
-                &self.model.denoiser,
-                &self.model.schedule,
-                &z,
-                noise,
-                None,
-                None,
-            )?,
+        let ggs = matches
+            .map(|m| GgsHook::new(m, self.config.ggs_config))
+            .transpose()?;
+        // Without GGS the hook only observes: a start step of 0 never replaces a mean.
+        let start_step = if ggs.is_some() {
+            self.config.ggs_config.start_step
+        } else {
+            0
         };
+        let mut hook = SamplingProgress { ggs, progress };
+        let out = sample(
+            &self.model.denoiser,
+            &self.model.schedule,
+            &z,
+            noise,
+            Some((&mut hook, start_step)),
+            None,
+        )?;
+        times.ggs = hook.ggs.as_ref().map_or(0.0, GgsHook::seconds);
         times.sampling = start.elapsed().as_secs_f64();
+        hook.progress.finish();
         Ok(out)
     }
 
@@ -257,6 +306,20 @@ impl Estimator {
     /// # Errors
     /// Too few or unreadable images, matching, model or GGS errors.
     pub fn estimate(&self, images: &[PathBuf], root: Option<&Path>) -> Result<Estimate> {
+        self.estimate_with(images, root, &mut Silent)
+    }
+
+    /// [`Self::estimate`] reporting its stages ("images", "matching", "features", "sampling") to
+    /// `progress`.
+    ///
+    /// # Errors
+    /// As [`Self::estimate`].
+    pub fn estimate_with(
+        &self,
+        images: &[PathBuf],
+        root: Option<&Path>,
+        progress: &mut dyn Progress,
+    ) -> Result<Estimate> {
         if images.len() < 2 {
             return Err(PosediffError::TooFewImages {
                 needed: 2,
@@ -265,6 +328,7 @@ impl Estimator {
         }
         let mut times = StageTimes::default();
         let mut warnings = Vec::new();
+        progress.start("images", 0);
         let start = Instant::now();
         let loaded = load_images(images)?;
         let side = MODEL_INPUT_SIDE as usize;
@@ -274,12 +338,15 @@ impl Estimator {
             .collect();
         let tensor = Tensor::from_vec(pixels, (loaded.len(), 3, side, side), &self.device)?;
         times.load = start.elapsed().as_secs_f64();
+        progress.finish();
 
         let mut matches_per_pair = Vec::new();
         let match_set = if self.config.ggs {
+            progress.start("matching", 0);
             let start = Instant::now();
             let (_, pairs) = match_images(images, None, &self.config.matching)?;
             times.matching = start.elapsed().as_secs_f64();
+            progress.finish();
             matches_per_pair = pairs.iter().map(|p| (p.first, p.second, p.len())).collect();
             let set = model_frame_matches(&pairs, &loaded)?;
             if set.is_empty() {
@@ -292,8 +359,13 @@ impl Estimator {
             None
         };
         let mut noise = SeededNoise::new(self.config.seed);
-        let encodings =
-            self.sample_encodings(&tensor, match_set.as_ref(), &mut noise, &mut times)?;
+        let encodings = self.sample_encodings_with(
+            &tensor,
+            match_set.as_ref(),
+            &mut noise,
+            &mut times,
+            progress,
+        )?;
         let flat: Vec<f64> = encodings.flatten_all()?.to_dtype(DType::F64)?.to_vec1()?;
         let model_size = ImageSize::new(MODEL_INPUT_SIDE, MODEL_INPUT_SIDE)?;
         let names: Vec<String> = images.iter().map(|p| relative_name(p, root)).collect();

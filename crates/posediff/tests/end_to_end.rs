@@ -216,3 +216,48 @@ fn bad_invocations_fail_with_a_message() {
         assert!(err.contains(needle), "{args:?}: {err}");
     }
 }
+
+/// Records what the pipeline reports.
+#[derive(Default)]
+struct Recorder {
+    stages: Vec<(String, u64)>,
+    advances: u64,
+    finished: usize,
+}
+
+impl posediff::Progress for Recorder {
+    fn start(&mut self, stage: &str, total: u64) {
+        self.stages.push((stage.to_owned(), total));
+    }
+    fn advance(&mut self) {
+        self.advances += 1;
+    }
+    fn finish(&mut self) {
+        self.finished += 1;
+    }
+}
+
+#[test]
+fn progress_reports_every_stage_and_every_sampling_step() {
+    let estimator = Estimator::load(
+        &shared_path("reference/tiny/model_tiny.safetensors"),
+        Device::Cpu,
+        EstimateConfig::default(),
+    )
+    .unwrap();
+    let images = [
+        shared_path("data/strecha_fountainP11/images/0000.jpg"),
+        shared_path("data/strecha_fountainP11/images/0001.jpg"),
+    ];
+    let mut rec = Recorder::default();
+    let estimate = estimator.estimate_with(&images, None, &mut rec).unwrap();
+    let names: Vec<&str> = rec.stages.iter().map(|s| s.0.as_str()).collect();
+    assert_eq!(names, ["images", "matching", "features", "sampling"]);
+    assert_eq!(rec.stages[3].1, 100);
+    assert_eq!(rec.advances, 100);
+    assert_eq!(rec.finished, 4);
+    assert_eq!(estimate.samples[0][1].image, "0001.jpg");
+    // The fountain pair has verified matches, so GGS ran (with random weights its phases stop at
+    // once, but the hook was called).
+    assert!(estimate.matches_per_pair[0].2 >= 20);
+}
