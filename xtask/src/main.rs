@@ -17,8 +17,15 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 
-/// Debian packages the OpenCV bindings need at build time (BUILD_NOTES.md).
-const APT_PACKAGES: [&str; 4] = ["libopencv-dev", "clang", "libclang-dev", "pkg-config"];
+/// Debian packages the build needs (OpenCV bindings: BUILD_NOTES.md) and the font
+/// `posediff plot` writes its labels with.
+const APT_PACKAGES: [&str; 5] = [
+    "libopencv-dev",
+    "clang",
+    "libclang-dev",
+    "pkg-config",
+    "fonts-dejavu-core",
+];
 
 /// Heavy back ends the light crates must never pull in (ARCHITECTURE.md, invariants).
 const HEAVY_CRATES: [&str; 6] = ["candle-core", "candle-nn", "opencv", "faer", "rayon", "tch"];

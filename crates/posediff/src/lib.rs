@@ -3,6 +3,7 @@
 //! - [`loader`]: the official image loader (sorted files, centre crop, 224 px).
 //! - [`export`]: cameras.json, COLMAP text, nerfstudio and PyTorch3D writers and readers.
 //! - [`pipeline`]: [`Estimator`], images to cameras.
+//! - [`plot`]: camera frusta from above and from the side, against the ground truth.
 #![deny(missing_docs)]
 #![forbid(unsafe_code)]
 
@@ -10,6 +11,7 @@ pub mod error;
 pub mod export;
 pub mod loader;
 pub mod pipeline;
+pub mod plot;
 
 pub use error::{PosediffError, Result};
 pub use pipeline::{Estimate, EstimateConfig, Estimator, GgsHook, Progress, Silent, StageTimes};

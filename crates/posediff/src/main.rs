@@ -68,6 +68,17 @@ enum Command {
         #[arg(long)]
         quiet: bool,
     },
+    /// Plot cameras (frusta from above and from the side), optionally against the ground truth.
+    Plot {
+        /// A cameras.json.
+        cameras: PathBuf,
+        /// Ground-truth cameras.json (same images, same order).
+        #[arg(long)]
+        gt: Option<PathBuf>,
+        /// Output PNG.
+        #[arg(short = 'o', long = "out")]
+        out: PathBuf,
+    },
 }
 
 /// Progress bars on stderr (drawn only on a terminal).
@@ -119,17 +130,22 @@ fn main() -> ExitCode {
 }
 
 fn run(cli: Cli) -> anyhow::Result<()> {
-    let Command::Estimate {
-        inputs,
-        weights,
-        out,
-        seed,
-        samples,
-        no_ggs,
-        matcher,
-        device,
-        quiet,
-    } = cli.command;
+    let (inputs, weights, out, seed, samples, no_ggs, matcher, device, quiet) = match cli.command {
+        Command::Estimate {
+            inputs,
+            weights,
+            out,
+            seed,
+            samples,
+            no_ggs,
+            matcher,
+            device,
+            quiet,
+        } => (
+            inputs, weights, out, seed, samples, no_ggs, matcher, device, quiet,
+        ),
+        Command::Plot { cameras, gt, out } => return plot(&cameras, gt.as_deref(), &out),
+    };
     if samples == 0 {
         bail!("--samples must be at least 1");
     }
@@ -226,5 +242,33 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             out.display()
         );
     }
+    Ok(())
+}
+
+fn plot(cameras: &Path, gt: Option<&Path>, out: &Path) -> anyhow::Result<()> {
+    let est = posediff::export::read_cameras_json(cameras)
+        .with_context(|| format!("reading {}", cameras.display()))?;
+    let truth = gt
+        .map(|g| {
+            posediff::export::read_cameras_json(g)
+                .with_context(|| format!("reading {}", g.display()))
+        })
+        .transpose()?;
+    if let Some(t) = truth.as_ref().filter(|t| t.len() != est.len()) {
+        bail!(
+            "{} has {} cameras, the ground truth {}",
+            cameras.display(),
+            est.len(),
+            t.len()
+        );
+    }
+    let errors = posediff::plot::plot_cameras(out, &est, truth.as_deref())?;
+    for e in &errors {
+        println!(
+            "{:<32} {:>8.2} deg {:>8.4} centre",
+            e.image, e.rotation_deg, e.center_rel
+        );
+    }
+    println!("wrote {}", out.display());
     Ok(())
 }
