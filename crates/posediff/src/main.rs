@@ -120,6 +120,8 @@ impl Progress for Bars {
 }
 
 fn main() -> ExitCode {
+    // Logs go to stderr; `RUST_LOG=info` shows the stages, warnings are on by default.
+    env_logger::Builder::from_env(env_logger::Env::default().default_filter_or("warn")).init();
     match run(Cli::parse()) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
@@ -216,9 +218,6 @@ fn run(cli: Cli) -> anyhow::Result<()> {
     });
     std::fs::write(out.join("run.json"), serde_json::to_string_pretty(&run)?)
         .with_context(|| format!("writing {}", out.join("run.json").display()))?;
-    for w in &estimate.warnings {
-        eprintln!("warning: {w}");
-    }
     if !quiet {
         println!(
             "{:<32} {:>9} {:>9} {:>28}",

@@ -274,6 +274,7 @@ impl Estimator {
             .broadcast_as((self.config.samples, n, z.dim(2)?))?
             .contiguous()?;
         times.features = start.elapsed().as_secs_f64();
+        log::info!("features of {n} images in {:.2} s", times.features);
         progress.finish();
         progress.start("sampling", self.model.schedule.len() as u64);
         let start = Instant::now();
@@ -297,6 +298,11 @@ impl Estimator {
         )?;
         times.ggs = hook.ggs.as_ref().map_or(0.0, GgsHook::seconds);
         times.sampling = start.elapsed().as_secs_f64();
+        log::info!(
+            "sampling in {:.2} s (GGS {:.2} s)",
+            times.sampling,
+            times.ggs
+        );
         hook.progress.finish();
         Ok(out)
     }
@@ -328,6 +334,7 @@ impl Estimator {
         }
         let mut times = StageTimes::default();
         let mut warnings = Vec::new();
+        log::info!("loading {} images", images.len());
         progress.start("images", 0);
         let start = Instant::now();
         let loaded = load_images(images)?;
@@ -349,7 +356,15 @@ impl Estimator {
             progress.finish();
             matches_per_pair = pairs.iter().map(|p| (p.first, p.second, p.len())).collect();
             let set = model_frame_matches(&pairs, &loaded)?;
+            log::info!(
+                "matching: {} pairs, {} with matches, {} matches in {:.2} s",
+                pairs.len(),
+                pairs.iter().filter(|p| !p.is_empty()).count(),
+                set.len(),
+                times.matching
+            );
             if set.is_empty() {
+                log::warn!("GGS skipped: no image pair has verified matches");
                 warnings.push("GGS skipped: no image pair has verified matches".to_owned());
                 None
             } else {
