@@ -28,6 +28,7 @@
 pub mod accuracy;
 pub mod centers;
 pub mod error;
+pub mod numpy_rng;
 pub mod relative;
 
 pub use accuracy::{CategoryPool, CategoryReport, PoseAccuracy, maa_test_py, maa_train_py};
