@@ -1,5 +1,6 @@
 //! posediff: camera poses from a handful of photos.
 //!
+//! - [`co3d`]: CO3Dv2 annotations and the official test protocol's frame choice.
 //! - [`loader`]: the official image loader (sorted files, centre crop, 224 px).
 //! - [`export`]: cameras.json, COLMAP text, nerfstudio and PyTorch3D writers and readers.
 //! - [`pipeline`]: [`Estimator`], images to cameras.
@@ -7,6 +8,7 @@
 #![deny(missing_docs)]
 #![forbid(unsafe_code)]
 
+pub mod co3d;
 pub mod error;
 pub mod export;
 pub mod loader;

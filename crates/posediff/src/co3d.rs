@@ -1,0 +1,205 @@
+//! CO3Dv2 annotations in the RelPose++/PoseDiffusion layout (`{category}_{split}.jgz`: gzip
+//! JSON `{sequence_name: [frame, ...]}`, frame = `{filepath, bbox, R, T, focal_length,
+//! principal_point}` in PyTorch3D conventions, NDC of the original image), and the official
+//! test protocol's choice of frames (SPEC.md §7.2).
+
+use std::io::Read;
+use std::path::{Path, PathBuf};
+
+use posediff_geometry::pytorch3d::NdcIntrinsics;
+use posediff_geometry::{Pose, Pytorch3dCamera};
+use posediff_metrics::numpy_rng::LegacyRandomState;
+use serde::Deserialize;
+
+use crate::error::{PosediffError, Result};
+
+/// The 41 training ("seen") categories of the official CO3Dv2 loader.
+pub const SEEN_CATEGORIES: [&str; 41] = [
+    "apple",
+    "backpack",
+    "banana",
+    "baseballbat",
+    "baseballglove",
+    "bench",
+    "bicycle",
+    "bottle",
+    "bowl",
+    "broccoli",
+    "cake",
+    "car",
+    "carrot",
+    "cellphone",
+    "chair",
+    "cup",
+    "donut",
+    "hairdryer",
+    "handbag",
+    "hydrant",
+    "keyboard",
+    "laptop",
+    "microwave",
+    "motorcycle",
+    "mouse",
+    "orange",
+    "parkingmeter",
+    "pizza",
+    "plant",
+    "stopsign",
+    "teddybear",
+    "toaster",
+    "toilet",
+    "toybus",
+    "toyplane",
+    "toytrain",
+    "toytruck",
+    "tv",
+    "umbrella",
+    "vase",
+    "wineglass",
+];
+
+/// The 10 held-out ("unseen") categories.
+pub const UNSEEN_CATEGORIES: [&str; 10] = [
+    "ball",
+    "book",
+    "couch",
+    "frisbee",
+    "hotdog",
+    "kite",
+    "remote",
+    "sandwich",
+    "skateboard",
+    "suitcase",
+];
+
+/// The official loader's minimum frames per sequence (`min_num_images`).
+pub const DEFAULT_MIN_FRAMES: usize = 50;
+/// Frames drawn per test sequence in `test.py`.
+pub const DEFAULT_TEST_FRAMES: usize = 10;
+/// A sequence with any frame whose `T0 + T1 + T2` exceeds this is dropped.
+pub const MAX_TRANSLATION_SUM: f64 = 1e5;
+
+/// One annotated frame.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+pub struct Co3dFrame {
+    /// Image path relative to the CO3D root.
+    pub filepath: String,
+    /// Mask bounding box `[x0, y0, x1, y1]` (unused with the centre crop).
+    pub bbox: [f64; 4],
+    /// PyTorch3D row-vector rotation.
+    #[serde(rename = "R")]
+    pub r: [[f64; 3]; 3],
+    /// PyTorch3D translation.
+    #[serde(rename = "T")]
+    pub t: [f64; 3],
+    /// Focal length, NDC of the original image.
+    pub focal_length: [f64; 2],
+    /// Principal point, NDC of the original image.
+    pub principal_point: [f64; 2],
+}
+
+impl Co3dFrame {
+    /// The PyTorch3D camera of the annotation.
+    pub fn pytorch3d(&self) -> Pytorch3dCamera {
+        Pytorch3dCamera {
+            r: nalgebra::Matrix3::from_fn(|i, j| self.r[i][j]),
+            t: nalgebra::Vector3::from(self.t),
+            intrinsics: NdcIntrinsics {
+                focal: nalgebra::Vector2::from(self.focal_length),
+                principal_point: nalgebra::Vector2::from(self.principal_point),
+            },
+        }
+    }
+
+    /// The extrinsics in the OpenCV convention.
+    pub fn cam_from_world(&self) -> Pose {
+        self.pytorch3d().opencv_pose()
+    }
+}
+
+/// One annotated sequence, frames in annotation order.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Co3dSequence {
+    /// Sequence name.
+    pub name: String,
+    /// Its frames.
+    pub frames: Vec<Co3dFrame>,
+}
+
+fn bad_file(path: &Path, why: String) -> PosediffError {
+    PosediffError::Write {
+        path: path.to_owned(),
+        source: std::io::Error::new(std::io::ErrorKind::InvalidData, why),
+    }
+}
+
+/// Reads `{category}_{split}.jgz`, sequences in file order.
+///
+/// # Errors
+/// Missing files, bad gzip, JSON that does not have the documented fields (the message names
+/// the file, the sequence and the field).
+pub fn load_annotations(path: &Path) -> Result<Vec<Co3dSequence>> {
+    let file = std::fs::File::open(path).map_err(|source| PosediffError::Write {
+        path: path.to_owned(),
+        source,
+    })?;
+    let mut text = String::new();
+    flate2::read::GzDecoder::new(file)
+        .read_to_string(&mut text)
+        .map_err(|e| bad_file(path, format!("not a gzip JSON file: {e}")))?;
+    let raw: serde_json::Map<String, serde_json::Value> = serde_json::from_str(&text)
+        .map_err(|e| bad_file(path, format!("not a JSON object of sequences: {e}")))?;
+    raw.into_iter()
+        .map(|(name, frames)| {
+            let frames: Vec<Co3dFrame> = serde_json::from_value(frames)
+                .map_err(|e| bad_file(path, format!("sequence {name}: {e}")))?;
+            Ok(Co3dSequence { name, frames })
+        })
+        .collect()
+}
+
+/// The official loader's filter: at least `min_frames` frames and no frame with
+/// `T0 + T1 + T2 > 1e5`.
+pub fn usable_sequences(sequences: &[Co3dSequence], min_frames: usize) -> Vec<&Co3dSequence> {
+    sequences
+        .iter()
+        .filter(|s| s.frames.len() >= min_frames)
+        .filter(|s| {
+            s.frames
+                .iter()
+                .all(|f| f.t.iter().sum::<f64>() <= MAX_TRANSLATION_SUM)
+        })
+        .collect()
+}
+
+/// `test.py`'s frames for each sequence, in order: `rng.choice(len, num_frames, replace=False)`
+/// per sequence with at least `num_frames` frames (others get none and draw nothing), then
+/// sorted by file path.
+///
+/// # Errors
+/// Never for valid counts (kept for the RNG's contract).
+pub fn official_frame_ids(
+    sequences: &[&Co3dSequence],
+    num_frames: usize,
+    rng: &mut LegacyRandomState,
+) -> Result<Vec<Vec<usize>>> {
+    sequences
+        .iter()
+        .map(|s| {
+            if s.frames.len() < num_frames {
+                return Ok(Vec::new());
+            }
+            let mut ids = rng.choice_without_replacement(s.frames.len(), num_frames)?;
+            ids.sort_by(|a, b| s.frames[*a].filepath.cmp(&s.frames[*b].filepath));
+            Ok(ids)
+        })
+        .collect::<std::result::Result<_, _>>()
+        .map_err(|e: posediff_metrics::MetricsError| {
+            bad_file(Path::new("frame selection"), e.to_string())
+        })
+}
+
+/// The image of a frame under the CO3D root.
+pub fn frame_path(root: &Path, frame: &Co3dFrame) -> PathBuf {
+    root.join(&frame.filepath)
+}
