@@ -7,6 +7,10 @@
 //! - `deps-check`: only the dependency invariants.
 //! - `bench-matching --data ../shared/data --out report.json`: match quality and speed on the
 //!   real sets (JSON + Markdown), with the OpenCV-python baseline when python3 has cv2.
+//! - `bench-real --data D --subsets S [--weights W] --out R.json` and `bench-co3d --co3d-dir D
+//!   --annotation-dir A [--categories seen|unseen|a,b] [--weights W] --out R.json`: the
+//!   accuracy benchmarks (`posediff bench-real | bench-co3d`); without weights they score the
+//!   ground truth (ceiling check).
 //! - `convert-checkpoint IN OUT`: an official `.pth` (or safetensors) checkpoint to validated
 //!   safetensors with the official keys.
 //!
@@ -90,6 +94,31 @@ fn main() -> Result<()> {
             args.extend(rest.iter().map(String::as_str));
             run("cargo", &args, &[])
         }
+        "bench-co3d" | "bench-real" => {
+            // Path-valued flags are the caller's.
+            let cwd = std::env::current_dir()?;
+            let path_flags = [
+                "--data",
+                "--subsets",
+                "--out",
+                "--weights",
+                "--co3d-dir",
+                "--annotation-dir",
+            ];
+            let mut rest: Vec<String> = vec![task.clone()];
+            let mut path_next = false;
+            for a in std::env::args().skip(2) {
+                rest.push(if path_next {
+                    cwd.join(&a).to_string_lossy().into_owned()
+                } else {
+                    a.clone()
+                });
+                path_next = path_flags.contains(&a.as_str());
+            }
+            let mut args = vec!["run", "--release", "--quiet", "-p", "posediff", "--"];
+            args.extend(rest.iter().map(String::as_str));
+            run("cargo", &args, &[])
+        }
         "convert-checkpoint" => {
             // Paths are the caller's, relative to where they ran the command.
             let cwd = std::env::current_dir()?;
@@ -112,7 +141,7 @@ fn main() -> Result<()> {
         }
         _ => {
             eprintln!(
-                "usage: cargo xtask <ci | setup | deps-check | convert-checkpoint IN OUT | bench-matching --data D --out F.json>"
+                "usage: cargo xtask <ci | setup | deps-check | convert-checkpoint IN OUT | bench-matching --data D --out F.json | bench-real ... | bench-co3d ...>"
             );
             bail!("unknown task {task:?}")
         }

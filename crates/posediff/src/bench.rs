@@ -115,6 +115,9 @@ struct Subset {
     images: Vec<String>,
 }
 
+/// One scored subset: scores, camera-centre accuracy, seconds.
+type SubsetRun = (Scores, f64, f64);
+
 /// One row of the real-data report: a set, a subset size, the mean over its subsets.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct RealRow {
@@ -152,7 +155,8 @@ pub fn bench_real(data: &Path, subsets_json: &Path, method: &dyn Method) -> Resu
         let cams = read_cameras_json(&dir.join("cameras.json"))?;
         let by_name: BTreeMap<&str, &Camera> =
             cams.iter().map(|c| (c.image.as_str(), &c.camera)).collect();
-        let mut groups: BTreeMap<String, Vec<(Scores, f64, f64)>> = BTreeMap::new();
+        // Keyed by (size, label) so that 3 < 5 < 10 < all; per subset (scores, CC, seconds).
+        let mut groups: BTreeMap<(usize, String), Vec<SubsetRun>> = BTreeMap::new();
         for subset in &spec.subsets {
             let gt: Vec<Camera> = subset
                 .images
@@ -195,7 +199,8 @@ pub fn bench_real(data: &Path, subsets_json: &Path, method: &dyn Method) -> Resu
                 .unwrap_or("")
                 .trim_start_matches('N')
                 .to_owned();
-            groups.entry(n).or_default().push((
+            let size = n.parse::<usize>().unwrap_or(usize::MAX);
+            groups.entry((size, n)).or_default().push((
                 Scores {
                     rra: acc.rra,
                     rta: acc.rta,
@@ -206,7 +211,7 @@ pub fn bench_real(data: &Path, subsets_json: &Path, method: &dyn Method) -> Resu
                 seconds,
             ));
         }
-        for (n, runs) in groups {
+        for ((_, n), runs) in groups {
             let scores: Vec<Scores> = runs.iter().map(|r| r.0).collect();
             let k = runs.len() as f64;
             if let Some(mean) = mean_scores(&scores) {
@@ -331,4 +336,44 @@ pub fn bench_co3d(
         mean: report.mean.into(),
         sequences: runs,
     })
+}
+
+/// The real-data table in Markdown.
+pub fn real_markdown(method: &str, rows: &[RealRow]) -> String {
+    let mut md = format!(
+        "Method: {method}\n\n| set | N | subsets | RRA@15 | RTA@15 | mAA(30) | reg. | CC@0.1 | s / subset |\n|---|---|---:|---:|---:|---:|---:|---:|---:|\n"
+    );
+    for r in rows {
+        md.push_str(&format!(
+            "| {} | {} | {} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.2} |\n",
+            r.set,
+            r.n,
+            r.subsets,
+            r.scores.rra[1],
+            r.scores.rta[1],
+            r.scores.maa_30,
+            r.scores.registered,
+            r.cc_10,
+            r.seconds
+        ));
+    }
+    md
+}
+
+/// The CO3D table in Markdown.
+pub fn co3d_markdown(method: &str, report: &Co3dReport) -> String {
+    let mut md = format!(
+        "Method: {method}\n\n| category | pairs | RRA@5 | RRA@15 | RRA@30 | RTA@5 | RTA@15 | RTA@30 | mAA(30) |\n|---|---:|---:|---:|---:|---:|---:|---:|---:|\n"
+    );
+    let row = |name: &str, a: &PoseAccuracyRow| {
+        format!(
+            "| {name} | {} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} |\n",
+            a.pairs, a.rra[0], a.rra[1], a.rra[2], a.rta[0], a.rta[1], a.rta[2], a.maa_30
+        )
+    };
+    for (c, a) in &report.per_category {
+        md.push_str(&row(c, a));
+    }
+    md.push_str(&row("**mean**", &report.mean));
+    md
 }

@@ -68,6 +68,51 @@ enum Command {
         #[arg(long)]
         quiet: bool,
     },
+    /// Score a method on the real sets of `--data` over `--subsets` (JSON + Markdown report).
+    BenchReal {
+        /// Folder of sets in the cameras.json layout.
+        #[arg(long)]
+        data: PathBuf,
+        /// subsets.json.
+        #[arg(long)]
+        subsets: PathBuf,
+        /// Checkpoint for PoseDiffusion; without it the ground truth is scored (ceiling check).
+        #[arg(long)]
+        weights: Option<PathBuf>,
+        /// Report path (JSON; the Markdown table is written beside it).
+        #[arg(long)]
+        out: PathBuf,
+    },
+    /// The official CO3Dv2 test protocol (JSON + Markdown report).
+    BenchCo3d {
+        /// CO3D root (image file paths of the annotations are relative to it).
+        #[arg(long)]
+        co3d_dir: PathBuf,
+        /// Folder of `{category}_test.jgz`.
+        #[arg(long)]
+        annotation_dir: PathBuf,
+        /// `seen`, `unseen` or a comma-separated list.
+        #[arg(long, default_value = "seen")]
+        categories: String,
+        /// Frames drawn per sequence.
+        #[arg(long, default_value_t = 10)]
+        num_frames: usize,
+        /// Minimum frames of a usable sequence (official 50).
+        #[arg(long, default_value_t = 50)]
+        min_frames: usize,
+        /// numpy seed (official 0).
+        #[arg(long, default_value_t = 0)]
+        seed: u32,
+        /// Checkpoint; without it the ground truth is scored (ceiling check).
+        #[arg(long)]
+        weights: Option<PathBuf>,
+        /// Skip GGS.
+        #[arg(long)]
+        no_ggs: bool,
+        /// Report path (JSON; the Markdown table is written beside it).
+        #[arg(long)]
+        out: PathBuf,
+    },
     /// Plot cameras (frusta from above and from the side), optionally against the ground truth.
     Plot {
         /// A cameras.json.
@@ -147,6 +192,64 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             inputs, weights, out, seed, samples, no_ggs, matcher, device, quiet,
         ),
         Command::Plot { cameras, gt, out } => return plot(&cameras, gt.as_deref(), &out),
+        Command::BenchReal {
+            data,
+            subsets,
+            weights,
+            out,
+        } => {
+            let method = bench_method(weights.as_deref(), false)?;
+            let rows = posediff::bench::bench_real(&data, &subsets, method.as_ref())?;
+            let md = posediff::bench::real_markdown(&method.name(), &rows);
+            return write_report(
+                &out,
+                serde_json::json!({"command": command_line(), "method": method.name(), "rows": rows}),
+                &md,
+            );
+        }
+        Command::BenchCo3d {
+            co3d_dir,
+            annotation_dir,
+            categories,
+            num_frames,
+            min_frames,
+            seed,
+            weights,
+            no_ggs,
+            out,
+        } => {
+            let list: Vec<String> = match categories.as_str() {
+                "seen" => posediff::co3d::SEEN_CATEGORIES
+                    .iter()
+                    .map(|c| c.to_string())
+                    .collect(),
+                "unseen" => posediff::co3d::UNSEEN_CATEGORIES
+                    .iter()
+                    .map(|c| c.to_string())
+                    .collect(),
+                other => other
+                    .split(',')
+                    .map(|c| c.trim().to_owned())
+                    .filter(|c| !c.is_empty())
+                    .collect(),
+            };
+            let method = bench_method(weights.as_deref(), no_ggs)?;
+            let report = posediff::bench::bench_co3d(
+                &co3d_dir,
+                &annotation_dir,
+                &list,
+                min_frames,
+                num_frames,
+                seed,
+                method.as_ref(),
+            )?;
+            let md = posediff::bench::co3d_markdown(&method.name(), &report);
+            return write_report(
+                &out,
+                serde_json::json!({"command": command_line(), "method": method.name(), "report": report}),
+                &md,
+            );
+        }
     };
     if samples == 0 {
         bail!("--samples must be at least 1");
@@ -269,5 +372,46 @@ fn plot(cameras: &Path, gt: Option<&Path>, out: &Path) -> anyhow::Result<()> {
         );
     }
     println!("wrote {}", out.display());
+    Ok(())
+}
+
+fn command_line() -> String {
+    std::env::args().collect::<Vec<_>>().join(" ")
+}
+
+fn bench_method(
+    weights: Option<&Path>,
+    no_ggs: bool,
+) -> anyhow::Result<Box<dyn posediff::bench::Method>> {
+    Ok(match weights {
+        None => Box::new(posediff::bench::GroundTruth),
+        Some(w) => {
+            let config = EstimateConfig {
+                ggs: !no_ggs,
+                ..EstimateConfig::default()
+            };
+            let estimator = Estimator::load(w, Device::Cpu, config)
+                .with_context(|| format!("loading weights {}", w.display()))?;
+            Box::new(posediff::bench::Posediffusion {
+                estimator,
+                label: format!(
+                    "posediff ({}{})",
+                    w.display(),
+                    if no_ggs { ", no GGS" } else { "" }
+                ),
+            })
+        }
+    })
+}
+
+fn write_report(out: &Path, json: serde_json::Value, md: &str) -> anyhow::Result<()> {
+    if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    std::fs::write(out, serde_json::to_string_pretty(&json)?)
+        .with_context(|| format!("writing {}", out.display()))?;
+    std::fs::write(out.with_extension("md"), md)
+        .with_context(|| format!("writing {}", out.with_extension("md").display()))?;
+    println!("{md}");
     Ok(())
 }
