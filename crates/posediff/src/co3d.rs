@@ -6,8 +6,11 @@
 use std::io::Read;
 use std::path::{Path, PathBuf};
 
-use posediff_geometry::pytorch3d::NdcIntrinsics;
-use posediff_geometry::{Pose, Pytorch3dCamera};
+use posediff_geometry::pytorch3d::{CropBox, NdcIntrinsics};
+use posediff_geometry::{
+    Camera, Canonicalized, CenterCrop, ImageSize, MODEL_INPUT_SIDE, Pose, Pytorch3dCamera,
+    canonicalize,
+};
 use posediff_metrics::numpy_rng::LegacyRandomState;
 use serde::Deserialize;
 
@@ -115,6 +118,59 @@ impl Co3dFrame {
     pub fn cam_from_world(&self) -> Pose {
         self.pytorch3d().opencv_pose()
     }
+
+    /// The camera of the official 224-px centre crop of this frame's image (`image_size`: the
+    /// image file's size): `adjust_camera_to_bbox_crop_` with the centre square (the loader's
+    /// `center_box`, integer offsets as the demo loader), then `adjust_camera_to_image_scale_`
+    /// to 224, as an OpenCV camera of the crop.
+    ///
+    /// # Errors
+    /// Invalid intrinsics.
+    pub fn crop_camera(&self, image_size: ImageSize) -> Result<Camera> {
+        let crop = CenterCrop::official(image_size, MODEL_INPUT_SIDE);
+        let side = f64::from(crop.side);
+        let box_ = CropBox {
+            x0: f64::from(crop.left),
+            y0: f64::from(crop.top),
+            width: side,
+            height: side,
+        };
+        let target = f64::from(MODEL_INPUT_SIDE);
+        let mut p3d = self.pytorch3d();
+        p3d.intrinsics = p3d
+            .intrinsics
+            .adjusted_to_crop(
+                f64::from(image_size.width()),
+                f64::from(image_size.height()),
+                &box_,
+            )
+            .adjusted_to_scale((side, side), (target, target));
+        Ok(p3d.to_opencv(ImageSize::new(MODEL_INPUT_SIDE, MODEL_INPUT_SIDE)?)?)
+    }
+}
+
+/// The ground truth of a set of frames as the official loader returns it: crop cameras
+/// ([`Co3dFrame::crop_camera`]) canonicalised (optical-axis intersection, camera 0's distance,
+/// camera 0's PyTorch3D frame; SPEC.md §2).
+///
+/// # Errors
+/// Mismatched lengths, invalid intrinsics, degenerate geometry (parallel optical axes).
+pub fn normalized_ground_truth(
+    frames: &[&Co3dFrame],
+    image_sizes: &[ImageSize],
+) -> Result<Canonicalized> {
+    if frames.len() != image_sizes.len() {
+        return Err(bad_file(
+            Path::new("ground truth"),
+            format!("{} frames, {} image sizes", frames.len(), image_sizes.len()),
+        ));
+    }
+    let cams = frames
+        .iter()
+        .zip(image_sizes)
+        .map(|(f, s)| f.crop_camera(*s))
+        .collect::<Result<Vec<_>>>()?;
+    Ok(canonicalize(&cams)?)
 }
 
 /// One annotated sequence, frames in annotation order.

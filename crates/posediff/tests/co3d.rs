@@ -6,8 +6,8 @@
 #![allow(clippy::unwrap_used)]
 
 use posediff::co3d::{
-    SEEN_CATEGORIES, UNSEEN_CATEGORIES, frame_path, load_annotations, official_frame_ids,
-    usable_sequences,
+    SEEN_CATEGORIES, UNSEEN_CATEGORIES, frame_path, load_annotations, normalized_ground_truth,
+    official_frame_ids, usable_sequences,
 };
 use posediff::export::read_cameras_json;
 use posediff_fixtures::shared_path;
@@ -45,6 +45,35 @@ fn mini_annotations_load_and_agree_with_cameras_json() {
         assert_eq!(usable_sequences(&seqs, n).len(), 1);
         assert!(usable_sequences(&seqs, n + 1).is_empty());
     }
+}
+
+#[test]
+fn crop_cameras_and_normalised_ground_truth() {
+    let root = shared_path("data/co3d_mini_annotations");
+    let seqs = load_annotations(&root.join("apple_test.jgz")).unwrap();
+    let cams =
+        read_cameras_json(&shared_path("data/co3d_apple_posediffusion/cameras.json")).unwrap();
+    let frames: Vec<_> = seqs[0].frames.iter().collect();
+    let sizes: Vec<_> = cams.iter().map(|c| c.camera.image_size).collect();
+    for ((f, c), s) in frames.iter().zip(&cams).zip(&sizes) {
+        // The official NDC crop/scale equals mapping the pixel camera through the loader's crop.
+        let ours = f.crop_camera(*s).unwrap();
+        let via_pixels = posediff_geometry::CenterCrop::official(*s, 224)
+            .camera_to_model(&c.camera)
+            .unwrap();
+        assert!(
+            (ours.intrinsics.matrix() - via_pixels.intrinsics.matrix()).norm() < 1e-4,
+            "{}",
+            f.filepath
+        );
+    }
+    let gt = normalized_ground_truth(&frames, &sizes).unwrap();
+    let first = posediff_geometry::Pytorch3dCamera::from_opencv(&gt.cameras[0]);
+    assert!((first.r - nalgebra::Matrix3::identity()).norm() < 1e-6 && first.t.norm() < 1e-6);
+    // Unit distance of camera 0 to the optical-axis intersection.
+    let hit = posediff_geometry::normalize::optical_axis_intersection(&gt.cameras).unwrap();
+    assert!((hit.distances[0] - 1.0).abs() < 1e-6);
+    assert!(normalized_ground_truth(&frames, &sizes[..3]).is_err());
 }
 
 #[test]
