@@ -1,6 +1,6 @@
 //! posediff: camera poses from a handful of photos.
 //!
-//! - [`bench`]: accuracy benchmarks (real sets over subsets, the CO3D test protocol).
+//! - [`bench`](mod@bench): accuracy benchmarks (real sets over subsets, the CO3D test protocol).
 //! - [`co3d`]: CO3Dv2 annotations and the official test protocol's frame choice.
 //! - [`loader`]: the official image loader (sorted files, centre crop, 224 px).
 //! - [`export`]: cameras.json, COLMAP text, nerfstudio and PyTorch3D writers and readers.
