@@ -69,18 +69,7 @@ fn main() -> Result<()> {
         "setup" => setup(),
         "deps-check" => deps_check(),
         "bench-matching" => {
-            let cwd = std::env::current_dir()?;
-            // Flag values that are paths are the caller's.
-            let mut rest: Vec<String> = Vec::new();
-            let mut path_next = false;
-            for a in std::env::args().skip(2) {
-                rest.push(if path_next {
-                    cwd.join(&a).to_string_lossy().into_owned()
-                } else {
-                    a.clone()
-                });
-                path_next = a == "--data" || a == "--out";
-            }
+            let rest = caller_args()?;
             let mut args = vec![
                 "run",
                 "--release",
@@ -95,27 +84,16 @@ fn main() -> Result<()> {
             run("cargo", &args, &[])
         }
         "bench-co3d" | "bench-real" => {
-            // Path-valued flags are the caller's.
-            let cwd = std::env::current_dir()?;
-            let path_flags = [
-                "--data",
-                "--subsets",
-                "--out",
-                "--weights",
-                "--co3d-dir",
-                "--annotation-dir",
+            let rest = caller_args()?;
+            let mut args = vec![
+                "run",
+                "--release",
+                "--quiet",
+                "-p",
+                "posediff",
+                "--",
+                task.as_str(),
             ];
-            let mut rest: Vec<String> = vec![task.clone()];
-            let mut path_next = false;
-            for a in std::env::args().skip(2) {
-                rest.push(if path_next {
-                    cwd.join(&a).to_string_lossy().into_owned()
-                } else {
-                    a.clone()
-                });
-                path_next = path_flags.contains(&a.as_str());
-            }
-            let mut args = vec!["run", "--release", "--quiet", "-p", "posediff", "--"];
             args.extend(rest.iter().map(String::as_str));
             run("cargo", &args, &[])
         }
@@ -179,6 +157,33 @@ fn output(program: &str, args: &[&str]) -> Result<String> {
         );
     }
     Ok(String::from_utf8_lossy(&out.stdout).into_owned())
+}
+
+/// Flags of the benchmark commands whose values are paths.
+const PATH_FLAGS: [&str; 6] = [
+    "--data",
+    "--subsets",
+    "--out",
+    "--weights",
+    "--co3d-dir",
+    "--annotation-dir",
+];
+
+/// The arguments after the task, with the values of [`PATH_FLAGS`] made absolute against the
+/// caller's directory (the commands run from the workspace root).
+fn caller_args() -> Result<Vec<String>> {
+    let cwd = std::env::current_dir()?;
+    let mut rest = Vec::new();
+    let mut path_next = false;
+    for a in std::env::args().skip(2) {
+        rest.push(if path_next {
+            cwd.join(&a).to_string_lossy().into_owned()
+        } else {
+            a.clone()
+        });
+        path_next = PATH_FLAGS.contains(&a.as_str());
+    }
+    Ok(rest)
 }
 
 fn workspace_root() -> std::path::PathBuf {

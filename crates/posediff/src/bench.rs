@@ -136,10 +136,7 @@ pub struct RealRow {
 }
 
 fn read_err(path: &Path, e: impl std::fmt::Display) -> PosediffError {
-    PosediffError::Write {
-        path: path.to_owned(),
-        source: std::io::Error::new(std::io::ErrorKind::InvalidData, e.to_string()),
-    }
+    PosediffError::invalid(path, e)
 }
 
 /// Scores `method` on the sets of `data` over the subsets of `subsets_json`.
@@ -147,7 +144,7 @@ fn read_err(path: &Path, e: impl std::fmt::Display) -> PosediffError {
 /// # Errors
 /// Unreadable files; a method error on a subset counts all its cameras as failed instead.
 pub fn bench_real(data: &Path, subsets_json: &Path, method: &dyn Method) -> Result<Vec<RealRow>> {
-    let text = std::fs::read_to_string(subsets_json).map_err(|e| read_err(subsets_json, e))?;
+    let text = crate::error::read_text(subsets_json)?;
     let file: SubsetFile = serde_json::from_str(&text).map_err(|e| read_err(subsets_json, e))?;
     let mut rows = Vec::new();
     for (set, spec) in &file.datasets {

@@ -183,10 +183,7 @@ pub struct Co3dSequence {
 }
 
 fn bad_file(path: &Path, why: String) -> PosediffError {
-    PosediffError::Write {
-        path: path.to_owned(),
-        source: std::io::Error::new(std::io::ErrorKind::InvalidData, why),
-    }
+    PosediffError::invalid(path, why)
 }
 
 /// Reads `{category}_{split}.jgz`, sequences in file order.
@@ -195,10 +192,7 @@ fn bad_file(path: &Path, why: String) -> PosediffError {
 /// Missing files, bad gzip, JSON that does not have the documented fields (the message names
 /// the file, the sequence and the field).
 pub fn load_annotations(path: &Path) -> Result<Vec<Co3dSequence>> {
-    let file = std::fs::File::open(path).map_err(|source| PosediffError::Write {
-        path: path.to_owned(),
-        source,
-    })?;
+    let file = std::fs::File::open(path).map_err(|e| PosediffError::read(path, e))?;
     let mut text = String::new();
     flate2::read::GzDecoder::new(file)
         .read_to_string(&mut text)

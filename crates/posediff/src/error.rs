@@ -20,6 +20,22 @@ pub enum PosediffError {
     /// An image that cannot be decoded.
     #[error("cannot read image {0}: missing, unreadable or not an image")]
     UnreadableImage(PathBuf),
+    /// Reading an input failed.
+    #[error("cannot read {path}: {source}")]
+    Read {
+        /// The file.
+        path: PathBuf,
+        /// Why.
+        source: std::io::Error,
+    },
+    /// An input file that does not have the expected content.
+    #[error("{path}: {reason}")]
+    InvalidFile {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong, naming the field where there is one.
+        reason: String,
+    },
     /// Writing an output failed.
     #[error("cannot write {path}: {source}")]
     Write {
@@ -49,6 +65,29 @@ pub enum PosediffError {
     /// JSON could not be written.
     #[error("JSON: {0}")]
     Json(#[from] serde_json::Error),
+}
+
+impl PosediffError {
+    /// A read failure of `path`.
+    pub(crate) fn read(path: &std::path::Path, source: std::io::Error) -> Self {
+        Self::Read {
+            path: path.to_owned(),
+            source,
+        }
+    }
+
+    /// `path` read but its content is wrong.
+    pub(crate) fn invalid(path: &std::path::Path, reason: impl std::fmt::Display) -> Self {
+        Self::InvalidFile {
+            path: path.to_owned(),
+            reason: reason.to_string(),
+        }
+    }
+}
+
+/// A whole text file.
+pub(crate) fn read_text(path: &std::path::Path) -> Result<String> {
+    std::fs::read_to_string(path).map_err(|e| PosediffError::read(path, e))
 }
 
 /// Shorthand for results of this crate.

@@ -21,7 +21,7 @@ use posediff_geometry::{
 };
 use serde::{Deserialize, Serialize};
 
-use crate::error::{PosediffError, Result};
+use crate::error::{PosediffError, Result, read_text};
 
 /// COLMAP's and nerfstudio's pixel centres sit half a pixel from OpenCV's.
 pub const PIXEL_CENTRE_OFFSET: f64 = 0.5;
@@ -59,11 +59,9 @@ pub fn write_cameras_json(path: &Path, cameras: &[NamedCamera]) -> Result<()> {
 /// # Errors
 /// I/O, JSON or camera errors.
 pub fn read_cameras_json(path: &Path) -> Result<Vec<NamedCamera>> {
-    let text = std::fs::read_to_string(path).map_err(|source| PosediffError::Write {
-        path: path.to_owned(),
-        source,
-    })?;
-    let records: Vec<CameraRecord> = serde_json::from_str(&text)?;
+    let text = read_text(path)?;
+    let records: Vec<CameraRecord> =
+        serde_json::from_str(&text).map_err(|e| PosediffError::invalid(path, e))?;
     records
         .iter()
         .map(|r| {
@@ -127,10 +125,7 @@ pub fn write_colmap_text(dir: &Path, cameras: &[NamedCamera]) -> Result<()> {
 }
 
 fn parse_err(path: &Path, what: &str) -> PosediffError {
-    PosediffError::Write {
-        path: path.to_owned(),
-        source: std::io::Error::new(std::io::ErrorKind::InvalidData, what.to_owned()),
-    }
+    PosediffError::invalid(path, what)
 }
 
 /// Reads a COLMAP text model written by [`write_colmap_text`] (PINHOLE cameras).
@@ -138,12 +133,7 @@ fn parse_err(path: &Path, what: &str) -> PosediffError {
 /// # Errors
 /// I/O or format errors.
 pub fn read_colmap_text(dir: &Path) -> Result<Vec<NamedCamera>> {
-    let read = |name: &str| {
-        std::fs::read_to_string(dir.join(name)).map_err(|source| PosediffError::Write {
-            path: dir.join(name),
-            source,
-        })
-    };
+    let read = |name: &str| read_text(&dir.join(name));
     let cams_path = dir.join("cameras.txt");
     let mut intrinsics = std::collections::HashMap::new();
     for line in read("cameras.txt")?
@@ -274,11 +264,9 @@ pub fn write_nerfstudio(path: &Path, cameras: &[NamedCamera]) -> Result<()> {
 /// # Errors
 /// I/O, JSON or camera errors.
 pub fn read_nerfstudio(path: &Path) -> Result<Vec<NamedCamera>> {
-    let text = std::fs::read_to_string(path).map_err(|source| PosediffError::Write {
-        path: path.to_owned(),
-        source,
-    })?;
-    let t: NerfstudioTransforms = serde_json::from_str(&text)?;
+    let text = read_text(path)?;
+    let t: NerfstudioTransforms =
+        serde_json::from_str(&text).map_err(|e| PosediffError::invalid(path, e))?;
     t.frames
         .iter()
         .map(|f| {

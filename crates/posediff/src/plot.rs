@@ -110,13 +110,13 @@ fn font_bytes() -> Result<&'static [u8]> {
             return Ok(Box::leak(bytes.into_boxed_slice()));
         }
     }
-    Err(PosediffError::Write {
-        path: PathBuf::from(FONT_PATHS[0]),
-        source: std::io::Error::new(
+    Err(PosediffError::read(
+        &PathBuf::from(FONT_PATHS[0]),
+        std::io::Error::new(
             std::io::ErrorKind::NotFound,
             "no DejaVu Sans font: apt-get install fonts-dejavu-core",
         ),
-    })
+    ))
 }
 
 fn plot_error(path: &Path, e: impl std::fmt::Display) -> PosediffError {

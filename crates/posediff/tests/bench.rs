@@ -10,6 +10,19 @@ use posediff::bench::{GroundTruth, Posediffusion, bench_co3d, bench_real};
 use posediff::{EstimateConfig, Estimator};
 use posediff_fixtures::shared_path;
 
+/// The tiny random-weight reference model through the pipeline (a smoke test, not accuracy).
+fn tiny_model() -> Posediffusion {
+    Posediffusion {
+        estimator: Estimator::load(
+            &shared_path("reference/tiny/model_tiny.safetensors"),
+            Device::Cpu,
+            EstimateConfig::default(),
+        )
+        .unwrap(),
+        label: "tiny random weights (smoke test)".into(),
+    }
+}
+
 #[test]
 fn ground_truth_reaches_the_ceiling_on_the_real_sets() {
     let rows = bench_real(
@@ -43,16 +56,7 @@ fn co3d_protocol_runs_on_the_mini_annotations() {
     assert_eq!(gt.sequences.len(), 3);
     assert!(gt.sequences.iter().all(|s| s.frame_ids.len() == 10));
 
-    let estimator = Estimator::load(
-        &shared_path("reference/tiny/model_tiny.safetensors"),
-        Device::Cpu,
-        EstimateConfig::default(),
-    )
-    .unwrap();
-    let method = Posediffusion {
-        estimator,
-        label: "tiny random weights (smoke test)".into(),
-    };
+    let method = tiny_model();
     let run = bench_co3d(&data, &annotations, &categories, 10, 10, 0, &method).unwrap();
     // Same frames as the ceiling run: the draw does not depend on the method.
     let ids = |r: &posediff::bench::Co3dReport| {
@@ -146,16 +150,7 @@ fn bench_real_runs_the_tiny_model_on_a_few_subsets() {
     }
     let path = std::env::temp_dir().join(format!("posediff-subsets-{}.json", std::process::id()));
     std::fs::write(&path, small.to_string()).unwrap();
-    let estimator = Estimator::load(
-        &shared_path("reference/tiny/model_tiny.safetensors"),
-        Device::Cpu,
-        EstimateConfig::default(),
-    )
-    .unwrap();
-    let method = Posediffusion {
-        estimator,
-        label: "tiny random weights (smoke test)".into(),
-    };
+    let method = tiny_model();
     let rows = bench_real(&shared_path("data"), &path, &method).unwrap();
     std::fs::remove_file(&path).unwrap();
     assert_eq!(rows.len(), 2);
