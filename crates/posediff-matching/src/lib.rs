@@ -15,6 +15,7 @@
 pub mod error;
 pub mod features;
 pub mod mnn;
+pub mod two_view;
 
 use std::path::PathBuf;
 
@@ -24,6 +25,7 @@ use rayon::prelude::*;
 
 pub use error::{MatchingError, Result};
 pub use features::{Descriptors, Detector, FeatureConfig, ImageFeatures, extract};
+pub use two_view::{RelativePose, TwoViewConfig};
 
 /// Geometric verification of a pair's matches.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -70,6 +70,31 @@ impl Method for Posediffusion {
     }
 }
 
+/// Cameras without a checkpoint ([`crate::geometric`]).
+#[derive(Debug, Clone, Default)]
+pub struct Geometric {
+    /// Settings.
+    pub config: crate::geometric::GeometricConfig,
+}
+
+impl Method for Geometric {
+    fn name(&self) -> String {
+        "posediff geometric (no checkpoint)".into()
+    }
+    fn estimate(&self, images: &[PathBuf], _ground_truth: &[Pose]) -> Result<Vec<Option<Pose>>> {
+        match crate::geometric::estimate_geometric(images, &self.config) {
+            Ok(e) => Ok(e
+                .cameras
+                .iter()
+                .map(|c| c.map(|c| c.cam_from_world))
+                .collect()),
+            // No overlap at all: every camera failed, which the scores count.
+            Err(crate::PosediffError::NoMatches { .. }) => Ok(vec![None; images.len()]),
+            Err(e) => Err(e),
+        }
+    }
+}
+
 /// Metrics of one scored set of images.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct Scores {

@@ -17,6 +17,18 @@ pub enum PosediffError {
         /// How many were found.
         got: usize,
     },
+    /// No image pair has enough verified matches to relate two cameras.
+    #[error(
+        "no two of the {images} images share enough verified matches: the images do not overlap \
+         (or are too different in viewpoint, texture or exposure); no camera can be estimated"
+    )]
+    NoMatches {
+        /// Number of images.
+        images: usize,
+    },
+    /// An invalid argument value.
+    #[error("{0}")]
+    InvalidArgument(String),
     /// An image that cannot be decoded.
     #[error("cannot read image {0}: missing, unreadable or not an image")]
     UnreadableImage(PathBuf),

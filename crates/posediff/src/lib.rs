@@ -2,6 +2,7 @@
 //!
 //! - [`bench`](mod@bench): accuracy benchmarks (real sets over subsets, the CO3D test protocol).
 //! - [`co3d`]: CO3Dv2 annotations and the official test protocol's frame choice.
+//! - [`geometric`]: cameras without a checkpoint (two-view geometry, averaging, refinement).
 //! - [`loader`]: the official image loader (sorted files, centre crop, 224 px).
 //! - [`export`]: cameras.json, COLMAP text, nerfstudio and PyTorch3D writers and readers.
 //! - [`pipeline`]: [`Estimator`], images to cameras.
@@ -13,6 +14,7 @@ pub mod bench;
 pub mod co3d;
 pub mod error;
 pub mod export;
+pub mod geometric;
 pub mod loader;
 pub mod pipeline;
 pub mod plot;

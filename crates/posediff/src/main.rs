@@ -30,6 +30,17 @@ enum Matcher {
     Orb,
 }
 
+/// What a benchmark scores.
+#[derive(Clone, Copy, ValueEnum)]
+enum BenchMethod {
+    /// The ground truth itself (the ceiling check of the scoring).
+    GroundTruth,
+    /// Cameras without a checkpoint (two-view geometry, averaging, refinement).
+    Geometric,
+    /// PoseDiffusion with `--weights`.
+    Posediffusion,
+}
+
 #[derive(Clone, Copy, ValueEnum)]
 enum DeviceArg {
     Cpu,
@@ -76,9 +87,12 @@ enum Command {
         /// subsets.json.
         #[arg(long)]
         subsets: PathBuf,
-        /// Checkpoint for PoseDiffusion; without it the ground truth is scored (ceiling check).
+        /// Checkpoint for PoseDiffusion.
         #[arg(long)]
         weights: Option<PathBuf>,
+        /// What to score (default: posediffusion with --weights, else geometric).
+        #[arg(long, value_enum)]
+        method: Option<BenchMethod>,
         /// Report path (JSON; the Markdown table is written beside it).
         #[arg(long)]
         out: PathBuf,
@@ -103,9 +117,12 @@ enum Command {
         /// numpy seed (official 0).
         #[arg(long, default_value_t = 0)]
         seed: u32,
-        /// Checkpoint; without it the ground truth is scored (ceiling check).
+        /// Checkpoint for PoseDiffusion.
         #[arg(long)]
         weights: Option<PathBuf>,
+        /// What to score (default: posediffusion with --weights, else geometric).
+        #[arg(long, value_enum)]
+        method: Option<BenchMethod>,
         /// Skip GGS.
         #[arg(long)]
         no_ggs: bool,
@@ -196,9 +213,10 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             data,
             subsets,
             weights,
+            method,
             out,
         } => {
-            let method = bench_method(weights.as_deref(), false)?;
+            let method = bench_method(method, weights.as_deref(), false)?;
             let rows = posediff::bench::bench_real(&data, &subsets, method.as_ref())?;
             let md = posediff::bench::real_markdown(&method.name(), &rows);
             return write_report(
@@ -215,6 +233,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             min_frames,
             seed,
             weights,
+            method,
             no_ggs,
             out,
         } => {
@@ -233,7 +252,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                     .filter(|c| !c.is_empty())
                     .collect(),
             };
-            let method = bench_method(weights.as_deref(), no_ggs)?;
+            let method = bench_method(method, weights.as_deref(), no_ggs)?;
             let report = posediff::bench::bench_co3d(
                 &co3d_dir,
                 &annotation_dir,
@@ -380,12 +399,20 @@ fn command_line() -> String {
 }
 
 fn bench_method(
+    method: Option<BenchMethod>,
     weights: Option<&Path>,
     no_ggs: bool,
 ) -> anyhow::Result<Box<dyn posediff::bench::Method>> {
-    Ok(match weights {
-        None => Box::new(posediff::bench::GroundTruth),
-        Some(w) => {
+    let method = method.unwrap_or(if weights.is_some() {
+        BenchMethod::Posediffusion
+    } else {
+        BenchMethod::Geometric
+    });
+    Ok(match (method, weights) {
+        (BenchMethod::GroundTruth, _) => Box::new(posediff::bench::GroundTruth),
+        (BenchMethod::Geometric, _) => Box::new(posediff::bench::Geometric::default()),
+        (BenchMethod::Posediffusion, None) => bail!("--method posediffusion needs --weights"),
+        (BenchMethod::Posediffusion, Some(w)) => {
             let config = EstimateConfig {
                 ggs: !no_ggs,
                 ..EstimateConfig::default()

@@ -81,6 +81,7 @@ fn the_commands_write_json_and_markdown_reports() {
         .arg(shared_path("data"))
         .arg("--subsets")
         .arg(shared_path("data/subsets.json"))
+        .args(["--method", "ground-truth"])
         .arg("--out")
         .arg(&real)
         .output()
@@ -113,6 +114,8 @@ fn the_commands_write_json_and_markdown_reports() {
             "fountain,apple",
             "--min-frames",
             "10",
+            "--method",
+            "ground-truth",
             "--out",
         ])
         .arg(&co3d)

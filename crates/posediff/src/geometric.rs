@@ -1,0 +1,514 @@
+//! Cameras without a checkpoint: matches → pairwise two-view geometry → a shared focal by
+//! self-calibration → rotation averaging → translation averaging → the GGS objective refined to
+//! convergence.
+//!
+//! | stage | method | crate |
+//! |---|---|---|
+//! | matches | SIFT, mutual NN + ratio, MAGSAC-verified (≥ 20 per pair) | `posediff-matching` |
+//! | pair type | homography RANSAC: ≥ 90 % of the matches within 1 px = no parallax measured | `posediff-matching::two_view` |
+//! | focal | Mendonça–Cipolla over the least-squares `F` of the parallax pairs (`f = φ·max(W, H)`) | `posediff-guidance::selfcal` |
+//! | relative poses | OpenCV five-point RANSAC + cheirality on normalised matches; rotation-only pairs from the homography | `posediff-matching::two_view` |
+//! | rotations | maximum spanning tree + Cauchy IRLS in the Lie algebra; edges off by > 10° dropped | `posediff-guidance::averaging` |
+//! | centres | LUD (`s ≥ 1`) by IRLS with an active set; rotation-only pairs tie centres | `posediff-guidance::averaging` |
+//! | refinement | Levenberg–Marquardt on Cauchy-robust Sampson distances, all cameras + focal | `posediff-guidance::refine` |
+//!
+//! Only the largest connected component of the view graph is estimated; every other image is
+//! reported as not estimated. Principal points are the image centres (`((W−1)/2, (H−1)/2)`).
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use nalgebra::{Matrix3, Rotation3};
+use posediff_geometry::{Camera, ImageSize, Intrinsics, Pose};
+use posediff_guidance::averaging::{
+    CenterDirection, RelativeRotation, RotationAveragingConfig, TranslationAveragingConfig,
+    average_rotations, average_translations, largest_component, rotation_residuals_deg,
+};
+use posediff_guidance::selfcal::{FocalSearch, PairFundamental, self_calibrate};
+use posediff_guidance::{
+    ImageIntrinsics, MatchSet, RefineCamera, RefineConfig, RefineReport, refine_cameras,
+};
+use posediff_matching::two_view::{
+    fundamental_least_squares, homography_fit, homography_rotation, relative_pose,
+};
+use posediff_matching::{MatchConfig, PairMatches, RelativePose, TwoViewConfig, match_images};
+
+use crate::error::{PosediffError, Result};
+
+/// What is known of the intrinsics.
+#[derive(Debug, Clone, PartialEq)]
+pub enum KnownIntrinsics {
+    /// Nothing: a shared focal is estimated.
+    Unknown,
+    /// One focal length in pixels for every image (principal points at the centres).
+    FocalPx(f64),
+    /// Full intrinsics per image (fixed; the focal is not refined).
+    PerImage(Vec<Intrinsics>),
+}
+
+/// How the cameras are refined after the initialisation.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Refinement {
+    /// None: the averaged cameras.
+    None,
+    /// The Sampson objective to convergence (Levenberg–Marquardt).
+    Converge(RefineConfig),
+}
+
+/// Settings of the geometric estimate.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GeometricConfig {
+    /// Matching.
+    pub matching: MatchConfig,
+    /// Two-view geometry.
+    pub two_view: TwoViewConfig,
+    /// Known intrinsics.
+    pub intrinsics: KnownIntrinsics,
+    /// Focal search range (`φ = f / max(W, H)`).
+    pub focal_search: FocalSearch,
+    /// Rotation averaging.
+    pub rotations: RotationAveragingConfig,
+    /// Translation averaging.
+    pub translations: TranslationAveragingConfig,
+    /// Pairs whose relative rotation disagrees with the averaged rotations by more than this
+    /// (degrees) are dropped before translation averaging.
+    pub max_rotation_residual_deg: f64,
+    /// Refinement.
+    pub refinement: Refinement,
+}
+
+impl Default for GeometricConfig {
+    fn default() -> Self {
+        Self {
+            matching: MatchConfig::default(),
+            two_view: TwoViewConfig::default(),
+            intrinsics: KnownIntrinsics::Unknown,
+            focal_search: FocalSearch::default(),
+            rotations: RotationAveragingConfig::default(),
+            translations: TranslationAveragingConfig::default(),
+            max_rotation_residual_deg: 10.0,
+            refinement: Refinement::Converge(RefineConfig::default()),
+        }
+    }
+}
+
+/// Wall-clock seconds per stage.
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
+pub struct GeometricTimes {
+    /// Features and matching.
+    pub matching: f64,
+    /// Two-view geometry, focal, averaging.
+    pub initialisation: f64,
+    /// Refinement.
+    pub refinement: f64,
+}
+
+/// What the estimate did, for run.json.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+pub struct GeometricReport {
+    /// Pairs with verified matches.
+    pub pairs_with_matches: usize,
+    /// Pairs with a relative pose (general or rotation-only).
+    pub pairs_with_pose: usize,
+    /// Of those, rotation-only pairs.
+    pub rotation_only_pairs: usize,
+    /// Pairs dropped by the rotation-consistency check.
+    pub inconsistent_pairs: usize,
+    /// The images estimated (the largest view-graph component).
+    pub estimated: Vec<usize>,
+    /// Where the focal came from: "self-calibration", "homographies", "given".
+    pub focal_source: String,
+    /// `φ = f / max(W, H)` before refinement.
+    pub focal_factor_initial: f64,
+    /// `φ` after refinement.
+    pub focal_factor: f64,
+    /// Refinement: accepted steps.
+    pub refine_iterations: usize,
+    /// Refinement converged (not stopped by the iteration limit).
+    pub refine_converged: bool,
+    /// Matches within 3 px of their epipolar geometry after refinement / used.
+    pub refine_inliers: usize,
+    /// Matches used by the refinement.
+    pub refine_matches: usize,
+    /// RMS Sampson distance of those inliers, px.
+    pub refine_inlier_rms_px: f64,
+    /// Stage timings.
+    pub times: GeometricTimes,
+}
+
+/// The cameras of a geometric estimate: `None` for images that were not estimated.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GeometricEstimate {
+    /// One per image, in input order.
+    pub cameras: Vec<Option<Camera>>,
+    /// Image sizes.
+    pub sizes: Vec<ImageSize>,
+    /// Matches of every pair (original pixels).
+    pub pairs: Vec<PairMatches>,
+    /// Statistics.
+    pub report: GeometricReport,
+    /// Things the user should know.
+    pub warnings: Vec<String>,
+}
+
+/// The image centre in OpenCV pixels (pixel centres at integers).
+pub fn image_centre(size: ImageSize) -> [f64; 2] {
+    [
+        (f64::from(size.width()) - 1.0) / 2.0,
+        (f64::from(size.height()) - 1.0) / 2.0,
+    ]
+}
+
+/// The focal scale `s` of `f = φ·s`: the longer side.
+pub fn focal_scale(size: ImageSize) -> f64 {
+    f64::from(size.width().max(size.height()))
+}
+
+/// Estimates cameras of `images` without a checkpoint.
+///
+/// # Errors
+/// Fewer than two images, unreadable images, matching errors, no pair with enough matches.
+pub fn estimate_geometric(
+    images: &[PathBuf],
+    config: &GeometricConfig,
+) -> Result<GeometricEstimate> {
+    if images.len() < 2 {
+        return Err(PosediffError::TooFewImages {
+            needed: 2,
+            got: images.len(),
+        });
+    }
+    let start = Instant::now();
+    let (features, pairs) = match_images(images, None, &config.matching)?;
+    let matching = start.elapsed().as_secs_f64();
+    let sizes: Vec<ImageSize> = features.iter().map(|f| f.image_size).collect();
+    let mut estimate = estimate_from_matches(&sizes, pairs, config)?;
+    estimate.report.times.matching = matching;
+    Ok(estimate)
+}
+
+/// The per-image principal points and focal scales, and `φ` when the focal is known.
+fn intrinsics_layout(
+    sizes: &[ImageSize],
+    known: &KnownIntrinsics,
+) -> Result<(ImageIntrinsics, Option<f64>)> {
+    match known {
+        KnownIntrinsics::Unknown => Ok((
+            ImageIntrinsics {
+                principal: sizes.iter().map(|s| image_centre(*s)).collect(),
+                scale: sizes.iter().map(|s| focal_scale(*s)).collect(),
+            },
+            None,
+        )),
+        KnownIntrinsics::FocalPx(f) => {
+            if !(*f > 0.0 && f.is_finite()) {
+                return Err(PosediffError::InvalidArgument(format!(
+                    "focal length must be positive, got {f}"
+                )));
+            }
+            Ok((
+                ImageIntrinsics {
+                    principal: sizes.iter().map(|s| image_centre(*s)).collect(),
+                    scale: vec![*f; sizes.len()],
+                },
+                Some(1.0),
+            ))
+        }
+        KnownIntrinsics::PerImage(k) => {
+            if k.len() != sizes.len() {
+                return Err(PosediffError::InvalidArgument(format!(
+                    "{} intrinsics for {} images",
+                    k.len(),
+                    sizes.len()
+                )));
+            }
+            // Square pixels are assumed by the refinement: the mean of fx and fy.
+            Ok((
+                ImageIntrinsics {
+                    principal: k.iter().map(|k| [k.cx(), k.cy()]).collect(),
+                    scale: k.iter().map(|k| 0.5 * (k.fx() + k.fy())).collect(),
+                },
+                Some(1.0),
+            ))
+        }
+    }
+}
+
+fn k_of(layout: &ImageIntrinsics, phi: f64, i: usize) -> Matrix3<f64> {
+    let f = phi * layout.scale[i];
+    let c = layout.principal[i];
+    Matrix3::new(f, 0.0, c[0], 0.0, f, c[1], 0.0, 0.0, 1.0)
+}
+
+/// The matches of the pairs as a match set in original pixels.
+///
+/// # Errors
+/// Invalid pairs.
+pub fn pixel_match_set(n_images: usize, pairs: &[PairMatches]) -> Result<MatchSet> {
+    let (mut kp1, mut kp2, mut frames) = (Vec::new(), Vec::new(), Vec::new());
+    for p in pairs {
+        kp1.extend_from_slice(&p.kp1);
+        kp2.extend_from_slice(&p.kp2);
+        frames.extend(std::iter::repeat_n((p.first, p.second), p.len()));
+    }
+    Ok(MatchSet::new(n_images, &kp1, &kp2, &frames)?)
+}
+
+/// [`estimate_geometric`] from matches already made.
+///
+/// # Errors
+/// Fewer than two images, no pair with enough matches, invalid known intrinsics.
+pub fn estimate_from_matches(
+    sizes: &[ImageSize],
+    pairs: Vec<PairMatches>,
+    config: &GeometricConfig,
+) -> Result<GeometricEstimate> {
+    let n = sizes.len();
+    if n < 2 {
+        return Err(PosediffError::TooFewImages { needed: 2, got: n });
+    }
+    let start = Instant::now();
+    let mut report = GeometricReport::default();
+    let mut warnings = Vec::new();
+    let matched: Vec<&PairMatches> = pairs.iter().filter(|p| !p.is_empty()).collect();
+    report.pairs_with_matches = matched.len();
+    if matched.is_empty() {
+        return Err(PosediffError::NoMatches { images: n });
+    }
+    let (layout, known_phi) = intrinsics_layout(sizes, &config.intrinsics)?;
+
+    // Homography test (no intrinsics needed): pairs without measurable parallax.
+    let homography: Vec<Option<(Matrix3<f64>, f64)>> = matched
+        .iter()
+        .map(|p| homography_fit(&p.kp1, &p.kp2, &config.two_view))
+        .collect::<std::result::Result<_, _>>()?;
+    let parallax: Vec<bool> = homography
+        .iter()
+        .map(|h| h.is_none_or(|(_, fraction)| fraction < config.two_view.homography_fraction))
+        .collect();
+
+    let phi = match known_phi {
+        Some(phi) => {
+            report.focal_source = "given".into();
+            phi
+        }
+        None => {
+            let mut fundamentals = Vec::new();
+            for (p, _) in matched.iter().zip(&parallax).filter(|(_, par)| **par) {
+                if let Some(f) = fundamental_least_squares(&p.kp1, &p.kp2)? {
+                    fundamentals.push(PairFundamental {
+                        f,
+                        principal_a: layout.principal[p.first],
+                        principal_b: layout.principal[p.second],
+                        scale_a: layout.scale[p.first],
+                        scale_b: layout.scale[p.second],
+                        weight: (p.len() as f64).sqrt(),
+                    });
+                }
+            }
+            if let Some(phi) = self_calibrate(&fundamentals, &config.focal_search) {
+                report.focal_source = "self-calibration".into();
+                phi
+            } else {
+                let rotation_pairs: Vec<(usize, usize, Matrix3<f64>)> = matched
+                    .iter()
+                    .zip(&homography)
+                    .filter_map(|(p, h)| h.map(|(h, _)| (p.first, p.second, h)))
+                    .collect();
+                report.focal_source = "homographies".into();
+                focal_from_homographies(&rotation_pairs, &layout, &config.focal_search)
+                    .ok_or(PosediffError::NoMatches { images: n })?
+            }
+        }
+    };
+    report.focal_factor_initial = phi;
+
+    // Relative poses.
+    let mut rotations = Vec::new();
+    let mut directions_local = Vec::new();
+    for p in &matched {
+        let (ka, kb) = (k_of(&layout, phi, p.first), k_of(&layout, phi, p.second));
+        let Some(pose) = relative_pose(&p.kp1, &p.kp2, &ka, &kb, &config.two_view)? else {
+            continue;
+        };
+        let (rotation, translation, inliers) = match pose {
+            RelativePose::General {
+                rotation,
+                translation,
+                inliers,
+            } => (rotation, Some(translation), inliers),
+            RelativePose::RotationOnly { rotation, inliers } => {
+                report.rotation_only_pairs += 1;
+                (rotation, None, inliers)
+            }
+        };
+        rotations.push(RelativeRotation {
+            first: p.first,
+            second: p.second,
+            rotation: Rotation3::from_matrix(&rotation),
+            weight: inliers as f64,
+        });
+        directions_local.push(translation);
+    }
+    report.pairs_with_pose = rotations.len();
+
+    // Rotation averaging on the largest component, inconsistent pairs dropped, repeated once.
+    let mut keep = vec![true; rotations.len()];
+    let mut members = Vec::new();
+    let mut absolute = vec![None; n];
+    for round in 0..2 {
+        let edges: Vec<RelativeRotation> = rotations
+            .iter()
+            .zip(&keep)
+            .filter(|(_, k)| **k)
+            .map(|(r, _)| *r)
+            .collect();
+        let graph: Vec<(usize, usize, f64)> = edges
+            .iter()
+            .map(|e| (e.first, e.second, e.weight))
+            .collect();
+        members = largest_component(n, &graph);
+        let Some(&reference) = members.first() else {
+            break;
+        };
+        absolute = average_rotations(n, &edges, reference, &config.rotations);
+        if round == 1 {
+            break;
+        }
+        let residuals = rotation_residuals_deg(&rotations, &absolute);
+        let mut dropped = 0;
+        for (k, r) in keep.iter_mut().zip(&residuals) {
+            if r.is_some_and(|r| r > config.max_rotation_residual_deg) {
+                *k = false;
+                dropped += 1;
+            }
+        }
+        report.inconsistent_pairs = dropped;
+        if dropped == 0 {
+            break;
+        }
+    }
+    let Some(&reference) = members.first() else {
+        return Err(PosediffError::NoMatches { images: n });
+    };
+
+    // Centres.
+    let directions: Vec<CenterDirection> = rotations
+        .iter()
+        .zip(&directions_local)
+        .zip(&keep)
+        .filter(|(_, k)| **k)
+        .filter_map(|((r, t), _)| {
+            let rb = absolute[r.second]?;
+            Some(CenterDirection {
+                first: r.first,
+                second: r.second,
+                direction: t.map(|t| rb.inverse() * t),
+                weight: r.weight,
+            })
+        })
+        .collect();
+    if directions.iter().all(|d| d.direction.is_none()) {
+        warnings.push(
+            "no pair has measurable parallax (pure rotation or identical images): all camera \
+             centres coincide"
+                .into(),
+        );
+    }
+    let centres = average_translations(n, &members, &directions, reference, &config.translations);
+    let mut cameras: Vec<Option<RefineCamera>> = (0..n)
+        .map(|i| match (absolute[i], centres[i]) {
+            (Some(rotation), Some(center)) if members.binary_search(&i).is_ok() => {
+                Some(RefineCamera { rotation, center })
+            }
+            _ => None,
+        })
+        .collect();
+    report.times.initialisation = start.elapsed().as_secs_f64();
+
+    // Refinement.
+    let start = Instant::now();
+    let mut phi_refined = phi;
+    if let Refinement::Converge(mut refine) = config.refinement {
+        refine.refine_focal &= known_phi.is_none();
+        let set = pixel_match_set(n, &pairs)?;
+        let r: RefineReport = refine_cameras(
+            &set,
+            &layout,
+            &mut cameras,
+            &mut phi_refined,
+            reference,
+            &refine,
+        )?;
+        report.refine_iterations = r.iterations;
+        report.refine_converged = r.converged;
+        report.refine_inliers = r.inliers;
+        report.refine_matches = r.matches;
+        report.refine_inlier_rms_px = r.inlier_rms_px;
+    }
+    report.focal_factor = phi_refined;
+    report.times.refinement = start.elapsed().as_secs_f64();
+    report.estimated = members.clone();
+    let not_estimated = n - members.len();
+    if not_estimated > 0 {
+        warnings.push(format!(
+            "{not_estimated} of {n} images share no usable matches with the largest group and are \
+             not estimated"
+        ));
+    }
+    let cameras = cameras
+        .iter()
+        .enumerate()
+        .map(|(i, c)| {
+            let Some(c) = c else { return Ok(None) };
+            let r = *c.rotation.matrix();
+            let k = k_of(&layout, phi_refined, i);
+            let intrinsics = match &config.intrinsics {
+                KnownIntrinsics::PerImage(given) => given[i],
+                _ => Intrinsics::from_matrix(&k)?,
+            };
+            Ok(Some(Camera::new(
+                intrinsics,
+                Pose::new(r, -(r * c.center)),
+                sizes[i],
+            )))
+        })
+        .collect::<Result<Vec<_>>>()?;
+    Ok(GeometricEstimate {
+        cameras,
+        sizes: sizes.to_vec(),
+        pairs,
+        report,
+        warnings,
+    })
+}
+
+/// `φ` from rotation-only homographies: `K_b⁻¹ H K_a` is a rotation at the right focal.
+fn focal_from_homographies(
+    pairs: &[(usize, usize, Matrix3<f64>)],
+    layout: &ImageIntrinsics,
+    search: &FocalSearch,
+) -> Option<f64> {
+    if pairs.is_empty() {
+        return None;
+    }
+    let cost = |phi: f64| -> f64 {
+        pairs
+            .iter()
+            .map(|(a, b, h)| {
+                let ka = k_of(layout, phi, *a);
+                let kb_inv = k_of(layout, phi, *b)
+                    .try_inverse()
+                    .unwrap_or_else(Matrix3::zeros);
+                homography_rotation(h, &ka, &kb_inv).map_or(1.0, |(_, ratio)| ratio - 1.0)
+            })
+            .sum()
+    };
+    let steps = search.steps.max(2);
+    let (lo, hi) = (search.min.ln(), search.max.ln());
+    (0..steps)
+        .map(|k| (lo + (hi - lo) * k as f64 / (steps - 1) as f64).exp())
+        .map(|phi| (phi, cost(phi)))
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .map(|(phi, _)| phi)
+}
