@@ -378,6 +378,45 @@ fn normalize_scale(cams: &mut [Option<RefineCamera>], reference: usize) {
     }
 }
 
+/// The robust cost `Σ ρ(r)` of all matches under `cameras`; a match whose pair lacks a camera
+/// (or a baseline) costs `ρ(missing_px)`. Compares solutions that estimate different images.
+///
+/// # Errors
+/// Inputs of the wrong length.
+pub fn robust_cost(
+    matches: &MatchSet,
+    intrinsics: &ImageIntrinsics,
+    cameras: &[Option<RefineCamera>],
+    phi: f64,
+    cauchy_px: f64,
+    missing_px: f64,
+) -> Result<f64> {
+    let n = matches.n_frames();
+    if cameras.len() != n || intrinsics.principal.len() != n || intrinsics.scale.len() != n {
+        return Err(GuidanceError::LengthMismatch {
+            what: "cameras / intrinsics",
+            left: n,
+            right: cameras.len(),
+        });
+    }
+    let problem = Problem {
+        matches,
+        intrinsics,
+        offset: vec![None; n],
+        focal_index: None,
+        n_params: 0,
+        cauchy: cauchy_px,
+    };
+    let counted: usize = matches
+        .groups()
+        .iter()
+        .filter(|g| problem.usable(cameras, g.first, g.second))
+        .map(|g| g.end - g.start)
+        .sum();
+    let missing = (matches.len() - counted) as f64 * problem.rho(missing_px);
+    Ok(problem.cost(cameras, phi) + missing)
+}
+
 /// Refines `cameras` (`None`: not estimated, left alone) and `phi` in place on `matches`
 /// (original-image pixels). `reference` stays fixed.
 ///

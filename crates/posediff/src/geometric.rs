@@ -24,6 +24,7 @@ use posediff_guidance::averaging::{
     CenterDirection, RelativeRotation, RotationAveragingConfig, TranslationAveragingConfig,
     average_rotations, average_translations, largest_component, rotation_residuals_deg,
 };
+use posediff_guidance::refine::robust_cost;
 use posediff_guidance::selfcal::{FocalSearch, PairFundamental, self_calibrate};
 use posediff_guidance::{
     ImageIntrinsics, MatchSet, RefineCamera, RefineConfig, RefineReport, refine_cameras,
@@ -75,6 +76,12 @@ pub struct GeometricConfig {
     pub max_rotation_residual_deg: f64,
     /// Refinement.
     pub refinement: Refinement,
+    /// Focal factors `φ` tried besides the self-calibrated one (multi-start); unused when the
+    /// focal is known.
+    pub focal_starts: Vec<f64>,
+    /// The focal factor used (fixed) when the data cannot determine it: COLMAP's default
+    /// `1.2 · max(W, H)`.
+    pub focal_prior: f64,
 }
 
 impl Default for GeometricConfig {
@@ -88,6 +95,8 @@ impl Default for GeometricConfig {
             translations: TranslationAveragingConfig::default(),
             max_rotation_residual_deg: 10.0,
             refinement: Refinement::Converge(RefineConfig::default()),
+            focal_starts: vec![0.4, 0.6, 0.9, 1.35, 2.0, 3.0],
+            focal_prior: 1.2,
         }
     }
 }
@@ -321,125 +330,64 @@ pub fn estimate_from_matches(
             }
         }
     };
-    report.focal_factor_initial = phi;
-
-    // Relative poses.
-    let mut rotations = Vec::new();
-    let mut directions_local = Vec::new();
-    for p in &matched {
-        let (ka, kb) = (k_of(&layout, phi, p.first), k_of(&layout, phi, p.second));
-        let Some(pose) = relative_pose(&p.kp1, &p.kp2, &ka, &kb, &config.two_view)? else {
+    // Multi-start over the focal: the self-calibrated value and a log grid (the Sampson cost is
+    // flat in the focal for narrow fields of view, and self-calibration can be far off); the
+    // solution with the lowest robust cost over all matches wins. A free focal that leaves the
+    // search range is unobservable (optical axes meeting at one point, as in object-centric
+    // captures, make it so for two or three views): such solutions are dropped, and the prior
+    // focal (fixed) is always a candidate.
+    let candidates: Vec<(f64, bool)> = match known_phi {
+        Some(phi) => vec![(phi, false)],
+        None => std::iter::once(phi)
+            .chain(config.focal_starts.iter().copied())
+            .map(|p| (p, true))
+            .chain(std::iter::once((config.focal_prior, false)))
+            .collect(),
+    };
+    let set = pixel_match_set(n, &pairs)?;
+    let mut best: Option<Solution> = None;
+    for &(start_phi, free) in &candidates {
+        let solution = solve_at_focal(start_phi, &matched, &layout, &set, free, config)?;
+        if free && !(config.focal_search.min..=config.focal_search.max).contains(&solution.phi) {
+            log::debug!(
+                "focal start {start_phi:.3}: phi {:.4} out of range",
+                solution.phi
+            );
             continue;
-        };
-        let (rotation, translation, inliers) = match pose {
-            RelativePose::General {
-                rotation,
-                translation,
-                inliers,
-            } => (rotation, Some(translation), inliers),
-            RelativePose::RotationOnly { rotation, inliers } => {
-                report.rotation_only_pairs += 1;
-                (rotation, None, inliers)
-            }
-        };
-        rotations.push(RelativeRotation {
-            first: p.first,
-            second: p.second,
-            rotation: Rotation3::from_matrix(&rotation),
-            weight: inliers as f64,
-        });
-        directions_local.push(translation);
-    }
-    report.pairs_with_pose = rotations.len();
-
-    // Rotation averaging on the largest component, inconsistent pairs dropped, repeated once.
-    let mut keep = vec![true; rotations.len()];
-    let mut members = Vec::new();
-    let mut absolute = vec![None; n];
-    for round in 0..2 {
-        let edges: Vec<RelativeRotation> = rotations
-            .iter()
-            .zip(&keep)
-            .filter(|(_, k)| **k)
-            .map(|(r, _)| *r)
-            .collect();
-        let graph: Vec<(usize, usize, f64)> = edges
-            .iter()
-            .map(|e| (e.first, e.second, e.weight))
-            .collect();
-        members = largest_component(n, &graph);
-        let Some(&reference) = members.first() else {
-            break;
-        };
-        absolute = average_rotations(n, &edges, reference, &config.rotations);
-        if round == 1 {
-            break;
         }
-        let residuals = rotation_residuals_deg(&rotations, &absolute);
-        let mut dropped = 0;
-        for (k, r) in keep.iter_mut().zip(&residuals) {
-            if r.is_some_and(|r| r > config.max_rotation_residual_deg) {
-                *k = false;
-                dropped += 1;
-            }
-        }
-        report.inconsistent_pairs = dropped;
-        if dropped == 0 {
-            break;
+        log::debug!(
+            "focal start {start_phi:.3}: phi {:.4}, {} images, score {:.2}",
+            solution.phi,
+            solution.members.len(),
+            solution.score
+        );
+        if best.as_ref().is_none_or(|b| solution.score < b.score) {
+            best = Some(solution);
         }
     }
-    let Some(&reference) = members.first() else {
+    let Some(best) = best else {
         return Err(PosediffError::NoMatches { images: n });
     };
-
-    // Centres.
-    let directions: Vec<CenterDirection> = rotations
-        .iter()
-        .zip(&directions_local)
-        .zip(&keep)
-        .filter(|(_, k)| **k)
-        .filter_map(|((r, t), _)| {
-            let rb = absolute[r.second]?;
-            Some(CenterDirection {
-                first: r.first,
-                second: r.second,
-                direction: t.map(|t| rb.inverse() * t),
-                weight: r.weight,
-            })
-        })
-        .collect();
-    if directions.iter().all(|d| d.direction.is_none()) {
+    let Solution {
+        cameras,
+        members,
+        phi: phi_refined,
+        stats,
+        refine,
+        ..
+    } = best;
+    report.focal_factor_initial = phi;
+    report.pairs_with_pose = stats.pairs_with_pose;
+    report.rotation_only_pairs = stats.rotation_only_pairs;
+    report.inconsistent_pairs = stats.inconsistent_pairs;
+    if stats.no_parallax {
         warnings.push(
             "no pair has measurable parallax (pure rotation or identical images): all camera \
              centres coincide"
                 .into(),
         );
     }
-    let centres = average_translations(n, &members, &directions, reference, &config.translations);
-    let mut cameras: Vec<Option<RefineCamera>> = (0..n)
-        .map(|i| match (absolute[i], centres[i]) {
-            (Some(rotation), Some(center)) if members.binary_search(&i).is_ok() => {
-                Some(RefineCamera { rotation, center })
-            }
-            _ => None,
-        })
-        .collect();
-    report.times.initialisation = start.elapsed().as_secs_f64();
-
-    // Refinement.
-    let start = Instant::now();
-    let mut phi_refined = phi;
-    if let Refinement::Converge(mut refine) = config.refinement {
-        refine.refine_focal &= known_phi.is_none();
-        let set = pixel_match_set(n, &pairs)?;
-        let r: RefineReport = refine_cameras(
-            &set,
-            &layout,
-            &mut cameras,
-            &mut phi_refined,
-            reference,
-            &refine,
-        )?;
+    if let Some(r) = refine {
         report.refine_iterations = r.iterations;
         report.refine_converged = r.converged;
         report.refine_inliers = r.inliers;
@@ -447,7 +395,7 @@ pub fn estimate_from_matches(
         report.refine_inlier_rms_px = r.inlier_rms_px;
     }
     report.focal_factor = phi_refined;
-    report.times.refinement = start.elapsed().as_secs_f64();
+    report.times.initialisation = start.elapsed().as_secs_f64();
     report.estimated = members.clone();
     let not_estimated = n - members.len();
     if not_estimated > 0 {
@@ -482,6 +430,168 @@ pub fn estimate_from_matches(
         warnings,
     })
 }
+
+/// Pair statistics of one solve.
+#[derive(Debug, Clone, Copy, Default)]
+struct SolveStats {
+    pairs_with_pose: usize,
+    rotation_only_pairs: usize,
+    inconsistent_pairs: usize,
+    no_parallax: bool,
+}
+
+/// Cameras initialised and refined from one starting focal.
+struct Solution {
+    cameras: Vec<Option<RefineCamera>>,
+    members: Vec<usize>,
+    phi: f64,
+    stats: SolveStats,
+    refine: Option<RefineReport>,
+    /// Robust cost over all matches, unestimated pairs at the penalty.
+    score: f64,
+}
+
+fn solve_at_focal(
+    phi: f64,
+    matched: &[&PairMatches],
+    layout: &ImageIntrinsics,
+    set: &MatchSet,
+    refine_focal: bool,
+    config: &GeometricConfig,
+) -> Result<Solution> {
+    let n = layout.scale.len();
+    let mut stats = SolveStats::default();
+    let mut rotations = Vec::new();
+    let mut directions_local = Vec::new();
+    for p in matched {
+        let (ka, kb) = (k_of(layout, phi, p.first), k_of(layout, phi, p.second));
+        let Some(pose) = relative_pose(&p.kp1, &p.kp2, &ka, &kb, &config.two_view)? else {
+            continue;
+        };
+        let (rotation, translation, inliers) = match pose {
+            RelativePose::General {
+                rotation,
+                translation,
+                inliers,
+            } => (rotation, Some(translation), inliers),
+            RelativePose::RotationOnly { rotation, inliers } => {
+                stats.rotation_only_pairs += 1;
+                (rotation, None, inliers)
+            }
+        };
+        rotations.push(RelativeRotation {
+            first: p.first,
+            second: p.second,
+            rotation: Rotation3::from_matrix(&rotation),
+            weight: inliers as f64,
+        });
+        directions_local.push(translation);
+    }
+    stats.pairs_with_pose = rotations.len();
+
+    // Rotation averaging on the largest component, inconsistent pairs dropped, repeated once.
+    let mut keep = vec![true; rotations.len()];
+    let mut members = Vec::new();
+    let mut absolute = vec![None; n];
+    for round in 0..2 {
+        let edges: Vec<RelativeRotation> = rotations
+            .iter()
+            .zip(&keep)
+            .filter(|(_, k)| **k)
+            .map(|(r, _)| *r)
+            .collect();
+        let graph: Vec<(usize, usize, f64)> = edges
+            .iter()
+            .map(|e| (e.first, e.second, e.weight))
+            .collect();
+        members = largest_component(n, &graph);
+        let Some(&reference) = members.first() else {
+            break;
+        };
+        absolute = average_rotations(n, &edges, reference, &config.rotations);
+        if round == 1 {
+            break;
+        }
+        let residuals = rotation_residuals_deg(&rotations, &absolute);
+        let mut dropped = 0;
+        for (k, r) in keep.iter_mut().zip(&residuals) {
+            if r.is_some_and(|r| r > config.max_rotation_residual_deg) {
+                *k = false;
+                dropped += 1;
+            }
+        }
+        stats.inconsistent_pairs = dropped;
+        if dropped == 0 {
+            break;
+        }
+    }
+    let Some(&reference) = members.first() else {
+        return Ok(Solution {
+            cameras: vec![None; n],
+            members,
+            phi,
+            stats,
+            refine: None,
+            score: f64::INFINITY,
+        });
+    };
+
+    let directions: Vec<CenterDirection> = rotations
+        .iter()
+        .zip(&directions_local)
+        .zip(&keep)
+        .filter(|(_, k)| **k)
+        .filter_map(|((r, t), _)| {
+            let rb = absolute[r.second]?;
+            Some(CenterDirection {
+                first: r.first,
+                second: r.second,
+                direction: t.map(|t| rb.inverse() * t),
+                weight: r.weight,
+            })
+        })
+        .collect();
+    stats.no_parallax = directions.iter().all(|d| d.direction.is_none());
+    let centres = average_translations(n, &members, &directions, reference, &config.translations);
+    let mut cameras: Vec<Option<RefineCamera>> = (0..n)
+        .map(|i| match (absolute[i], centres[i]) {
+            (Some(rotation), Some(center)) if members.binary_search(&i).is_ok() => {
+                Some(RefineCamera { rotation, center })
+            }
+            _ => None,
+        })
+        .collect();
+    let mut phi = phi;
+    let mut refine_report = None;
+    let cauchy = match config.refinement {
+        Refinement::Converge(mut refine) => {
+            refine.refine_focal &= refine_focal;
+            refine_report = Some(refine_cameras(
+                set,
+                layout,
+                &mut cameras,
+                &mut phi,
+                reference,
+                &refine,
+            )?);
+            refine.cauchy_px
+        }
+        Refinement::None => RefineConfig::default().cauchy_px,
+    };
+    let score = robust_cost(set, layout, &cameras, phi, cauchy, MISSING_PENALTY_PX)?;
+    Ok(Solution {
+        cameras,
+        members,
+        phi,
+        stats,
+        refine: refine_report,
+        score,
+    })
+}
+
+/// A match whose pair has no estimated geometry costs as much as one this far (px) from its
+/// epipolar line when solutions are compared.
+const MISSING_PENALTY_PX: f64 = 10.0;
 
 /// `φ` from rotation-only homographies: `K_b⁻¹ H K_a` is a rotation at the right focal.
 fn focal_from_homographies(

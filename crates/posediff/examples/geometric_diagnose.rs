@@ -1,0 +1,167 @@
+//! Runs the checkpoint-free estimate on a set with ground truth and prints what each stage did:
+//! `cargo run --release -p posediff --example geometric_diagnose -- ../shared/data/middlebury_templeSR [frame indices...]`
+#![allow(clippy::print_stdout)]
+
+use std::path::PathBuf;
+
+use anyhow::Context;
+use posediff::export::read_cameras_json;
+use posediff::geometric::{GeometricConfig, estimate_geometric};
+
+fn main() -> anyhow::Result<()> {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let dir = PathBuf::from(
+        args.first()
+            .context("usage: geometric_diagnose DIR [indices]")?,
+    );
+    let gt = read_cameras_json(&dir.join("cameras.json"))?;
+    let pick: Vec<usize> = if args.len() > 1 {
+        args[1..]
+            .iter()
+            .map(|a| a.parse())
+            .collect::<Result<_, _>>()?
+    } else {
+        (0..gt.len()).collect()
+    };
+    let images: Vec<PathBuf> = pick.iter().map(|&i| dir.join(&gt[i].image)).collect();
+    let mut config = GeometricConfig::default();
+    let env = |k: &str| std::env::var(k).ok().and_then(|v| v.parse::<f64>().ok());
+    if let Some(v) = env("KP") {
+        config.matching.features.max_keypoints = v as usize;
+    }
+    if let Some(v) = env("CT") {
+        config.matching.features.contrast_threshold = v;
+    }
+    if let Some(v) = env("MINV") {
+        config.matching.min_verified = v as usize;
+    }
+    if let Some(v) = env("RATIO") {
+        config.matching.ratio = Some(v as f32);
+    }
+    if let Some(v) = env("VTH") {
+        if let Some(ver) = config.matching.verification.as_mut() {
+            ver.threshold_px = v;
+        }
+    }
+    if let Some(v) = env("SIDE") {
+        config.matching.features.max_image_side = v as u32;
+    }
+    let e = estimate_geometric(&images, &config)?;
+    println!("{}", serde_json::to_string_pretty(&e.report)?);
+    for w in &e.warnings {
+        println!("warning: {w}");
+    }
+    let gt_f = gt[pick[0]].camera.intrinsics.fx();
+    let size = e.sizes[0];
+    println!(
+        "GT focal {gt_f:.1} px = phi {:.4}",
+        gt_f / f64::from(size.width().max(size.height()))
+    );
+    {
+        use posediff_guidance::refine::robust_cost;
+        use posediff_guidance::{ImageIntrinsics, RefineCamera};
+        let set = posediff::geometric::pixel_match_set(pick.len(), &e.pairs)?;
+        let layout = ImageIntrinsics {
+            principal: e
+                .sizes
+                .iter()
+                .map(|s| posediff::geometric::image_centre(*s))
+                .collect(),
+            scale: e
+                .sizes
+                .iter()
+                .map(|s| posediff::geometric::focal_scale(*s))
+                .collect(),
+        };
+        let to_refine = |c: &posediff_geometry::Camera| RefineCamera {
+            rotation: nalgebra::Rotation3::from_matrix_unchecked(c.cam_from_world.rotation),
+            center: c.center().coords,
+        };
+        let truth: Vec<_> = pick
+            .iter()
+            .map(|&i| Some(to_refine(&gt[i].camera)))
+            .collect();
+        let ours: Vec<_> = e
+            .cameras
+            .iter()
+            .map(|c| c.as_ref().map(to_refine))
+            .collect();
+        let gt_phi = gt[pick[0]].camera.intrinsics.fx() / layout.scale[0];
+        println!(
+            "robust cost: ours {:.3} (phi {:.4}), ground truth {:.3} (phi {gt_phi:.4})",
+            robust_cost(&set, &layout, &ours, e.report.focal_factor, 1.0, 10.0)?,
+            e.report.focal_factor,
+            robust_cost(&set, &layout, &truth, gt_phi, 1.0, 10.0)?,
+        );
+    }
+    for (a, &i) in pick.iter().enumerate() {
+        for (b, &j) in pick.iter().enumerate().skip(a + 1) {
+            let (Some(ca), Some(cb)) = (e.cameras[a], e.cameras[b]) else {
+                continue;
+            };
+            let rel = |p: &posediff_geometry::Pose, q: &posediff_geometry::Pose| {
+                posediff_geometry::epipolar::relative_pose(p, q)
+            };
+            let est = rel(&ca.cam_from_world, &cb.cam_from_world);
+            let truth = rel(&gt[i].camera.cam_from_world, &gt[j].camera.cam_from_world);
+            let r = est.rotation * truth.rotation.transpose();
+            let rot = ((r.trace() - 1.0) / 2.0)
+                .clamp(-1.0, 1.0)
+                .acos()
+                .to_degrees();
+            let t = est
+                .translation
+                .normalize()
+                .dot(&truth.translation.normalize())
+                .clamp(-1.0, 1.0)
+                .acos()
+                .to_degrees();
+            let n = e
+                .pairs
+                .iter()
+                .find(|p| p.first == a && p.second == b)
+                .map_or(0, |p| p.len());
+            let two_view = e
+                .pairs
+                .iter()
+                .find(|p| p.first == a && p.second == b && !p.is_empty())
+                .and_then(|p| {
+                    let k = ca.intrinsics.matrix();
+                    posediff_matching::two_view::relative_pose(
+                        &p.kp1,
+                        &p.kp2,
+                        &k,
+                        &k,
+                        &posediff_matching::TwoViewConfig::default(),
+                    )
+                    .ok()
+                    .flatten()
+                });
+            let tv = match two_view {
+                Some(posediff_matching::RelativePose::General {
+                    rotation,
+                    translation,
+                    inliers,
+                }) => {
+                    let r = rotation * truth.rotation.transpose();
+                    format!(
+                        "two-view rot {:6.2}° trans {:6.2}° inl {inliers}",
+                        ((r.trace() - 1.0) / 2.0)
+                            .clamp(-1.0, 1.0)
+                            .acos()
+                            .to_degrees(),
+                        translation
+                            .dot(&truth.translation.normalize())
+                            .clamp(-1.0, 1.0)
+                            .acos()
+                            .to_degrees()
+                    )
+                }
+                Some(other) => format!("{other:?}"),
+                None => String::new(),
+            };
+            println!("pair {i:>2}-{j:<2} matches {n:>4}  rot {rot:7.2}°  trans {t:7.2}°  {tv}");
+        }
+    }
+    Ok(())
+}
