@@ -28,7 +28,7 @@ pub use checkpoint::{Checkpoint, ModelDepths};
 pub use denoiser::Denoiser;
 pub use error::{DiffusionError, Result};
 pub use features::ImageFeatureExtractor;
-pub use sampler::{MeanHook, NoiseSource, ReplayNoise, SeededNoise, sample};
+pub use sampler::{MeanHook, NoiseSource, ReplayNoise, SeededNoise, sample, sample_from};
 pub use schedule::Schedule;
 
 /// The whole model: feature extractor, denoiser and schedule.

@@ -154,6 +154,51 @@ pub fn sample(
     schedule: &Schedule,
     z: &Tensor,
     noise: &mut dyn NoiseSource,
+    hook: Option<(&mut dyn MeanHook, usize)>,
+    trace: Option<&mut SamplingTrace>,
+) -> Result<Tensor> {
+    reverse_diffusion(denoiser, schedule, z, noise, None, hook, trace)
+}
+
+/// Reverse diffusion from an initial estimate (SDEdit, Meng et al. ICLR 2022): `x0` `(B, N, 9)`
+/// is noised to step `from_step` by the forward process,
+/// `x = √ᾱ_s·x0 + √(1 − ᾱ_s)·ε`, and the official reverse steps run from `t = from_step` down
+/// to 0 (with the hook as in [`sample`]). `from_step = T − 1` is almost pure noise; small values
+/// stay close to `x0`.
+///
+/// # Errors
+/// `from_step` outside the schedule, mismatched shapes, a failing noise source or hook.
+#[allow(clippy::too_many_arguments)] // the arguments of `sample` plus the start
+pub fn sample_from(
+    denoiser: &Denoiser,
+    schedule: &Schedule,
+    z: &Tensor,
+    noise: &mut dyn NoiseSource,
+    x0: &Tensor,
+    from_step: usize,
+    hook: Option<(&mut dyn MeanHook, usize)>,
+    trace: Option<&mut SamplingTrace>,
+) -> Result<Tensor> {
+    if from_step >= schedule.len() {
+        return Err(DiffusionError::Invalid("start step outside the schedule"));
+    }
+    reverse_diffusion(
+        denoiser,
+        schedule,
+        z,
+        noise,
+        Some((x0, from_step)),
+        hook,
+        trace,
+    )
+}
+
+fn reverse_diffusion(
+    denoiser: &Denoiser,
+    schedule: &Schedule,
+    z: &Tensor,
+    noise: &mut dyn NoiseSource,
+    start: Option<(&Tensor, usize)>,
     mut hook: Option<(&mut dyn MeanHook, usize)>,
     mut trace: Option<&mut SamplingTrace>,
 ) -> Result<Tensor> {
@@ -166,11 +211,24 @@ pub fn sample(
                 .to_dtype(dtype)?,
         )
     };
-    let mut x = gaussian(noise)?;
+    let (mut x, first) = match start {
+        None => (gaussian(noise)?, schedule.len() - 1),
+        Some((x0, s)) => {
+            if x0.dims3()? != shape {
+                return Err(DiffusionError::Invalid(
+                    "initial encodings must be (B, N, 9) like the features",
+                ));
+            }
+            let x0 = x0.to_dtype(dtype)?;
+            let x = ((x0 * schedule.sqrt_alphas_cumprod[s])?
+                + (gaussian(noise)? * schedule.sqrt_one_minus_alphas_cumprod[s])?)?;
+            (x, s)
+        }
+    };
     if let Some(tr) = trace.as_deref_mut() {
         tr.pose_process.push(x.clone());
     }
-    for t in (0..schedule.len()).rev() {
+    for t in (0..=first).rev() {
         let step = denoise_step(denoiser, schedule, &x, t, z)?;
         x = match hook.as_mut() {
             Some((h, start)) if t < *start => h.replace_mean(&step.model_mean, t)?,

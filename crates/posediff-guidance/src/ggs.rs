@@ -52,6 +52,9 @@ pub struct GgsConfig {
     pub start_step: usize,
     /// The image the keypoints are in (official: the 224×224 crop).
     pub image_size: ImageSize,
+    /// Known intrinsics: no phase updates the focal lengths and the focal-only phase is skipped
+    /// (not official; `false` by default).
+    pub fix_focal: bool,
 }
 
 /// The official model input size.
@@ -70,6 +73,7 @@ impl Default for GgsConfig {
                 Ok(size) => size,
                 Err(_) => unreachable!("224×224 is a valid size"),
             },
+            fix_focal: false,
         }
     }
 }
@@ -94,15 +98,20 @@ impl GgsConfig {
         Ok(())
     }
 
-    /// The five official phases: update mask and iteration count.
+    /// The five official phases: update mask and iteration count. With `fix_focal` the masks
+    /// leave the focal alone and the focal-only phase has no iterations.
     pub fn phases(&self) -> [(UpdateMask, usize); 5] {
         let n = self.iter_num;
+        let all = UpdateMask {
+            focal: !self.fix_focal,
+            ..UpdateMask::ALL
+        };
         [
-            (UpdateMask::ALL, 2 * n),
-            (UpdateMask::FOCAL, n),
+            (all, 2 * n),
+            (UpdateMask::FOCAL, if self.fix_focal { 0 } else { n }),
             (UpdateMask::ROTATION, n),
             (UpdateMask::TRANSLATION, n),
-            (UpdateMask::ALL, 2 * n),
+            (all, 2 * n),
         ]
     }
 }

@@ -54,20 +54,120 @@ pub fn write_cameras_json(path: &Path, cameras: &[NamedCamera]) -> Result<()> {
     write(path, &serde_json::to_string_pretty(&records)?)
 }
 
-/// Reads `cameras.json`.
+/// Reads `cameras.json` in which every camera is estimated.
 ///
 /// # Errors
-/// I/O, JSON or camera errors.
+/// I/O, JSON or camera errors; an entry marked `"estimated": false` (read such files with
+/// [`read_cameras_json_partial`]).
 pub fn read_cameras_json(path: &Path) -> Result<Vec<NamedCamera>> {
-    let text = read_text(path)?;
-    let records: Vec<CameraRecord> =
-        serde_json::from_str(&text).map_err(|e| PosediffError::invalid(path, e))?;
-    records
+    read_cameras_json_partial(path)?
+        .into_iter()
+        .map(|e| match e.camera {
+            Some(camera) => Ok(NamedCamera {
+                image: e.image,
+                camera,
+            }),
+            None => Err(PosediffError::InvalidFile {
+                path: path.to_owned(),
+                reason: format!("the camera of {} was not estimated", e.image),
+            }),
+        })
+        .collect()
+}
+
+/// One image of a set and its camera, `None` where none was estimated.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ImageCamera {
+    /// Image path relative to the input folder.
+    pub image: String,
+    /// The image's size.
+    pub size: posediff_geometry::ImageSize,
+    /// The camera.
+    pub camera: Option<Camera>,
+}
+
+/// The `cameras.json` entry of an image without a camera.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+struct MissingRecord {
+    image: String,
+    width: u32,
+    height: u32,
+    #[serde(rename = "K")]
+    k: Option<[[f64; 3]; 3]>,
+    #[serde(rename = "R")]
+    r: Option<[[f64; 3]; 3]>,
+    t: Option<[f64; 3]>,
+    estimated: bool,
+}
+
+/// An estimated entry: the record plus `"estimated": true`.
+#[derive(Debug, Clone, Serialize)]
+struct EstimatedRecord {
+    #[serde(flatten)]
+    record: CameraRecord,
+    estimated: bool,
+}
+
+/// Writes `cameras.json` with every image: estimated cameras as usual plus `"estimated":
+/// true`, the others with `"K"`, `"R"` and `"t"` null and `"estimated": false`.
+///
+/// # Errors
+/// I/O errors.
+pub fn write_cameras_json_partial(path: &Path, images: &[ImageCamera]) -> Result<()> {
+    let values = images
         .iter()
-        .map(|r| {
-            Ok(NamedCamera {
-                image: r.image.clone(),
-                camera: r.to_camera()?,
+        .map(|e| match &e.camera {
+            Some(c) => serde_json::to_value(EstimatedRecord {
+                record: CameraRecord::from_camera(e.image.clone(), c),
+                estimated: true,
+            }),
+            None => serde_json::to_value(MissingRecord {
+                image: e.image.clone(),
+                width: e.size.width(),
+                height: e.size.height(),
+                k: None,
+                r: None,
+                t: None,
+                estimated: false,
+            }),
+        })
+        .collect::<std::result::Result<Vec<_>, _>>()?;
+    write(path, &serde_json::to_string_pretty(&values)?)
+}
+
+/// Reads `cameras.json`, with entries marked `"estimated": false` as images without a camera.
+///
+/// # Errors
+/// I/O, JSON or camera errors (naming the entry).
+pub fn read_cameras_json_partial(path: &Path) -> Result<Vec<ImageCamera>> {
+    let text = read_text(path)?;
+    let values: Vec<serde_json::Value> =
+        serde_json::from_str(&text).map_err(|e| PosediffError::invalid(path, e))?;
+    values
+        .into_iter()
+        .enumerate()
+        .map(|(k, v)| {
+            let entry = |e: serde_json::Error| PosediffError::InvalidFile {
+                path: path.to_owned(),
+                reason: format!("entry {k}: {e}"),
+            };
+            if v.get("estimated") == Some(&serde_json::Value::Bool(false)) {
+                let m: MissingRecord = serde_json::from_value(v).map_err(entry)?;
+                return Ok(ImageCamera {
+                    image: m.image,
+                    size: posediff_geometry::ImageSize::new(m.width, m.height)?,
+                    camera: None,
+                });
+            }
+            let r: CameraRecord = serde_json::from_value(v).map_err(entry)?;
+            let camera = r.to_camera().map_err(|e| PosediffError::InvalidFile {
+                path: path.to_owned(),
+                reason: format!("entry {k} ({}): {e}", r.image),
+            })?;
+            Ok(ImageCamera {
+                image: r.image,
+                size: camera.image_size,
+                camera: Some(camera),
             })
         })
         .collect()

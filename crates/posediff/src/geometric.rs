@@ -19,7 +19,9 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use nalgebra::{Matrix3, Rotation3};
-use posediff_geometry::{Camera, ImageSize, Intrinsics, Pose};
+use posediff_geometry::{
+    Camera, CenterCrop, ImageSize, Intrinsics, MODEL_INPUT_SIDE, Pose, PoseEncoding, QuaternionSign,
+};
 use posediff_guidance::averaging::{
     CenterDirection, RelativeRotation, RotationAveragingConfig, TranslationAveragingConfig,
     average_rotations, average_translations, largest_component, rotation_residuals_deg,
@@ -27,7 +29,8 @@ use posediff_guidance::averaging::{
 use posediff_guidance::refine::robust_cost;
 use posediff_guidance::selfcal::{FocalSearch, PairFundamental, self_calibrate};
 use posediff_guidance::{
-    ImageIntrinsics, MatchSet, RefineCamera, RefineConfig, RefineReport, refine_cameras,
+    GgsConfig, GgsSolver, ImageIntrinsics, MatchSet, RefineCamera, RefineConfig, RefineReport,
+    refine_cameras,
 };
 use posediff_matching::two_view::{
     fundamental_least_squares, homography_fit, homography_rotation, relative_pose,
@@ -54,6 +57,9 @@ pub enum Refinement {
     None,
     /// The Sampson objective to convergence (Levenberg–Marquardt).
     Converge(RefineConfig),
+    /// The official GGS schedule (five SGD phases, 7000 iterations by default) on the cameras
+    /// in their 224 crops, as the released code runs it inside the diffusion.
+    Official(GgsConfig),
 }
 
 /// Settings of the geometric estimate.
@@ -194,6 +200,109 @@ pub fn estimate_geometric(
     let mut estimate = estimate_from_matches(&sizes, pairs, config)?;
     estimate.report.times.matching = matching;
     Ok(estimate)
+}
+
+/// Refines cameras from elsewhere (e.g. COLMAP's, converted to cameras.json) on the matches of
+/// `images` instead of initialising them; `None` entries stay not estimated. The focal is
+/// refined as one shared factor (started from the mean of the given focals) unless
+/// `config.intrinsics` fixes it. With [`Refinement::None`] the cameras come back unchanged.
+///
+/// # Errors
+/// As [`estimate_geometric`]; a count of cameras that does not match the images; fewer than
+/// one given camera.
+pub fn refine_given_cameras(
+    images: &[PathBuf],
+    init: &[Option<Camera>],
+    config: &GeometricConfig,
+) -> Result<GeometricEstimate> {
+    if init.len() != images.len() {
+        return Err(PosediffError::InvalidArgument(format!(
+            "{} initial cameras for {} images",
+            init.len(),
+            images.len()
+        )));
+    }
+    if images.len() < 2 {
+        return Err(PosediffError::TooFewImages {
+            needed: 2,
+            got: images.len(),
+        });
+    }
+    let start = Instant::now();
+    let (features, pairs) = match_images(images, None, &config.matching)?;
+    let matching = start.elapsed().as_secs_f64();
+    let sizes: Vec<ImageSize> = features.iter().map(|f| f.image_size).collect();
+    let n = sizes.len();
+    let (layout, known_phi) = intrinsics_layout(&sizes, &config.intrinsics)?;
+    let given: Vec<f64> = init
+        .iter()
+        .zip(&layout.scale)
+        .filter_map(|(c, s)| c.map(|c| 0.5 * (c.intrinsics.fx() + c.intrinsics.fy()) / s))
+        .collect();
+    let Some(reference) = init.iter().position(Option::is_some) else {
+        return Err(PosediffError::InvalidArgument(
+            "no initial camera is estimated".into(),
+        ));
+    };
+    let mut phi = known_phi.unwrap_or(given.iter().sum::<f64>() / given.len() as f64);
+    let mut cameras: Vec<Option<RefineCamera>> = init
+        .iter()
+        .map(|c| {
+            c.map(|c| RefineCamera {
+                rotation: Rotation3::from_matrix(&c.cam_from_world.rotation),
+                center: c.center().coords,
+            })
+        })
+        .collect();
+    let mut report = GeometricReport {
+        pairs_with_matches: pairs.iter().filter(|p| !p.is_empty()).count(),
+        focal_source: if known_phi.is_some() {
+            "given"
+        } else {
+            "initial cameras"
+        }
+        .into(),
+        focal_factor_initial: phi,
+        ..GeometricReport::default()
+    };
+    report.times.matching = matching;
+    let start = Instant::now();
+    let mut out: Vec<Option<Camera>> = init.to_vec();
+    if let Refinement::Converge(mut refine) = config.refinement {
+        refine.refine_focal &= known_phi.is_none();
+        let set = pixel_match_set(n, &pairs)?;
+        let r = refine_cameras(&set, &layout, &mut cameras, &mut phi, reference, &refine)?;
+        report.refine_iterations = r.iterations;
+        report.refine_converged = r.converged;
+        report.refine_inliers = r.inliers;
+        report.refine_matches = r.matches;
+        report.refine_inlier_rms_px = r.inlier_rms_px;
+        for (i, (o, c)) in out.iter_mut().zip(&cameras).enumerate() {
+            if let (Some(o), Some(c)) = (o.as_mut(), c) {
+                let r = *c.rotation.matrix();
+                o.cam_from_world = Pose::new(r, -(r * c.center));
+                o.intrinsics = match &config.intrinsics {
+                    KnownIntrinsics::PerImage(k) => k[i],
+                    _ => Intrinsics::from_matrix(&k_of(&layout, phi, i))?,
+                };
+            }
+        }
+    }
+    if let Refinement::Official(ggs) = config.refinement {
+        let mut ggs = ggs;
+        ggs.fix_focal |= known_phi.is_some();
+        official_ggs(&mut out, &pairs, &ggs)?;
+    }
+    report.focal_factor = phi;
+    report.estimated = (0..n).filter(|&i| out[i].is_some()).collect();
+    report.times.refinement = start.elapsed().as_secs_f64();
+    Ok(GeometricEstimate {
+        cameras: out,
+        sizes,
+        pairs,
+        report,
+        warnings: Vec::new(),
+    })
 }
 
 /// The per-image principal points and focal scales, and `φ` when the focal is known.
@@ -404,7 +513,7 @@ pub fn estimate_from_matches(
              not estimated"
         ));
     }
-    let cameras = cameras
+    let mut cameras = cameras
         .iter()
         .enumerate()
         .map(|(i, c)| {
@@ -422,6 +531,13 @@ pub fn estimate_from_matches(
             )))
         })
         .collect::<Result<Vec<_>>>()?;
+    if let Refinement::Official(ggs) = config.refinement {
+        let start = Instant::now();
+        let mut ggs = ggs;
+        ggs.fix_focal |= known_phi.is_some();
+        official_ggs(&mut cameras, &pairs, &ggs)?;
+        report.times.refinement = start.elapsed().as_secs_f64();
+    }
     Ok(GeometricEstimate {
         cameras,
         sizes: sizes.to_vec(),
@@ -576,7 +692,7 @@ fn solve_at_focal(
             )?);
             refine.cauchy_px
         }
-        Refinement::None => RefineConfig::default().cauchy_px,
+        Refinement::None | Refinement::Official(_) => RefineConfig::default().cauchy_px,
     };
     let score = robust_cost(set, layout, &cameras, phi, cauchy, MISSING_PENALTY_PX)?;
     Ok(Solution {
@@ -592,6 +708,69 @@ fn solve_at_focal(
 /// A match whose pair has no estimated geometry costs as much as one this far (px) from its
 /// epipolar line when solutions are compared.
 const MISSING_PENALTY_PX: f64 = 10.0;
+
+/// The official GGS schedule on the estimated cameras, in place: each camera into its 224 crop
+/// and encoded, the matches of the estimated images mapped into the crops, the five phases, and
+/// back to original pixels.
+///
+/// # Errors
+/// Cameras that cannot be encoded; invalid GGS settings.
+pub fn official_ggs(
+    cameras: &mut [Option<Camera>],
+    pairs: &[PairMatches],
+    config: &GgsConfig,
+) -> Result<()> {
+    let members: Vec<usize> = (0..cameras.len())
+        .filter(|&i| cameras[i].is_some())
+        .collect();
+    if members.len() < 2 {
+        return Ok(());
+    }
+    let local = |i: usize| members.binary_search(&i).ok();
+    let crops: Vec<Option<CenterCrop>> = cameras
+        .iter()
+        .map(|c| c.map(|c| CenterCrop::official(c.image_size, MODEL_INPUT_SIDE)))
+        .collect();
+    let (mut kp1, mut kp2, mut frames) = (Vec::new(), Vec::new(), Vec::new());
+    for p in pairs {
+        let (Some(a), Some(b), Some(ca), Some(cb)) = (
+            local(p.first),
+            local(p.second),
+            crops[p.first],
+            crops[p.second],
+        ) else {
+            continue;
+        };
+        for (x, y) in p.kp1.iter().zip(&p.kp2) {
+            kp1.push(ca.to_model(*x));
+            kp2.push(cb.to_model(*y));
+            frames.push((a, b));
+        }
+    }
+    let set = MatchSet::new(members.len(), &kp1, &kp2, &frames)?;
+    let mut encodings = members
+        .iter()
+        .map(|&i| match (cameras[i], crops[i]) {
+            (Some(c), Some(crop)) => Ok(PoseEncoding::from_camera(
+                &crop.camera_to_model(&c)?,
+                QuaternionSign::default(),
+            )?),
+            _ => Err(PosediffError::InvalidArgument("missing camera".into())),
+        })
+        .collect::<Result<Vec<_>>>()?;
+    GgsSolver::new(&set, *config)?.run(&mut encodings, None)?;
+    let model = ImageSize::new(MODEL_INPUT_SIDE, MODEL_INPUT_SIDE)?;
+    for (&i, e) in members.iter().zip(&encodings) {
+        if let (Some(c), Some(crop)) = (cameras[i].as_mut(), crops[i]) {
+            let mut refined = crop.camera_from_model(&e.to_camera(model)?, c.image_size)?;
+            if config.fix_focal {
+                refined.intrinsics = c.intrinsics;
+            }
+            *c = refined;
+        }
+    }
+    Ok(())
+}
 
 /// `φ` from rotation-only homographies: `K_b⁻¹ H K_a` is a rotation at the right focal.
 fn focal_from_homographies(

@@ -8,9 +8,16 @@ use std::process::ExitCode;
 use anyhow::{Context, bail};
 use candle_core::Device;
 use clap::{Parser, Subcommand, ValueEnum};
-use posediff::export::{write_cameras_json, write_colmap_text, write_nerfstudio, write_pytorch3d};
+use posediff::export::{
+    ImageCamera, NamedCamera, read_cameras_json_partial, write_cameras_json_partial,
+    write_colmap_text, write_nerfstudio, write_pytorch3d,
+};
+use posediff::geometric::{
+    GeometricConfig, KnownIntrinsics, Refinement, estimate_geometric, refine_given_cameras,
+};
 use posediff::loader::image_files;
 use posediff::{EstimateConfig, Estimator, Progress, Silent};
+use posediff_geometry::{CenterCrop, MODEL_INPUT_SIDE};
 use posediff_matching::Detector;
 
 #[derive(Parser)]
@@ -28,6 +35,17 @@ struct Cli {
 enum Matcher {
     Sift,
     Orb,
+}
+
+/// How checkpoint-free cameras are refined.
+#[derive(Clone, Copy, ValueEnum)]
+enum RefineArg {
+    /// Levenberg–Marquardt on the Sampson distances until the cost stops falling.
+    Converge,
+    /// The official five-phase GGS schedule (7000 SGD iterations) in the 224 crops.
+    Official,
+    /// The averaged cameras as they are.
+    None,
 }
 
 /// What a benchmark scores.
@@ -54,9 +72,31 @@ enum Command {
         /// A folder (its .png/.jpg/.jpeg files, sorted) or image files (in the order given).
         #[arg(required = true)]
         inputs: Vec<PathBuf>,
-        /// Official PoseDiffusion checkpoint (.pth or safetensors).
+        /// Official PoseDiffusion checkpoint (.pth or safetensors). Without it the cameras come
+        /// from the images' geometry alone (matching, averaging, refinement).
         #[arg(long)]
-        weights: PathBuf,
+        weights: Option<PathBuf>,
+        /// Start from an estimate: `geometric` (the checkpoint-free cameras) or a cameras.json.
+        /// With --weights the reverse diffusion starts at --start-step from the noised estimate;
+        /// without, a cameras.json is refined on the matches.
+        #[arg(long)]
+        init: Option<String>,
+        /// With --weights and --init: the diffusion step the estimate is noised to (0-99; larger
+        /// trusts it less).
+        #[arg(long, default_value_t = 30)]
+        start_step: usize,
+        /// Known focal length in pixels for every image (principal points at the centres); the
+        /// focal is not estimated.
+        #[arg(long, conflicts_with = "intrinsics")]
+        focal_px: Option<f64>,
+        /// Known intrinsics: a cameras.json whose "K" per image is used (same images, same
+        /// order; R and t are ignored).
+        #[arg(long)]
+        intrinsics: Option<PathBuf>,
+        /// Refinement of the checkpoint-free cameras: to convergence (Levenberg–Marquardt on
+        /// the Sampson distances), the official GGS schedule, or none.
+        #[arg(long, value_enum, default_value = "converge")]
+        refine: RefineArg,
         /// Output folder (created).
         #[arg(long)]
         out: PathBuf,
@@ -194,10 +234,15 @@ fn main() -> ExitCode {
 }
 
 fn run(cli: Cli) -> anyhow::Result<()> {
-    let (inputs, weights, out, seed, samples, no_ggs, matcher, device, quiet) = match cli.command {
+    let args = match cli.command {
         Command::Estimate {
             inputs,
             weights,
+            init,
+            start_step,
+            focal_px,
+            intrinsics,
+            refine,
             out,
             seed,
             samples,
@@ -205,9 +250,22 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             matcher,
             device,
             quiet,
-        } => (
-            inputs, weights, out, seed, samples, no_ggs, matcher, device, quiet,
-        ),
+        } => EstimateArgs {
+            inputs,
+            weights,
+            init,
+            start_step,
+            focal_px,
+            intrinsics,
+            refine,
+            out,
+            seed,
+            samples,
+            no_ggs,
+            matcher,
+            device,
+            quiet,
+        },
         Command::Plot { cameras, gt, out } => return plot(&cameras, gt.as_deref(), &out),
         Command::BenchReal {
             data,
@@ -270,10 +328,38 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             );
         }
     };
-    if samples == 0 {
+    estimate(args)
+}
+
+/// The arguments of `posediff estimate`.
+struct EstimateArgs {
+    inputs: Vec<PathBuf>,
+    weights: Option<PathBuf>,
+    init: Option<String>,
+    start_step: usize,
+    focal_px: Option<f64>,
+    intrinsics: Option<PathBuf>,
+    refine: RefineArg,
+    out: PathBuf,
+    seed: u64,
+    samples: usize,
+    no_ggs: bool,
+    matcher: Matcher,
+    device: DeviceArg,
+    quiet: bool,
+}
+
+/// Where the initial cameras come from.
+enum InitSource {
+    Geometric,
+    File(PathBuf),
+}
+
+fn estimate(args: EstimateArgs) -> anyhow::Result<()> {
+    if args.samples == 0 {
         bail!("--samples must be at least 1");
     }
-    let (images, root) = match inputs.as_slice() {
+    let (images, root) = match args.inputs.as_slice() {
         [one] if one.is_dir() => (image_files(one)?, Some(one.clone())),
         files => (
             files.to_vec(),
@@ -283,80 +369,270 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 .map(Path::to_path_buf),
         ),
     };
-    let device_name = match device {
+    if images.len() < 2 {
+        bail!("need at least 2 images, got {}", images.len());
+    }
+    let names: Vec<String> = images
+        .iter()
+        .map(|p| posediff::pipeline::relative_name(p, root.as_deref()))
+        .collect();
+    let known = match (args.focal_px, &args.intrinsics) {
+        (Some(f), _) => KnownIntrinsics::FocalPx(f),
+        (None, Some(path)) => {
+            let given = read_cameras_json_partial(path)
+                .with_context(|| format!("reading intrinsics {}", path.display()))?;
+            if given.len() != images.len() {
+                bail!(
+                    "{} has {} entries for {} images",
+                    path.display(),
+                    given.len(),
+                    images.len()
+                );
+            }
+            KnownIntrinsics::PerImage(
+                given
+                    .iter()
+                    .map(|g| {
+                        g.camera
+                            .map(|c| c.intrinsics)
+                            .with_context(|| format!("{}: no K for {}", path.display(), g.image))
+                    })
+                    .collect::<anyhow::Result<Vec<_>>>()?,
+            )
+        }
+        (None, None) => KnownIntrinsics::Unknown,
+    };
+    let init = match args.init.as_deref() {
+        None => None,
+        Some("geometric") => Some(InitSource::Geometric),
+        Some(path) => Some(InitSource::File(PathBuf::from(path))),
+    };
+    let read_init = |path: &Path| -> anyhow::Result<Vec<Option<posediff_geometry::Camera>>> {
+        let given = read_cameras_json_partial(path)
+            .with_context(|| format!("reading initial cameras {}", path.display()))?;
+        if given.len() != images.len() {
+            bail!(
+                "{} has {} cameras for {} images",
+                path.display(),
+                given.len(),
+                images.len()
+            );
+        }
+        Ok(given.into_iter().map(|g| g.camera).collect())
+    };
+    let mut geometric = GeometricConfig {
+        intrinsics: known.clone(),
+        refinement: match args.refine {
+            RefineArg::Converge => Refinement::Converge(posediff_guidance::RefineConfig::default()),
+            RefineArg::Official => Refinement::Official(posediff_guidance::GgsConfig::default()),
+            RefineArg::None => Refinement::None,
+        },
+        ..GeometricConfig::default()
+    };
+    geometric.matching.features.detector = detector(args.matcher);
+    let mut bars = Bars::default();
+    let quiet = args.quiet;
+    let progress: &mut dyn Progress = if quiet { &mut Silent } else { &mut bars };
+    let Some(weights) = args.weights.clone() else {
+        // Checkpoint-free.
+        progress.start("geometry", 0);
+        let result = match &init {
+            Some(InitSource::File(path)) => {
+                refine_given_cameras(&images, &read_init(path)?, &geometric)
+            }
+            _ => estimate_geometric(&images, &geometric),
+        };
+        progress.finish();
+        let result = result?;
+        for w in &result.warnings {
+            log::warn!("{w}");
+        }
+        let entries: Vec<ImageCamera> = names
+            .iter()
+            .zip(&result.cameras)
+            .zip(&result.sizes)
+            .map(|((name, camera), size)| ImageCamera {
+                image: name.clone(),
+                size: *size,
+                camera: *camera,
+            })
+            .collect();
+        let run = serde_json::json!({
+            "posediff": env!("CARGO_PKG_VERSION"),
+            "method": "geometric (no checkpoint)",
+            "images": images,
+            "init": args.init,
+            "refine": format!("{:?}", geometric.refinement),
+            "report": result.report,
+            "matches_per_pair": result.pairs.iter().map(|p| serde_json::json!({"first": p.first, "second": p.second, "matches": p.len()})).collect::<Vec<_>>(),
+            "warnings": result.warnings,
+        });
+        return write_outputs(&args.out, &entries, &run, quiet);
+    };
+    let device_name = match args.device {
         DeviceArg::Cpu => "cpu",
         DeviceArg::Cuda => "cuda",
     };
-    let device = match device {
+    let device = match args.device {
         DeviceArg::Cpu => Device::Cpu,
         DeviceArg::Cuda => Device::new_cuda(0)
             .context("--device cuda needs a CUDA build (feature `cuda`) and a GPU")?,
     };
     let mut config = EstimateConfig {
-        seed,
-        samples,
-        ggs: !no_ggs,
+        seed: args.seed,
+        samples: args.samples,
+        ggs: !args.no_ggs,
+        intrinsics: known,
         ..EstimateConfig::default()
     };
-    config.matching.features.detector = match matcher {
-        Matcher::Sift => Detector::Sift,
-        Matcher::Orb => Detector::Orb,
-    };
+    config.matching.features.detector = detector(args.matcher);
     let load_start = std::time::Instant::now();
     let estimator = Estimator::load(&weights, device, config.clone())
         .with_context(|| format!("loading weights {}", weights.display()))?;
     let load_weights = load_start.elapsed().as_secs_f64();
-    let mut bars = Bars::default();
-    let progress: &mut dyn Progress = if quiet { &mut Silent } else { &mut bars };
-    let estimate = estimator.estimate_with(&images, root.as_deref(), progress)?;
-    std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
-    let export_start = std::time::Instant::now();
+    let mut init_warnings = Vec::new();
+    let init_cameras: Option<Vec<posediff_geometry::Camera>> = match &init {
+        None => None,
+        Some(source) => {
+            let given = match source {
+                InitSource::Geometric => {
+                    progress.start("geometry", 0);
+                    let g = estimate_geometric(&images, &geometric);
+                    progress.finish();
+                    let g = g?;
+                    init_warnings.extend(g.warnings);
+                    g.cameras
+                }
+                InitSource::File(path) => read_init(path)?,
+            };
+            let Some(fallback) = given.iter().flatten().next().copied() else {
+                bail!("the initial estimate has no camera");
+            };
+            let missing: Vec<&str> = names
+                .iter()
+                .zip(&given)
+                .filter(|(_, c)| c.is_none())
+                .map(|(n, _)| n.as_str())
+                .collect();
+            if !missing.is_empty() {
+                init_warnings.push(format!(
+                    "no initial camera for {}: the diffusion starts them at the first estimated camera",
+                    missing.join(", ")
+                ));
+            }
+            Some(
+                given
+                    .iter()
+                    .zip(&images)
+                    .map(|(c, _)| c.unwrap_or(fallback))
+                    .collect(),
+            )
+        }
+    };
+    let estimate = estimator.estimate_from(
+        &images,
+        root.as_deref(),
+        init_cameras.as_deref().map(|c| (c, args.start_step)),
+        progress,
+    )?;
     let first = &estimate.samples[0];
-    write_cameras_json(&out.join("cameras.json"), first)?;
-    write_colmap_text(&out, first)?;
-    write_nerfstudio(&out.join("transforms.json"), first)?;
-    let with_crops: Vec<_> = first
+    let entries: Vec<ImageCamera> = first
         .iter()
-        .cloned()
-        .zip(estimate.crops.iter().copied())
+        .map(|c| ImageCamera {
+            image: c.image.clone(),
+            size: c.camera.image_size,
+            camera: Some(c.camera),
+        })
         .collect();
-    write_pytorch3d(&out.join("pytorch3d.json"), &with_crops)?;
-    let export = export_start.elapsed().as_secs_f64();
+    let mut warnings = init_warnings;
+    warnings.extend(estimate.warnings.iter().cloned());
+    for w in &warnings {
+        log::warn!("{w}");
+    }
     let run = serde_json::json!({
         "posediff": env!("CARGO_PKG_VERSION"),
+        "method": "posediffusion",
         "weights": weights,
         "images": images,
-        "seed": seed,
-        "samples": samples,
-        "ggs": !no_ggs,
+        "init": args.init,
+        "start_step": init_cameras.as_ref().map(|_| args.start_step),
+        "seed": args.seed,
+        "samples": args.samples,
+        "ggs": !args.no_ggs,
         "device": device_name,
         "seconds": {"load_weights": load_weights, "load_images": estimate.times.load, "matching": estimate.times.matching,
-                    "features": estimate.times.features, "sampling": estimate.times.sampling, "ggs": estimate.times.ggs, "export": export},
+                    "features": estimate.times.features, "sampling": estimate.times.sampling, "ggs": estimate.times.ggs},
         "matches_per_pair": estimate.matches_per_pair.iter().map(|(a, b, n)| serde_json::json!({"first": a, "second": b, "matches": n})).collect::<Vec<_>>(),
         "sample_spread": first.iter().zip(estimate.spread()?).map(|(c, s)| serde_json::json!({
             "image": c.image, "rotation_deg_max": s.rotation_deg_max, "center_distance_max": s.center_distance_max,
         })).collect::<Vec<_>>(),
-        "warnings": estimate.warnings,
+        "warnings": warnings,
     });
-    std::fs::write(out.join("run.json"), serde_json::to_string_pretty(&run)?)
+    write_outputs(&args.out, &entries, &run, quiet)
+}
+
+fn detector(m: Matcher) -> Detector {
+    match m {
+        Matcher::Sift => Detector::Sift,
+        Matcher::Orb => Detector::Orb,
+    }
+}
+
+/// Writes cameras.json (every image), the COLMAP model, transforms.json and pytorch3d.json
+/// (the estimated cameras) and run.json into `out`, and prints the cameras.
+fn write_outputs(
+    out: &Path,
+    entries: &[ImageCamera],
+    run: &serde_json::Value,
+    quiet: bool,
+) -> anyhow::Result<()> {
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    write_cameras_json_partial(&out.join("cameras.json"), entries)?;
+    let estimated: Vec<NamedCamera> = entries
+        .iter()
+        .filter_map(|e| {
+            e.camera.map(|camera| NamedCamera {
+                image: e.image.clone(),
+                camera,
+            })
+        })
+        .collect();
+    write_colmap_text(out, &estimated)?;
+    write_nerfstudio(&out.join("transforms.json"), &estimated)?;
+    let with_crops: Vec<_> = estimated
+        .iter()
+        .map(|c| {
+            (
+                c.clone(),
+                CenterCrop::official(c.camera.image_size, MODEL_INPUT_SIDE),
+            )
+        })
+        .collect();
+    write_pytorch3d(&out.join("pytorch3d.json"), &with_crops)?;
+    std::fs::write(out.join("run.json"), serde_json::to_string_pretty(run)?)
         .with_context(|| format!("writing {}", out.join("run.json").display()))?;
     if !quiet {
         println!(
             "{:<32} {:>9} {:>9} {:>28}",
             "image", "fx px", "fy px", "centre (world)"
         );
-        for c in first {
-            let k = &c.camera.intrinsics;
-            let p = c.camera.center();
-            println!(
-                "{:<32} {:>9.1} {:>9.1} {:>9.3} {:>9.3} {:>9.3}",
-                c.image,
-                k.fx(),
-                k.fy(),
-                p.x,
-                p.y,
-                p.z
-            );
+        for e in entries {
+            match &e.camera {
+                Some(c) => {
+                    let k = &c.intrinsics;
+                    let p = c.center();
+                    println!(
+                        "{:<32} {:>9.1} {:>9.1} {:>9.3} {:>9.3} {:>9.3}",
+                        e.image,
+                        k.fx(),
+                        k.fy(),
+                        p.x,
+                        p.y,
+                        p.z
+                    );
+                }
+                None => println!("{:<32} not estimated", e.image),
+            }
         }
         println!(
             "wrote cameras.json, cameras.txt/images.txt/points3D.txt, transforms.json, pytorch3d.json, run.json to {}",

@@ -6,13 +6,16 @@ use std::time::Instant;
 
 use candle_core::{DType, Device, Tensor};
 use posediff_diffusion::sampler::MeanHook;
-use posediff_diffusion::{NoiseSource, PoseDiffusionModel, SeededNoise, sample};
-use posediff_geometry::{CenterCrop, ImageSize, MODEL_INPUT_SIDE, PoseEncoding};
+use posediff_diffusion::{NoiseSource, PoseDiffusionModel, SeededNoise, sample, sample_from};
+use posediff_geometry::{
+    Camera, CenterCrop, ImageSize, Intrinsics, MODEL_INPUT_SIDE, PoseEncoding, QuaternionSign,
+};
 use posediff_guidance::{GgsConfig, GgsSolver, MatchSet};
 use posediff_matching::{MatchConfig, PairMatches, match_images};
 
 use crate::error::{PosediffError, Result};
 use crate::export::NamedCamera;
+use crate::geometric::KnownIntrinsics;
 use crate::loader::{LoadedImage, load_images};
 
 /// Estimation settings; `Default` is the official demo's behaviour (one sample, GGS on).
@@ -28,6 +31,9 @@ pub struct EstimateConfig {
     pub ggs_config: GgsConfig,
     /// Matching settings.
     pub matching: MatchConfig,
+    /// Known intrinsics: GGS keeps the focal at them (its focal phases are skipped) and the
+    /// returned cameras carry them.
+    pub intrinsics: KnownIntrinsics,
 }
 
 impl Default for EstimateConfig {
@@ -38,7 +44,40 @@ impl Default for EstimateConfig {
             ggs: true,
             ggs_config: GgsConfig::default(),
             matching: MatchConfig::default(),
+            intrinsics: KnownIntrinsics::Unknown,
         }
+    }
+}
+
+/// Per image, the known intrinsics in original pixels (`None` when unknown); a focal alone puts
+/// the principal point at the image centre.
+///
+/// # Errors
+/// A count that does not match the images, a non-positive focal.
+pub fn resolve_intrinsics(
+    known: &KnownIntrinsics,
+    sizes: &[ImageSize],
+) -> Result<Option<Vec<Intrinsics>>> {
+    match known {
+        KnownIntrinsics::Unknown => Ok(None),
+        KnownIntrinsics::FocalPx(f) => sizes
+            .iter()
+            .map(|s| {
+                let c = crate::geometric::image_centre(*s);
+                Intrinsics::new(*f, *f, c[0], c[1]).map_err(|_| {
+                    PosediffError::InvalidArgument(format!(
+                        "focal length must be positive, got {f}"
+                    ))
+                })
+            })
+            .collect::<Result<Vec<_>>>()
+            .map(Some),
+        KnownIntrinsics::PerImage(k) if k.len() == sizes.len() => Ok(Some(k.clone())),
+        KnownIntrinsics::PerImage(k) => Err(PosediffError::InvalidArgument(format!(
+            "{} intrinsics for {} images",
+            k.len(),
+            sizes.len()
+        ))),
     }
 }
 
@@ -163,6 +202,8 @@ impl Estimate {
 pub struct GgsHook<'m> {
     solver: GgsSolver<'m>,
     seconds: f64,
+    /// Known focal entries (encoding entries 7 and 8) per frame, written into the mean first.
+    focal: Option<Vec<[f64; 2]>>,
 }
 
 impl<'m> GgsHook<'m> {
@@ -174,7 +215,15 @@ impl<'m> GgsHook<'m> {
         Ok(Self {
             solver: GgsSolver::new(matches, config)?,
             seconds: 0.0,
+            focal: None,
         })
+    }
+
+    /// Holds every frame's focal at known values: encoding entries 7 and 8 per frame are
+    /// overwritten before each GGS call, and `config.fix_focal` should be set.
+    pub fn with_known_focal(mut self, entries: Vec<[f64; 2]>) -> Self {
+        self.focal = Some(entries);
+        self
     }
 
     /// Seconds spent in GGS so far.
@@ -198,6 +247,12 @@ impl MeanHook for GgsHook<'_> {
                     PoseEncoding(row)
                 })
                 .collect();
+            if let Some(focal) = &self.focal {
+                for (e, f) in enc.iter_mut().zip(focal) {
+                    e.0[7] = f[0];
+                    e.0[8] = f[1];
+                }
+            }
             self.solver.run(&mut enc, None).map_err(|_| {
                 posediff_diffusion::DiffusionError::Invalid("GGS failed on the posterior mean")
             })?;
@@ -266,6 +321,26 @@ impl Estimator {
         times: &mut StageTimes,
         progress: &mut dyn Progress,
     ) -> Result<Tensor> {
+        self.sample_encodings_from(images, matches, None, None, noise, times, progress)
+    }
+
+    /// [`Self::sample_encodings_with`] started from initial encodings `(N, 9)` noised to step
+    /// `start_step` (reverse diffusion from there; see `posediff_diffusion::sample_from`), or
+    /// from pure noise when `init` is `None`.
+    ///
+    /// # Errors
+    /// As [`Self::sample_encodings`]; a start step outside the schedule.
+    #[allow(clippy::too_many_arguments)] // the pieces of one sampling run
+    pub fn sample_encodings_from(
+        &self,
+        images: &Tensor,
+        matches: Option<&MatchSet>,
+        focal: Option<&[[f64; 2]]>,
+        init: Option<(&Tensor, usize)>,
+        noise: &mut dyn NoiseSource,
+        times: &mut StageTimes,
+        progress: &mut dyn Progress,
+    ) -> Result<Tensor> {
         progress.start("features", 0);
         let start = Instant::now();
         let n = images.dim(0)?;
@@ -276,10 +351,19 @@ impl Estimator {
         times.features = start.elapsed().as_secs_f64();
         log::info!("features of {n} images in {:.2} s", times.features);
         progress.finish();
-        progress.start("sampling", self.model.schedule.len() as u64);
+        let steps = init.map_or(self.model.schedule.len(), |(_, s)| s + 1);
+        progress.start("sampling", steps as u64);
         let start = Instant::now();
         let ggs = matches
-            .map(|m| GgsHook::new(m, self.config.ggs_config))
+            .map(|m| -> Result<GgsHook<'_>> {
+                let mut config = self.config.ggs_config;
+                config.fix_focal |= focal.is_some();
+                let hook = GgsHook::new(m, config)?;
+                Ok(match focal {
+                    Some(f) => hook.with_known_focal(f.to_vec()),
+                    None => hook,
+                })
+            })
             .transpose()?;
         // Without GGS the hook only observes: a start step of 0 never replaces a mean.
         let start_step = if ggs.is_some() {
@@ -288,14 +372,32 @@ impl Estimator {
             0
         };
         let mut hook = SamplingProgress { ggs, progress };
-        let out = sample(
-            &self.model.denoiser,
-            &self.model.schedule,
-            &z,
-            noise,
-            Some((&mut hook, start_step)),
-            None,
-        )?;
+        let out = match init {
+            None => sample(
+                &self.model.denoiser,
+                &self.model.schedule,
+                &z,
+                noise,
+                Some((&mut hook, start_step)),
+                None,
+            )?,
+            Some((x0, from_step)) => {
+                let x0 = x0
+                    .unsqueeze(0)?
+                    .broadcast_as((self.config.samples, n, 9))?
+                    .contiguous()?;
+                sample_from(
+                    &self.model.denoiser,
+                    &self.model.schedule,
+                    &z,
+                    noise,
+                    &x0,
+                    from_step,
+                    Some((&mut hook, start_step)),
+                    None,
+                )?
+            }
+        };
         times.ggs = hook.ggs.as_ref().map_or(0.0, GgsHook::seconds);
         times.sampling = start.elapsed().as_secs_f64();
         log::info!(
@@ -326,6 +428,33 @@ impl Estimator {
         root: Option<&Path>,
         progress: &mut dyn Progress,
     ) -> Result<Estimate> {
+        self.estimate_from(images, root, None, progress)
+    }
+
+    /// [`Self::estimate_with`] starting the reverse diffusion from initial cameras (one per
+    /// image, original pixels, any world frame) noised to `start_step` instead of from pure
+    /// noise. The cameras are taken into the model's frame as in training: each into its 224
+    /// crop, then the official normalisation (camera 0's PyTorch3D frame, optical-axis scale).
+    ///
+    /// # Errors
+    /// As [`Self::estimate`]; initial cameras of the wrong count or that cannot be normalised;
+    /// a start step outside the schedule.
+    pub fn estimate_from(
+        &self,
+        images: &[PathBuf],
+        root: Option<&Path>,
+        init: Option<(&[Camera], usize)>,
+        progress: &mut dyn Progress,
+    ) -> Result<Estimate> {
+        if let Some((cams, _)) = init
+            && cams.len() != images.len()
+        {
+            return Err(PosediffError::InvalidArgument(format!(
+                "{} initial cameras for {} images",
+                cams.len(),
+                images.len()
+            )));
+        }
         if images.len() < 2 {
             return Err(PosediffError::TooFewImages {
                 needed: 2,
@@ -374,9 +503,27 @@ impl Estimator {
             None
         };
         let mut noise = SeededNoise::new(self.config.seed);
-        let encodings = self.sample_encodings_with(
+        let init_tensor = init
+            .map(|(cams, step)| -> Result<(Tensor, usize)> {
+                let in_crops = cams
+                    .iter()
+                    .zip(&loaded)
+                    .map(|(c, l)| Ok(l.crop.camera_to_model(c)?))
+                    .collect::<Result<Vec<_>>>()?;
+                Ok((model_encodings(&in_crops, &self.device)?, step))
+            })
+            .transpose()?;
+        let sizes: Vec<ImageSize> = loaded.iter().map(|l| l.size).collect();
+        let known = resolve_intrinsics(&self.config.intrinsics, &sizes)?;
+        let focal_entries = known
+            .as_ref()
+            .map(|k| known_focal_entries(k, &loaded))
+            .transpose()?;
+        let encodings = self.sample_encodings_from(
             &tensor,
             match_set.as_ref(),
+            focal_entries.as_deref(),
+            init_tensor.as_ref().map(|(t, s)| (t, *s)),
             &mut noise,
             &mut times,
             progress,
@@ -391,13 +538,18 @@ impl Estimator {
                     .chunks(9)
                     .zip(&loaded)
                     .zip(&names)
-                    .map(|((e, l), name)| {
+                    .enumerate()
+                    .map(|(index, ((e, l), name))| {
                         let mut row = [0.0; 9];
                         row.copy_from_slice(e);
                         let at_224 = PoseEncoding(row).to_camera(model_size)?;
+                        let mut camera = l.crop.camera_from_model(&at_224, l.size)?;
+                        if let Some(k) = &known {
+                            camera.intrinsics = k[index];
+                        }
                         Ok(NamedCamera {
                             image: name.clone(),
-                            camera: l.crop.camera_from_model(&at_224, l.size)?,
+                            camera,
                         })
                     })
                     .collect::<Result<Vec<_>>>()
@@ -413,8 +565,45 @@ impl Estimator {
     }
 }
 
+/// The encoding's focal entries (7, 8) of known intrinsics, per image, in its 224 crop.
+fn known_focal_entries(known: &[Intrinsics], loaded: &[LoadedImage]) -> Result<Vec<[f64; 2]>> {
+    known
+        .iter()
+        .zip(loaded)
+        .map(|(k, l)| {
+            let camera = Camera::new(*k, posediff_geometry::Pose::identity(), l.size);
+            let e = PoseEncoding::from_camera(
+                &l.crop.camera_to_model(&camera)?,
+                QuaternionSign::default(),
+            )?;
+            Ok([e.0[7], e.0[8]])
+        })
+        .collect()
+}
+
+/// Cameras of the 224 crops → the model's normalised encodings `(N, 9)` (F32): the official
+/// normalisation (camera 0's PyTorch3D frame at the origin, unit distance to the optical-axis
+/// intersection; without an intersection, e.g. parallel axes, the translation-norm variant).
+///
+/// # Errors
+/// Cameras that cannot be normalised or encoded.
+pub fn model_encodings(cameras: &[Camera], device: &Device) -> Result<Tensor> {
+    let canonical = posediff_geometry::normalize::canonicalize(cameras)
+        .or_else(|_| posediff_geometry::normalize::canonicalize_without_optical_axis(cameras))?;
+    let flat = canonical
+        .cameras
+        .iter()
+        .map(|c| PoseEncoding::from_camera(c, QuaternionSign::default()).map(|e| e.0))
+        .collect::<std::result::Result<Vec<_>, _>>()?
+        .into_iter()
+        .flatten()
+        .map(|v| v as f32)
+        .collect::<Vec<f32>>();
+    Ok(Tensor::from_vec(flat, (cameras.len(), 9), device)?)
+}
+
 /// A path relative to `root` when under it, else its file name.
-fn relative_name(path: &Path, root: Option<&Path>) -> String {
+pub fn relative_name(path: &Path, root: Option<&Path>) -> String {
     root.and_then(|r| path.strip_prefix(r).ok())
         .or_else(|| path.file_name().map(Path::new))
         .unwrap_or(path)
