@@ -6,7 +6,8 @@
 //! here every match contributes the signed Sampson distance `r = x_bᵀFx_a / ‖(Fx_a)₁,₂,
 //! (Fᵀx_b)₁,₂‖` (pixels; `r²` is the Sampson error GGS averages), robustified by a Cauchy loss
 //! `ρ(r) = c²/2 · ln(1 + r²/c²)`, and the parameters move by damped Gauss–Newton steps until
-//! the cost stops falling.
+//! the cost stops falling. A second stage then truncates the loss at `3c`, so that matches
+//! far from their epipolar lines stop pulling at all (Cauchy's influence decays only as `1/r`).
 //!
 //! Parameters: per camera a rotation increment `ω` (`R ← exp(ω)R`) and its centre `C`
 //! (world → camera `x = R(X − C)`, OpenCV), plus `log φ` with focal `f_i = φ·s_i` shared by all
@@ -50,6 +51,9 @@ pub struct RefineConfig {
     pub refine_focal: bool,
     /// Converged when the relative cost decrease of a step is below this.
     pub tolerance: f64,
+    /// A second stage where matches farther than this many Cauchy scales from their epipolar
+    /// geometry stop pulling (a truncated loss); `None` skips it.
+    pub gate_scales: Option<f64>,
 }
 
 impl Default for RefineConfig {
@@ -59,6 +63,7 @@ impl Default for RefineConfig {
             max_iterations: 200,
             refine_focal: true,
             tolerance: 1e-10,
+            gate_scales: Some(3.0),
         }
     }
 }
@@ -180,6 +185,8 @@ struct Problem<'a> {
     focal_index: Option<usize>,
     n_params: usize,
     cauchy: f64,
+    /// Residuals beyond this (px) cost a constant and do not pull (second stage).
+    gate: Option<f64>,
 }
 
 impl Problem<'_> {
@@ -193,6 +200,10 @@ impl Problem<'_> {
 
     fn rho(&self, r: f64) -> f64 {
         let c2 = self.cauchy * self.cauchy;
+        let r = match self.gate {
+            Some(g) => r.abs().min(g),
+            None => r,
+        };
         0.5 * c2 * (1.0 + r * r / c2).ln()
     }
 
@@ -274,6 +285,9 @@ impl Problem<'_> {
                     continue;
                 };
                 let j = df.transpose() * SVector::<f64, 9>::from(gr);
+                if self.gate.is_some_and(|g| r.abs() >= g) {
+                    continue;
+                }
                 let w = 1.0 / (1.0 + r * r / c2);
                 hp += j * j.transpose() * w;
                 gp += j * (w * r);
@@ -360,6 +374,59 @@ impl Problem<'_> {
     }
 }
 
+/// Damped Gauss–Newton steps until the relative decrease falls below the tolerance, no step
+/// lowers the cost, or `max_iterations` steps were taken. Returns the steps, whether it
+/// converged and the final cost.
+fn levenberg_marquardt(
+    problem: &Problem<'_>,
+    cameras: &mut [Option<RefineCamera>],
+    phi: &mut f64,
+    reference: usize,
+    config: &RefineConfig,
+    max_iterations: usize,
+) -> (usize, bool, f64) {
+    let n_params = problem.n_params;
+    let mut cost = problem.cost(cameras, *phi);
+    let mut lambda = 1e-4;
+    let mut iterations = 0;
+    let mut converged = n_params == 0;
+    while !converged && iterations < max_iterations {
+        let (h, g) = problem.normal_equations(cameras, *phi);
+        let floor = 1e-12 * h.diagonal().max().max(1e-300);
+        let mut accepted = false;
+        for _ in 0..12 {
+            let mut a = h.clone();
+            for k in 0..n_params {
+                a[(k, k)] += lambda * h[(k, k)] + floor;
+            }
+            let Some(chol) = a.cholesky() else {
+                lambda *= 10.0;
+                continue;
+            };
+            let step = chol.solve(&(-&g));
+            let (mut moved, new_phi) = problem.apply(cameras, *phi, &step);
+            normalize_scale(&mut moved, reference);
+            let new_cost = problem.cost(&moved, new_phi);
+            if new_cost.is_finite() && new_cost < cost && new_phi.is_finite() {
+                let decrease = (cost - new_cost) / cost.max(1e-300);
+                cameras.copy_from_slice(&moved);
+                *phi = new_phi;
+                cost = new_cost;
+                lambda = (lambda / 3.0).max(1e-12);
+                accepted = true;
+                iterations += 1;
+                converged = decrease < config.tolerance;
+                break;
+            }
+            lambda *= 5.0;
+        }
+        if !accepted {
+            converged = true;
+        }
+    }
+    (iterations, converged, cost)
+}
+
 /// Rescales the centres about the reference's to unit mean distance.
 fn normalize_scale(cams: &mut [Option<RefineCamera>], reference: usize) {
     let Some(origin) = cams.get(reference).copied().flatten().map(|c| c.center) else {
@@ -406,6 +473,7 @@ pub fn robust_cost(
         focal_index: None,
         n_params: 0,
         cauchy: cauchy_px,
+        gate: None,
     };
     let counted: usize = matches
         .groups()
@@ -473,53 +541,39 @@ pub fn refine_cameras(
         .collect();
     let focal_index = config.refine_focal.then_some(next);
     let n_params = next + usize::from(config.refine_focal);
-    let problem = Problem {
+    let mut problem = Problem {
         matches,
         intrinsics,
         offset,
         focal_index,
         n_params,
         cauchy: config.cauchy_px,
+        gate: None,
     };
     normalize_scale(cameras, reference);
-    let mut cost = problem.cost(cameras, *phi);
-    let initial_cost = cost;
-    let mut lambda = 1e-4;
-    let mut iterations = 0;
-    let mut converged = n_params == 0;
-    while !converged && iterations < config.max_iterations {
-        let (h, g) = problem.normal_equations(cameras, *phi);
-        let floor = 1e-12 * h.diagonal().max().max(1e-300);
-        let mut accepted = false;
-        for _ in 0..12 {
-            let mut a = h.clone();
-            for k in 0..n_params {
-                a[(k, k)] += lambda * h[(k, k)] + floor;
-            }
-            let Some(chol) = a.cholesky() else {
-                lambda *= 10.0;
-                continue;
-            };
-            let step = chol.solve(&(-&g));
-            let (mut moved, new_phi) = problem.apply(cameras, *phi, &step);
-            normalize_scale(&mut moved, reference);
-            let new_cost = problem.cost(&moved, new_phi);
-            if new_cost.is_finite() && new_cost < cost && new_phi.is_finite() {
-                let decrease = (cost - new_cost) / cost.max(1e-300);
-                cameras.copy_from_slice(&moved);
-                *phi = new_phi;
-                cost = new_cost;
-                lambda = (lambda / 3.0).max(1e-12);
-                accepted = true;
-                iterations += 1;
-                converged = decrease < config.tolerance;
-                break;
-            }
-            lambda *= 5.0;
-        }
-        if !accepted {
-            converged = true;
-        }
+    let initial_cost = problem.cost(cameras, *phi);
+    let (mut iterations, mut converged, mut cost) = levenberg_marquardt(
+        &problem,
+        cameras,
+        phi,
+        reference,
+        config,
+        config.max_iterations,
+    );
+    if let Some(gate) = config.gate_scales {
+        // Second stage: matches beyond the gate no longer pull at all.
+        problem.gate = Some(gate * config.cauchy_px);
+        let (more, done, gated) = levenberg_marquardt(
+            &problem,
+            cameras,
+            phi,
+            reference,
+            config,
+            config.max_iterations.saturating_sub(iterations),
+        );
+        iterations += more;
+        converged &= done;
+        cost = gated;
     }
     let (inliers, used, rms) = problem.statistics(cameras, *phi);
     Ok(RefineReport {

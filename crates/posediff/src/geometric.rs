@@ -445,8 +445,12 @@ pub fn estimate_from_matches(
     // search range is unobservable (optical axes meeting at one point, as in object-centric
     // captures, make it so for two or three views): such solutions are dropped, and the prior
     // focal (fixed) is always a candidate.
+    let any_parallax = parallax.iter().any(|p| *p);
     let candidates: Vec<(f64, bool)> = match known_phi {
         Some(phi) => vec![(phi, false)],
+        // Without parallax the focal comes from the rotation homographies alone: any other
+        // start would treat the pairs as general and fit meaningless epipolar geometry.
+        None if !any_parallax => vec![(phi, false)],
         None => std::iter::once(phi)
             .chain(config.focal_starts.iter().copied())
             .map(|p| (p, true))

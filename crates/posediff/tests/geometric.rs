@@ -1,0 +1,313 @@
+//! Cameras without a checkpoint on real images: accuracy against the ground truth, the CLI's
+//! outputs, and the bad cases (no matches, disconnected groups, pure rotation, identical
+//! images, known focal, refining given cameras).
+
+// Test helpers outside #[test] functions unwrap too: a failure is the test failing.
+#![allow(clippy::unwrap_used)]
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use nalgebra::{Matrix3, Rotation3};
+use opencv::core::{Mat, Size};
+use opencv::prelude::*;
+use posediff::PosediffError;
+use posediff::export::{read_cameras_json, read_cameras_json_partial};
+use posediff::geometric::{
+    GeometricConfig, KnownIntrinsics, estimate_geometric, refine_given_cameras,
+};
+use posediff_fixtures::shared_path;
+use posediff_geometry::epipolar::relative_pose;
+use posediff_geometry::{Camera, Pose};
+
+fn angle_deg(r: &Matrix3<f64>) -> f64 {
+    ((r.trace() - 1.0) / 2.0)
+        .clamp(-1.0, 1.0)
+        .acos()
+        .to_degrees()
+}
+
+/// Worst relative rotation and translation-direction errors over all pairs (degrees).
+fn worst_pair_errors(est: &[Camera], gt: &[Camera]) -> (f64, f64) {
+    let (mut rot, mut trans) = (0.0f64, 0.0f64);
+    for i in 0..est.len() {
+        for j in i + 1..est.len() {
+            let e = relative_pose(&est[i].cam_from_world, &est[j].cam_from_world);
+            let g = relative_pose(&gt[i].cam_from_world, &gt[j].cam_from_world);
+            rot = rot.max(angle_deg(&(e.rotation * g.rotation.transpose())));
+            let c = e
+                .translation
+                .normalize()
+                .dot(&g.translation.normalize())
+                .clamp(-1.0, 1.0);
+            trans = trans.max(c.acos().to_degrees());
+        }
+    }
+    (rot, trans)
+}
+
+fn set(name: &str) -> (Vec<PathBuf>, Vec<Camera>) {
+    let dir = shared_path(&format!("data/{name}"));
+    let gt = read_cameras_json(&dir.join("cameras.json")).unwrap();
+    (
+        gt.iter().map(|c| dir.join(&c.image)).collect(),
+        gt.iter().map(|c| c.camera).collect(),
+    )
+}
+
+fn temp_dir(tag: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("posediff-geometric-{tag}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+#[test]
+fn fountain_cameras_and_focal_match_the_ground_truth() {
+    let (images, gt) = set("strecha_fountainP11");
+    let e = estimate_geometric(&images, &GeometricConfig::default()).unwrap();
+    let est: Vec<Camera> = e.cameras.iter().map(|c| c.unwrap()).collect();
+    let (rot, trans) = worst_pair_errors(&est, &gt);
+    assert!(rot < 1.0 && trans < 1.0, "worst pair: {rot}° / {trans}°");
+    let focal = est[0].intrinsics.fx();
+    let truth = gt[0].intrinsics.fx();
+    assert!(
+        (focal / truth - 1.0).abs() < 0.01,
+        "focal {focal} vs {truth}"
+    );
+    assert!(e.report.refine_converged);
+    assert!(e.report.refine_inlier_rms_px < 1.0);
+}
+
+#[test]
+fn a_known_focal_is_kept_and_used() {
+    let (images, gt) = set("strecha_fountainP11");
+    let truth = gt[0].intrinsics.fx();
+    let config = GeometricConfig {
+        intrinsics: KnownIntrinsics::FocalPx(truth),
+        ..GeometricConfig::default()
+    };
+    let e = estimate_geometric(&images[..4], &config).unwrap();
+    assert_eq!(e.report.focal_source, "given");
+    let est: Vec<Camera> = e.cameras.iter().map(|c| c.unwrap()).collect();
+    for c in &est {
+        assert_eq!(c.intrinsics.fx(), truth);
+        assert_eq!(c.intrinsics.fy(), truth);
+    }
+    let (rot, trans) = worst_pair_errors(&est, &gt[..4]);
+    assert!(rot < 1.0 && trans < 2.0, "worst pair: {rot}° / {trans}°");
+}
+
+#[test]
+fn given_cameras_are_refined_towards_the_truth() {
+    let (images, gt) = set("strecha_fountainP11");
+    let (images, gt) = (&images[..5], &gt[..5]);
+    // Perturb: 2° about a tilted axis per camera, centres moved, focal 5 % off.
+    let init: Vec<Option<Camera>> = gt
+        .iter()
+        .enumerate()
+        .map(|(i, c)| {
+            let mut c = *c;
+            let extra = Rotation3::from_euler_angles(0.02 * i as f64, -0.03, 0.01);
+            let centre = c.center().coords + nalgebra::Vector3::new(0.05, -0.04, 0.03) * i as f64;
+            let r = extra.matrix() * c.cam_from_world.rotation;
+            c.cam_from_world = Pose::new(r, -(r * centre));
+            c.intrinsics = posediff_geometry::Intrinsics::new(
+                c.intrinsics.fx() * 1.05,
+                c.intrinsics.fy() * 1.05,
+                c.intrinsics.cx(),
+                c.intrinsics.cy(),
+            )
+            .unwrap();
+            Some(c)
+        })
+        .collect();
+    let before: Vec<Camera> = init.iter().map(|c| c.unwrap()).collect();
+    let (rot0, _) = worst_pair_errors(&before, gt);
+    let e = refine_given_cameras(images, &init, &GeometricConfig::default()).unwrap();
+    let after: Vec<Camera> = e.cameras.iter().map(|c| c.unwrap()).collect();
+    let (rot, trans) = worst_pair_errors(&after, gt);
+    assert!(rot0 > 3.0, "the perturbation is visible: {rot0}°");
+    assert!(rot < 1.0 && trans < 2.0, "worst pair: {rot}° / {trans}°");
+}
+
+#[test]
+fn images_without_any_match_are_an_error() {
+    let (fountain, _) = set("strecha_fountainP11");
+    let (temple, _) = set("middlebury_templeSR");
+    let err = estimate_geometric(
+        &[fountain[0].clone(), temple[0].clone()],
+        &GeometricConfig::default(),
+    )
+    .unwrap_err();
+    assert!(
+        matches!(err, PosediffError::NoMatches { images: 2 }),
+        "{err}"
+    );
+
+    // The command says so and fails.
+    let out = temp_dir("nomatch");
+    let run = Command::new(env!("CARGO_BIN_EXE_posediff"))
+        .arg("estimate")
+        .arg(&fountain[0])
+        .arg(&temple[0])
+        .arg("--out")
+        .arg(&out)
+        .arg("--quiet")
+        .output()
+        .unwrap();
+    assert!(!run.status.success());
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert!(stderr.contains("share enough verified matches"), "{stderr}");
+}
+
+#[test]
+fn a_second_group_is_reported_not_estimated() {
+    let (fountain, fountain_gt) = set("strecha_fountainP11");
+    let (temple, _) = set("middlebury_templeSR");
+    // Three fountain views and two overlapping temple views (0 and 1 share ~120 matches).
+    let images = vec![
+        fountain[2].clone(),
+        temple[0].clone(),
+        fountain[3].clone(),
+        temple[1].clone(),
+        fountain[4].clone(),
+    ];
+    let e = estimate_geometric(&images, &GeometricConfig::default()).unwrap();
+    assert_eq!(e.report.estimated, vec![0, 2, 4]);
+    assert!(e.cameras[1].is_none() && e.cameras[3].is_none());
+    assert!(e.warnings.iter().any(|w| w.contains("not estimated")));
+    let est: Vec<Camera> = [0, 2, 4].iter().map(|&i| e.cameras[i].unwrap()).collect();
+    let (rot, trans) = worst_pair_errors(&est, &fountain_gt[2..5]);
+    assert!(rot < 2.0 && trans < 3.0, "worst pair: {rot}° / {trans}°");
+
+    // cameras.json keeps every image, marking the temple views; the other formats omit them.
+    let dir = temp_dir("groups");
+    for (k, img) in images.iter().enumerate() {
+        std::fs::copy(
+            img,
+            dir.join(format!(
+                "{k:02}.{}",
+                img.extension().unwrap().to_str().unwrap()
+            )),
+        )
+        .unwrap();
+    }
+    let out = dir.join("out");
+    let run = Command::new(env!("CARGO_BIN_EXE_posediff"))
+        .arg("estimate")
+        .arg(&dir)
+        .arg("--out")
+        .arg(&out)
+        .arg("--quiet")
+        .output()
+        .unwrap();
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let entries = read_cameras_json_partial(&out.join("cameras.json")).unwrap();
+    let estimated: Vec<bool> = entries.iter().map(|e| e.camera.is_some()).collect();
+    assert_eq!(estimated, vec![true, false, true, false, true]);
+    let raw = std::fs::read_to_string(out.join("cameras.json")).unwrap();
+    assert_eq!(raw.matches("\"estimated\": false").count(), 2);
+    assert!(read_cameras_json(&out.join("cameras.json")).is_err());
+    let images_txt = std::fs::read_to_string(out.join("images.txt")).unwrap();
+    assert_eq!(
+        images_txt.lines().filter(|l| l.ends_with(".png")).count(),
+        0
+    );
+    assert_eq!(
+        images_txt.lines().filter(|l| l.ends_with(".jpg")).count(),
+        3
+    );
+    let run_json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("run.json")).unwrap()).unwrap();
+    assert_eq!(
+        run_json["report"]["estimated"],
+        serde_json::json!([0, 2, 4])
+    );
+}
+
+/// Writes `image` seen by a camera rotated by `r` about its own centre: `x' = K R K⁻¹ x`.
+fn write_rotated(image: &Path, k: &Matrix3<f64>, r: &Matrix3<f64>, out: &Path) {
+    let src = opencv::imgcodecs::imread(image.to_str().unwrap(), opencv::imgcodecs::IMREAD_COLOR)
+        .unwrap();
+    let h = k * r * k.try_inverse().unwrap();
+    let rows: Vec<[f64; 3]> = (0..3).map(|i| [h[(i, 0)], h[(i, 1)], h[(i, 2)]]).collect();
+    let hm = Mat::from_slice_2d(&rows).unwrap();
+    let mut dst = Mat::default();
+    opencv::imgproc::warp_perspective(
+        &src,
+        &mut dst,
+        &hm,
+        Size::new(src.cols(), src.rows()),
+        opencv::imgproc::INTER_LINEAR,
+        opencv::core::BORDER_REFLECT,
+        opencv::core::Scalar::default(),
+    )
+    .unwrap();
+    opencv::imgcodecs::imwrite(out.to_str().unwrap(), &dst, &opencv::core::Vector::new()).unwrap();
+}
+
+#[test]
+fn pure_rotation_gives_one_centre_and_the_rotations() {
+    let (images, gt) = set("strecha_fountainP11");
+    let k = gt[5].intrinsics.matrix();
+    let dir = temp_dir("rotation");
+    let rotations: Vec<Matrix3<f64>> = [(0.0, 0.0, 0.0), (0.02, 0.05, 0.0), (-0.03, 0.09, 0.01)]
+        .iter()
+        .map(|&(a, b, c)| *Rotation3::from_euler_angles(a, b, c).matrix())
+        .collect();
+    let files: Vec<PathBuf> = rotations
+        .iter()
+        .enumerate()
+        .map(|(i, r)| {
+            let f = dir.join(format!("{i}.png"));
+            write_rotated(&images[5], &k, r, &f);
+            f
+        })
+        .collect();
+    let e = estimate_geometric(&files, &GeometricConfig::default()).unwrap();
+    assert!(
+        e.warnings.iter().any(|w| w.contains("pure rotation")),
+        "{:?}",
+        e.warnings
+    );
+    let cams: Vec<Camera> = e.cameras.iter().map(|c| c.unwrap()).collect();
+    for c in &cams {
+        assert!(c.center().coords.norm() < 1e-9, "centre {}", c.center());
+    }
+    // The image of camera i is the original seen through R_i: x_i = K R_i K⁻¹ x_0, so camera i
+    // is rotated by R_i relative to camera 0.
+    for i in 1..3 {
+        let rel = cams[i].cam_from_world.rotation * cams[0].cam_from_world.rotation.transpose();
+        let err = angle_deg(&(rel * rotations[i].transpose()));
+        assert!(err < 0.2, "camera {i}: {err}°");
+    }
+    let focal = cams[0].intrinsics.fx();
+    assert!((focal / k[(0, 0)] - 1.0).abs() < 0.05, "focal {focal}");
+}
+
+#[test]
+fn identical_images_get_the_same_camera() {
+    let (images, _) = set("strecha_fountainP11");
+    let dir = temp_dir("twins");
+    let files: Vec<PathBuf> = [0, 1, 2, 0]
+        .iter()
+        .enumerate()
+        .map(|(k, &i)| {
+            let f = dir.join(format!("{k}.jpg"));
+            std::fs::copy(&images[i], &f).unwrap();
+            f
+        })
+        .collect();
+    let e = estimate_geometric(&files, &GeometricConfig::default()).unwrap();
+    let cams: Vec<Camera> = e.cameras.iter().map(|c| c.unwrap()).collect();
+    let scale = (cams[1].center() - cams[0].center()).norm();
+    assert!((cams[3].center() - cams[0].center()).norm() < 1e-3 * scale);
+    let rel = cams[3].cam_from_world.rotation * cams[0].cam_from_world.rotation.transpose();
+    assert!(angle_deg(&rel) < 0.05);
+    assert!(e.report.rotation_only_pairs >= 1);
+}
