@@ -153,7 +153,7 @@ fn residual_and_gradient(f: &[f64; 9], x1: [f64; 2], x2: [f64; 2]) -> Option<(f6
     let l1 = [0, 1].map(|c| f[c] * p2[0] + f[3 + c] * p2[1] + f[6 + c]);
     let e = p2[0] * l2[0] + p2[1] * l2[1] + l2[2];
     let d = l2[0] * l2[0] + l2[1] * l2[1] + l1[0] * l1[0] + l1[1] * l1[1];
-    if !(d > 1e-300) || !e.is_finite() {
+    if d.is_nan() || d <= 1e-300 || !e.is_finite() {
         return None;
     }
     let sd = d.sqrt();

@@ -263,15 +263,16 @@ mod tests {
     use super::*;
     use nalgebra::{Point3, Rotation3};
 
-    fn scene(
-        baseline: f64,
-    ) -> (
+    /// Matches in both images, `K`, and the true `R`, `t` of the pair.
+    type Scene = (
         Vec<[f64; 2]>,
         Vec<[f64; 2]>,
         Matrix3<f64>,
         Matrix3<f64>,
         Vector3<f64>,
-    ) {
+    );
+
+    fn scene(baseline: f64) -> Scene {
         let k = Matrix3::new(500.0, 0.0, 320.0, 0.0, 500.0, 240.0, 0.0, 0.0, 1.0);
         let r = *Rotation3::from_euler_angles(0.05, -0.2, 0.03).matrix();
         let t = Vector3::new(baseline, 0.1 * baseline, 0.02 * baseline);

@@ -38,10 +38,8 @@ fn main() -> anyhow::Result<()> {
     if let Some(v) = env("RATIO") {
         config.matching.ratio = Some(v as f32);
     }
-    if let Some(v) = env("VTH") {
-        if let Some(ver) = config.matching.verification.as_mut() {
-            ver.threshold_px = v;
-        }
+    if let (Some(v), Some(ver)) = (env("VTH"), config.matching.verification.as_mut()) {
+        ver.threshold_px = v;
     }
     if let Some(v) = env("SIDE") {
         config.matching.features.max_image_side = v as u32;
