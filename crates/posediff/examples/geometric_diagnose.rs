@@ -44,6 +44,9 @@ fn main() -> anyhow::Result<()> {
     if let Some(v) = env("SIDE") {
         config.matching.features.max_image_side = v as u32;
     }
+    if let Some(v) = env("FOCAL") {
+        config.intrinsics = posediff::geometric::KnownIntrinsics::FocalPx(v);
+    }
     let e = estimate_geometric(&images, &config)?;
     println!("{}", serde_json::to_string_pretty(&e.report)?);
     for w in &e.warnings {
@@ -158,7 +161,31 @@ fn main() -> anyhow::Result<()> {
                 Some(other) => format!("{other:?}"),
                 None => String::new(),
             };
-            println!("pair {i:>2}-{j:<2} matches {n:>4}  rot {rot:7.2}°  trans {t:7.2}°  {tv}");
+            let good = e
+                .pairs
+                .iter()
+                .find(|p| p.first == a && p.second == b)
+                .map_or(0, |p| {
+                    let f = posediff_geometry::fundamental_from_cameras(
+                        &gt[i].camera,
+                        &gt[j].camera,
+                    );
+                    p.kp1
+                        .iter()
+                        .zip(&p.kp2)
+                        .filter(|(x, y)| {
+                            posediff_geometry::epipolar::sampson_error(
+                                &f,
+                                &nalgebra::Point2::new(x[0], x[1]),
+                                &nalgebra::Point2::new(y[0], y[1]),
+                            )
+                            .is_ok_and(|s| s < 4.0)
+                        })
+                        .count()
+                });
+            println!(
+                "pair {i:>2}-{j:<2} matches {n:>4} (gt-consistent {good:>4})  rot {rot:7.2}°  trans {t:7.2}°  {tv}"
+            );
         }
     }
     Ok(())

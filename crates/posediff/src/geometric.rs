@@ -92,8 +92,10 @@ pub struct GeometricConfig {
 
 impl Default for GeometricConfig {
     fn default() -> Self {
+        let mut matching = MatchConfig::default();
+        matching.features.contrast_threshold = GEOMETRIC_CONTRAST_THRESHOLD;
         Self {
-            matching: MatchConfig::default(),
+            matching,
             two_view: TwoViewConfig::default(),
             intrinsics: KnownIntrinsics::Unknown,
             focal_search: FocalSearch::default(),
@@ -106,6 +108,11 @@ impl Default for GeometricConfig {
         }
     }
 }
+
+/// SIFT contrast threshold of the checkpoint-free path: below OpenCV's 0.04, for the weakly
+/// textured objects of object-centric captures (measured on the shared sets; see
+/// docs/BENCHMARKS.md).
+pub const GEOMETRIC_CONTRAST_THRESHOLD: f64 = 0.03;
 
 /// Wall-clock seconds per stage.
 #[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
