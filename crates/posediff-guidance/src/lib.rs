@@ -7,12 +7,14 @@
 //!   `Default` is the official configuration).
 //! - Without a checkpoint: [`averaging`] (view graph, rotation and translation averaging),
 //!   [`selfcal`] (a shared focal from pairwise fundamental matrices) and [`refine`] (the
-//!   Sampson objective run to convergence by Levenberg–Marquardt).
+//!   Sampson objective run to convergence by Levenberg–Marquardt), [`bundle`] (tracks,
+//!   triangulation and bundle adjustment).
 #![deny(missing_docs)]
 // Unsafe only for runtime SIMD dispatch (`sampson::pair_sums`), with the check beside it.
 #![deny(unsafe_code)]
 
 pub mod averaging;
+pub mod bundle;
 pub mod error;
 pub mod ggs;
 pub mod matches;

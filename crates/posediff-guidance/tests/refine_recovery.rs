@@ -3,6 +3,7 @@
 #![allow(clippy::unwrap_used)]
 
 use nalgebra::{Matrix3, Point3, Rotation3, Vector3};
+use posediff_guidance::bundle::{BundleConfig, build_tracks, bundle_adjust};
 use posediff_guidance::refine::robust_cost;
 use posediff_guidance::{ImageIntrinsics, MatchSet, RefineCamera, RefineConfig, refine_cameras};
 
@@ -207,4 +208,84 @@ fn inputs_of_the_wrong_length_are_errors() {
         .is_err(),
         "the reference must be estimated"
     );
+}
+
+/// Points seen by every camera (tracks across all views), projected exactly.
+fn multi_view_tracks(s: &Scene) -> Vec<posediff_guidance::bundle::Track> {
+    let f = s.phi * W;
+    let pp = s.intrinsics.principal[0];
+    let mut seed: u64 = 5;
+    let mut rnd = || {
+        seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        (seed >> 11) as f64 / (1u64 << 53) as f64 - 0.5
+    };
+    (0..150)
+        .filter_map(|_| {
+            let x = Vector3::new(rnd() * 2.0, rnd() * 2.0, rnd() * 2.0);
+            s.cameras
+                .iter()
+                .enumerate()
+                .map(|(i, c)| {
+                    let p = c.rotation * (x - c.center);
+                    (p.z > 0.1).then(|| posediff_guidance::bundle::Observation {
+                        image: i,
+                        xy: [f * p.x / p.z + pp[0], f * p.y / p.z + pp[1]],
+                    })
+                })
+                .collect::<Option<Vec<_>>>()
+        })
+        .collect()
+}
+
+#[test]
+fn bundle_adjustment_recovers_exact_cameras_and_focal() {
+    let s = scene(5, 0);
+    let tracks = multi_view_tracks(&s);
+    assert!(tracks.len() > 100);
+    // Small perturbation: the triangulation must still find the points in front.
+    let mut cams: Vec<Option<RefineCamera>> = s
+        .cameras
+        .iter()
+        .enumerate()
+        .map(|(i, c)| {
+            Some(if i == 0 {
+                *c
+            } else {
+                RefineCamera {
+                    rotation: Rotation3::from_euler_angles(0.004, -0.003 * i as f64, 0.002)
+                        * c.rotation,
+                    center: c.center + Vector3::new(0.02, -0.01, 0.015 * i as f64),
+                }
+            })
+        })
+        .collect();
+    let mut phi = s.phi * 1.02;
+    let config = BundleConfig {
+        max_error_px: 1e3,
+        ..BundleConfig::default()
+    };
+    let report = bundle_adjust(&tracks, &s.intrinsics, &mut cams, &mut phi, 0, &config).unwrap();
+    assert_eq!(report.points, tracks.len());
+    assert!(report.rms_px < 1e-6, "{report:?}");
+    assert!((phi / s.phi - 1.0).abs() < 1e-7, "phi {phi}");
+    assert!(worst_rotation(&cams, &s.cameras) < 1e-5);
+}
+
+#[test]
+fn tracks_from_pairwise_matches_rebuild_the_multi_view_points() {
+    let s = scene(4, 0);
+    let truth = multi_view_tracks(&s);
+    let mut pairs = Vec::new();
+    for i in 0..4 {
+        for j in i + 1..4 {
+            let (a, b): (Vec<[f64; 2]>, Vec<[f64; 2]>) = truth
+                .iter()
+                .map(|t| (t[i].xy, t[j].xy))
+                .unzip();
+            pairs.push((i, j, a, b));
+        }
+    }
+    let tracks = build_tracks(4, pairs.iter().map(|(i, j, a, b)| (*i, *j, &a[..], &b[..])));
+    assert_eq!(tracks.len(), truth.len());
+    assert!(tracks.iter().all(|t| t.len() == 4));
 }

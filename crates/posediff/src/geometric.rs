@@ -11,6 +11,7 @@
 //! | rotations | maximum spanning tree + Cauchy IRLS in the Lie algebra; edges off by > 10° dropped | `posediff-guidance::averaging` |
 //! | centres | LUD (`s ≥ 1`) by IRLS with an active set; rotation-only pairs tie centres | `posediff-guidance::averaging` |
 //! | refinement | Levenberg–Marquardt on Cauchy-robust Sampson distances, all cameras + focal | `posediff-guidance::refine` |
+//! | bundle adjustment | tracks by union-find, linear triangulation, LM with Schur complement on reprojection errors | `posediff-guidance::bundle` |
 //!
 //! Only the largest connected component of the view graph is estimated; every other image is
 //! reported as not estimated. Principal points are the image centres (`((W−1)/2, (H−1)/2)`).
@@ -26,6 +27,7 @@ use posediff_guidance::averaging::{
     CenterDirection, RelativeRotation, RotationAveragingConfig, TranslationAveragingConfig,
     average_rotations, average_translations, largest_component, rotation_residuals_deg,
 };
+use posediff_guidance::bundle::{BundleConfig, build_tracks, bundle_adjust};
 use posediff_guidance::refine::robust_cost;
 use posediff_guidance::selfcal::{FocalSearch, PairFundamental, self_calibrate};
 use posediff_guidance::{
@@ -88,12 +90,15 @@ pub struct GeometricConfig {
     /// The focal factor used (fixed) when the data cannot determine it: COLMAP's default
     /// `1.2 · max(W, H)`.
     pub focal_prior: f64,
+    /// Bundle adjustment with tracks after the refinement (with [`Refinement::Converge`]).
+    pub bundle: Option<BundleConfig>,
 }
 
 impl Default for GeometricConfig {
     fn default() -> Self {
         let mut matching = MatchConfig::default();
         matching.features.contrast_threshold = GEOMETRIC_CONTRAST_THRESHOLD;
+        matching.features.max_keypoints = GEOMETRIC_MAX_KEYPOINTS;
         Self {
             matching,
             two_view: TwoViewConfig::default(),
@@ -105,6 +110,7 @@ impl Default for GeometricConfig {
             refinement: Refinement::Converge(RefineConfig::default()),
             focal_starts: vec![0.4, 0.6, 0.9, 1.35, 2.0, 3.0],
             focal_prior: 1.2,
+            bundle: Some(BundleConfig::default()),
         }
     }
 }
@@ -113,6 +119,10 @@ impl Default for GeometricConfig {
 /// textured objects of object-centric captures (measured on the shared sets; see
 /// docs/BENCHMARKS.md).
 pub const GEOMETRIC_CONTRAST_THRESHOLD: f64 = 0.03;
+
+/// Keypoints per image of the checkpoint-free path (COLMAP's default; the official GGS
+/// matching keeps hloc's 4096).
+pub const GEOMETRIC_MAX_KEYPOINTS: usize = 8192;
 
 /// Wall-clock seconds per stage.
 #[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
@@ -154,6 +164,12 @@ pub struct GeometricReport {
     pub refine_matches: usize,
     /// RMS Sampson distance of those inliers, px.
     pub refine_inlier_rms_px: f64,
+    /// Points triangulated and adjusted by the bundle adjustment (0: not run).
+    pub bundle_points: usize,
+    /// Their observations.
+    pub bundle_observations: usize,
+    /// RMS reprojection error after the bundle adjustment, px.
+    pub bundle_rms_px: f64,
     /// Stage timings.
     pub times: GeometricTimes,
 }
@@ -489,13 +505,39 @@ pub fn estimate_from_matches(
         return Err(PosediffError::NoMatches { images: n });
     };
     let Solution {
-        cameras,
+        mut cameras,
         members,
-        phi: phi_refined,
+        phi: mut phi_refined,
         stats,
         refine,
+        free_focal,
         ..
     } = best;
+    if let (Refinement::Converge(_), Some(bundle), Some(&reference)) =
+        (config.refinement, config.bundle, members.first())
+    {
+        let tracks = build_tracks(
+            n,
+            pairs
+                .iter()
+                .map(|p| (p.first, p.second, &p.kp1[..], &p.kp2[..])),
+        );
+        let mut bundle = bundle;
+        bundle.refine_focal &= free_focal;
+        let (before, phi_before) = (cameras.clone(), phi_refined);
+        let r = bundle_adjust(&tracks, &layout, &mut cameras, &mut phi_refined, reference, &bundle)?;
+        if bundle.refine_focal
+            && !(config.focal_search.min..=config.focal_search.max).contains(&phi_refined)
+        {
+            // The points drove the focal out of range: keep the pairwise solution.
+            cameras = before;
+            phi_refined = phi_before;
+        } else {
+            report.bundle_points = r.points;
+            report.bundle_observations = r.observations;
+            report.bundle_rms_px = r.rms_px;
+        }
+    }
     report.focal_factor_initial = phi;
     report.pairs_with_pose = stats.pairs_with_pose;
     report.rotation_only_pairs = stats.rotation_only_pairs;
@@ -576,6 +618,8 @@ struct Solution {
     refine: Option<RefineReport>,
     /// Robust cost over all matches, unestimated pairs at the penalty.
     score: f64,
+    /// Whether the focal was refined (not held at a given value or the prior).
+    free_focal: bool,
 }
 
 fn solve_at_focal(
@@ -660,6 +704,7 @@ fn solve_at_focal(
             stats,
             refine: None,
             score: f64::INFINITY,
+            free_focal: refine_focal,
         });
     };
 
@@ -713,6 +758,7 @@ fn solve_at_focal(
         stats,
         refine: refine_report,
         score,
+        free_focal: refine_focal,
     })
 }
 
