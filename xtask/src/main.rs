@@ -3,6 +3,10 @@
 //! - `ci`: what CI runs (the README's test command): system set-up, fmt check, clippy with
 //!   warnings denied, nextest, doc tests, docs with warnings denied, the dependency invariants,
 //!   and a build of `posediff-geometry` alone. Everything builds in the one `ci` profile.
+//! - `demo`: the README's main job. System set-up, a release build of the `posediff` command,
+//!   then for each real set in `../shared/data`: cameras without a checkpoint (`posediff
+//!   estimate`), their scores against the ground truth (`posediff score`) and a plot against it
+//!   (`posediff plot`), all under `out/demo/<set>/`.
 //! - `setup`: only the system set-up (Debian packages for the OpenCV bindings, cargo-nextest).
 //! - `deps-check`: only the dependency invariants.
 //! - `bench-matching --data ../shared/data --out report.json`: match quality and speed on the
@@ -97,6 +101,7 @@ fn main() -> Result<()> {
             args.extend(rest.iter().map(String::as_str));
             run("cargo", &args, &[])
         }
+        "demo" => demo(),
         "convert-checkpoint" => {
             // Paths are the caller's, relative to where they ran the command.
             let cwd = std::env::current_dir()?;
@@ -119,7 +124,7 @@ fn main() -> Result<()> {
         }
         _ => {
             eprintln!(
-                "usage: cargo xtask <ci | setup | deps-check | convert-checkpoint IN OUT | bench-matching --data D --out F.json | bench-real ... | bench-co3d ...>"
+                "usage: cargo xtask <demo | ci | setup | deps-check | convert-checkpoint IN OUT | bench-matching --data D --out F.json | bench-real ... | bench-co3d ...>"
             );
             bail!("unknown task {task:?}")
         }
@@ -184,6 +189,68 @@ fn caller_args() -> Result<Vec<String>> {
         path_next = PATH_FLAGS.contains(&a.as_str());
     }
     Ok(rest)
+}
+
+/// The real sets the demo runs on (folders of `../shared/data`).
+const DEMO_SETS: [&str; 3] = [
+    "strecha_fountainP11",
+    "middlebury_templeSR",
+    "co3d_apple_posediffusion",
+];
+
+fn demo() -> Result<()> {
+    setup()?;
+    run(
+        "cargo",
+        &["build", "--release", "--quiet", "-p", "posediff"],
+        &[],
+    )?;
+    let root = workspace_root();
+    let shared = std::env::var_os("POSEDIFF_SHARED")
+        .map(std::path::PathBuf::from)
+        .unwrap_or_else(|| root.join("..").join("shared"));
+    let bin = root.join("target/release/posediff");
+    let bin = bin.to_string_lossy();
+    for set in DEMO_SETS {
+        let data = shared.join("data").join(set);
+        if !data.join("cameras.json").is_file() {
+            bail!(
+                "{} not found: the shared data must be beside the checkout (or set POSEDIFF_SHARED)",
+                data.display()
+            );
+        }
+        let out = root.join("out/demo").join(set);
+        let (images, gt) = (data.join("images"), data.join("cameras.json"));
+        let (cams, plot) = (out.join("cameras.json"), out.join("cameras.png"));
+        let arg = |p: &std::path::Path| p.to_string_lossy().into_owned();
+        run(
+            &bin,
+            &["estimate", &arg(&images), "--out", &arg(&out), "--quiet"],
+            &[],
+        )?;
+        run(
+            &bin,
+            &[
+                "score",
+                &arg(&cams),
+                "--gt",
+                &arg(&gt),
+                "--out",
+                &arg(&out.join("scores.json")),
+            ],
+            &[],
+        )?;
+        run(
+            &bin,
+            &["plot", &arg(&cams), "--gt", &arg(&gt), "-o", &arg(&plot)],
+            &[],
+        )?;
+    }
+    eprintln!(
+        "\ncameras.json, COLMAP text model, transforms.json, pytorch3d.json, run.json, scores.json and cameras.png per set in {}",
+        root.join("out/demo").display()
+    );
+    Ok(())
 }
 
 fn workspace_root() -> std::path::PathBuf {

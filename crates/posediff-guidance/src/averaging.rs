@@ -280,12 +280,81 @@ impl Default for TranslationAveragingConfig {
 
 /// Camera centres of the images `members` from centre directions (LUD by IRLS), `C_reference
 /// = 0`; `None` for images outside `members`. Every member must be connected to the reference
+/// through `directions`.
+///
+/// Zero-baseline ties (`direction: None`) are hard: tied images are merged into one centre
+/// before the averaging, so they come out at exactly the same place.
+pub fn average_translations(
+    n: usize,
+    members: &[usize],
+    directions: &[CenterDirection],
+    reference: usize,
+    config: &TranslationAveragingConfig,
+) -> Vec<Option<Vector3<f64>>> {
+    let mut parent: Vec<usize> = (0..n).collect();
+    fn find(parent: &mut [usize], mut v: usize) -> usize {
+        while parent[v] != v {
+            parent[v] = parent[parent[v]];
+            v = parent[v];
+        }
+        v
+    }
+    let is_member = |v: usize| members.binary_search(&v).is_ok();
+    for d in directions {
+        if d.direction.is_none()
+            && d.first < n
+            && d.second < n
+            && is_member(d.first)
+            && is_member(d.second)
+        {
+            let (a, b) = (find(&mut parent, d.first), find(&mut parent, d.second));
+            if a != b {
+                parent[a] = b;
+            }
+        }
+    }
+    let merged: Vec<CenterDirection> = directions
+        .iter()
+        .filter(|d| d.direction.is_some() && d.first < n && d.second < n)
+        .filter_map(|d| {
+            let (a, b) = (find(&mut parent, d.first), find(&mut parent, d.second));
+            (a != b).then_some(CenterDirection {
+                first: a,
+                second: b,
+                ..*d
+            })
+        })
+        .collect();
+    let mut reps: Vec<usize> = members
+        .iter()
+        .filter(|&&m| m < n)
+        .map(|&m| find(&mut parent, m))
+        .collect();
+    reps.sort_unstable();
+    reps.dedup();
+    if reference >= n {
+        return vec![None; n];
+    }
+    let reference_rep = find(&mut parent, reference);
+    let rep_centres = lud_centres(n, &reps, &merged, reference_rep, config);
+    let mut out = vec![None; n];
+    for &m in members {
+        if m < n {
+            out[m] = rep_centres[find(&mut parent, m)];
+        }
+    }
+    out
+}
+
+/// LUD on direction edges (ties, if any, weigh [`ZERO_BASELINE_WEIGHT`]): the centres of the
+/// images `members`, `C_reference
+/// = 0`; `None` for images outside `members`. Every member must be connected to the reference
 /// through `directions` (zero-baseline ties included).
 ///
 /// Each IRLS round fixes the weights `w_e / max(‖r_e‖, δ)` and solves the weighted least-squares
 /// problem in the centres and the scales `s_e ≥ 1` jointly by an active-set method (scales at
 /// the bound are held at 1 until their multiplier says to free them).
-pub fn average_translations(
+fn lud_centres(
     n: usize,
     members: &[usize],
     directions: &[CenterDirection],

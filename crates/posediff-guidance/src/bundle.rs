@@ -42,14 +42,15 @@ pub fn build_tracks<'a>(
     let mut ids: HashMap<(usize, u64, u64), usize> = HashMap::new();
     let mut nodes: Vec<Observation> = Vec::new();
     let mut parent: Vec<usize> = Vec::new();
-    let mut id = |image: usize, xy: [f64; 2], nodes: &mut Vec<Observation>, parent: &mut Vec<usize>| {
-        *ids.entry((image, xy[0].to_bits(), xy[1].to_bits()))
-            .or_insert_with(|| {
-                nodes.push(Observation { image, xy });
-                parent.push(parent.len());
-                parent.len() - 1
-            })
-    };
+    let mut id =
+        |image: usize, xy: [f64; 2], nodes: &mut Vec<Observation>, parent: &mut Vec<usize>| {
+            *ids.entry((image, xy[0].to_bits(), xy[1].to_bits()))
+                .or_insert_with(|| {
+                    nodes.push(Observation { image, xy });
+                    parent.push(parent.len());
+                    parent.len() - 1
+                })
+        };
     fn find(parent: &mut [usize], mut x: usize) -> usize {
         while parent[x] != x {
             parent[x] = parent[parent[x]];
@@ -71,9 +72,9 @@ pub fn build_tracks<'a>(
         }
     }
     let mut groups: HashMap<usize, Track> = HashMap::new();
-    for k in 0..nodes.len() {
+    for (k, node) in nodes.iter().enumerate() {
         let root = find(&mut parent, k);
-        groups.entry(root).or_default().push(nodes[k]);
+        groups.entry(root).or_default().push(*node);
     }
     let mut tracks: Vec<Track> = groups
         .into_values()
@@ -145,10 +146,25 @@ pub struct BundleReport {
 fn k_inverse(phi: f64, intrinsics: &ImageIntrinsics, i: usize) -> Matrix3<f64> {
     let f = phi * intrinsics.scale[i];
     let c = intrinsics.principal[i];
-    Matrix3::new(1.0 / f, 0.0, -c[0] / f, 0.0, 1.0 / f, -c[1] / f, 0.0, 0.0, 1.0)
+    Matrix3::new(
+        1.0 / f,
+        0.0,
+        -c[0] / f,
+        0.0,
+        1.0 / f,
+        -c[1] / f,
+        0.0,
+        0.0,
+        1.0,
+    )
 }
 
-fn project(c: &RefineCamera, f: f64, pp: [f64; 2], x: &Vector3<f64>) -> Option<([f64; 2], Vector3<f64>)> {
+fn project(
+    c: &RefineCamera,
+    f: f64,
+    pp: [f64; 2],
+    x: &Vector3<f64>,
+) -> Option<([f64; 2], Vector3<f64>)> {
     let xc = c.rotation * (x - c.center);
     (xc.z > 1e-12).then(|| ([f * xc.x / xc.z + pp[0], f * xc.y / xc.z + pp[1]], xc))
 }
@@ -259,14 +275,19 @@ fn step(
     let mut a = DMatrix::<f64>::zeros(m, m);
     let mut g = DVector::<f64>::zeros(m);
     // Per point: C⁻¹, g_p, and per observation (indices, E = J_cᵀ W J_p).
-    let mut per_point: Vec<(Matrix3<f64>, Vector3<f64>, Vec<(ParamIndex, SMatrix<f64, 7, 3>)>)> =
-        Vec::with_capacity(points.len());
+    let mut per_point: Vec<(
+        Matrix3<f64>,
+        Vector3<f64>,
+        Vec<(ParamIndex, SMatrix<f64, 7, 3>)>,
+    )> = Vec::with_capacity(points.len());
     for p in points {
         let mut cpt = Matrix3::<f64>::zeros();
         let mut gp = Vector3::<f64>::zeros();
         let mut blocks = Vec::with_capacity(p.obs.len());
         for o in &p.obs {
-            let Some(cam) = cameras[o.image] else { continue };
+            let Some(cam) = cameras[o.image] else {
+                continue;
+            };
             let f = phi * layout.intrinsics.scale[o.image];
             let pp = layout.intrinsics.principal[o.image];
             let Some((uv, xc)) = project(&cam, f, pp, &p.x) else {
@@ -464,10 +485,13 @@ fn filter(
         .filter_map(|mut p| {
             p.obs.retain(|o| {
                 cameras[o.image].is_some_and(|c| {
-                    project(&c, phi * intrinsics.scale[o.image], intrinsics.principal[o.image], &p.x)
-                        .is_some_and(|(uv, _)| {
-                            (uv[0] - o.xy[0]).hypot(uv[1] - o.xy[1]) <= max_error_px
-                        })
+                    project(
+                        &c,
+                        phi * intrinsics.scale[o.image],
+                        intrinsics.principal[o.image],
+                        &p.x,
+                    )
+                    .is_some_and(|(uv, _)| (uv[0] - o.xy[0]).hypot(uv[1] - o.xy[1]) <= max_error_px)
                 })
             });
             (p.obs.len() >= 2).then_some(p)
@@ -532,7 +556,11 @@ pub fn bundle_adjust(
         .filter_map(|t| {
             triangulate(t, cameras, intrinsics, *phi, min_angle).map(|x| Point {
                 x,
-                obs: t.iter().filter(|o| cameras[o.image].is_some()).copied().collect(),
+                obs: t
+                    .iter()
+                    .filter(|o| cameras[o.image].is_some())
+                    .copied()
+                    .collect(),
             })
         })
         .collect();
@@ -551,8 +579,12 @@ pub fn bundle_adjust(
     for p in &points {
         for o in &p.obs {
             if let Some(c) = cameras[o.image]
-                && let Some((uv, _)) =
-                    project(&c, *phi * intrinsics.scale[o.image], intrinsics.principal[o.image], &p.x)
+                && let Some((uv, _)) = project(
+                    &c,
+                    *phi * intrinsics.scale[o.image],
+                    intrinsics.principal[o.image],
+                    &p.x,
+                )
             {
                 sum += (uv[0] - o.xy[0]).powi(2) + (uv[1] - o.xy[1]).powi(2);
                 count += 1;
@@ -561,7 +593,11 @@ pub fn bundle_adjust(
     }
     report.points = points.len();
     report.observations = count;
-    report.rms_px = if count > 0 { (sum / count as f64).sqrt() } else { 0.0 };
+    report.rms_px = if count > 0 {
+        (sum / count as f64).sqrt()
+    } else {
+        0.0
+    };
     Ok(report)
 }
 

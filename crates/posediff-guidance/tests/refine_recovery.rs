@@ -216,7 +216,9 @@ fn multi_view_tracks(s: &Scene) -> Vec<posediff_guidance::bundle::Track> {
     let pp = s.intrinsics.principal[0];
     let mut seed: u64 = 5;
     let mut rnd = || {
-        seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        seed = seed
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
         (seed >> 11) as f64 / (1u64 << 53) as f64 - 0.5
     };
     (0..150)
@@ -278,10 +280,8 @@ fn tracks_from_pairwise_matches_rebuild_the_multi_view_points() {
     let mut pairs = Vec::new();
     for i in 0..4 {
         for j in i + 1..4 {
-            let (a, b): (Vec<[f64; 2]>, Vec<[f64; 2]>) = truth
-                .iter()
-                .map(|t| (t[i].xy, t[j].xy))
-                .unzip();
+            let (a, b): (Vec<[f64; 2]>, Vec<[f64; 2]>) =
+                truth.iter().map(|t| (t[i].xy, t[j].xy)).unzip();
             pairs.push((i, j, a, b));
         }
     }

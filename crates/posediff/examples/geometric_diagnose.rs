@@ -44,10 +44,19 @@ fn main() -> anyhow::Result<()> {
     if let Some(v) = env("SIDE") {
         config.matching.features.max_image_side = v as u32;
     }
+    if env("NOBA").is_some() {
+        config.bundle = None;
+    }
     if let Some(v) = env("FOCAL") {
         config.intrinsics = posediff::geometric::KnownIntrinsics::FocalPx(v);
     }
     let e = estimate_geometric(&images, &config)?;
+    for (k, c) in e.cameras.iter().enumerate() {
+        if let Some(c) = c {
+            let p = c.center();
+            println!("centre {k:>2}: {:8.3} {:8.3} {:8.3}", p.x, p.y, p.z);
+        }
+    }
     println!("{}", serde_json::to_string_pretty(&e.report)?);
     for w in &e.warnings {
         println!("warning: {w}");
@@ -166,10 +175,8 @@ fn main() -> anyhow::Result<()> {
                 .iter()
                 .find(|p| p.first == a && p.second == b)
                 .map_or(0, |p| {
-                    let f = posediff_geometry::fundamental_from_cameras(
-                        &gt[i].camera,
-                        &gt[j].camera,
-                    );
+                    let f =
+                        posediff_geometry::fundamental_from_cameras(&gt[i].camera, &gt[j].camera);
                     p.kp1
                         .iter()
                         .zip(&p.kp2)

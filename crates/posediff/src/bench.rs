@@ -164,6 +164,41 @@ fn read_err(path: &Path, e: impl std::fmt::Display) -> PosediffError {
     PosediffError::invalid(path, e)
 }
 
+/// The official test.py scores of predicted cameras (`None`: not estimated, failed in all its
+/// pairs) against the ground truth, and the RelPose++ camera-centre accuracy at 10 %.
+///
+/// # Errors
+/// Different counts, fewer than two cameras, degenerate ground truth.
+pub fn score_set(
+    gt: &[Camera],
+    pred: &[Option<Pose>],
+) -> std::result::Result<(Scores, f64), posediff_metrics::MetricsError> {
+    let gt_poses: Vec<Pose> = gt.iter().map(|c| c.cam_from_world).collect();
+    let pairs = relative_pose_errors_with_failures(&gt_poses, pred)?;
+    let acc = PoseAccuracy::from_pairs(&pairs)?;
+    let pred_cams: Vec<Option<Camera>> = pred
+        .iter()
+        .zip(gt)
+        .map(|(p, g)| {
+            p.map(|p| Camera {
+                cam_from_world: p,
+                ..*g
+            })
+        })
+        .collect();
+    let cc = camera_center_accuracy(gt, &pred_cams, posediff_metrics::RELPOSE_CENTER_THRESHOLD)?;
+    let registered = pred.iter().filter(|p| p.is_some()).count() as f64 / pred.len().max(1) as f64;
+    Ok((
+        Scores {
+            rra: acc.rra,
+            rta: acc.rta,
+            maa_30: acc.maa_30,
+            registered,
+        },
+        cc,
+    ))
+}
+
 /// Scores `method` on the sets of `data` over the subsets of `subsets_json`.
 ///
 /// # Errors
@@ -197,23 +232,7 @@ pub fn bench_real(data: &Path, subsets_json: &Path, method: &dyn Method) -> Resu
                 .estimate(&paths, &gt_poses)
                 .unwrap_or_else(|_| vec![None; gt.len()]);
             let seconds = start.elapsed().as_secs_f64();
-            let pairs = relative_pose_errors_with_failures(&gt_poses, &pred)
-                .map_err(|e| read_err(subsets_json, e))?;
-            let acc = PoseAccuracy::from_pairs(&pairs).map_err(|e| read_err(subsets_json, e))?;
-            let pred_cams: Vec<Option<Camera>> = pred
-                .iter()
-                .zip(&gt)
-                .map(|(p, g)| {
-                    p.map(|p| Camera {
-                        cam_from_world: p,
-                        ..*g
-                    })
-                })
-                .collect();
-            let cc =
-                camera_center_accuracy(&gt, &pred_cams, posediff_metrics::RELPOSE_CENTER_THRESHOLD)
-                    .map_err(|e| read_err(subsets_json, e))?;
-            let registered = pred.iter().filter(|p| p.is_some()).count() as f64 / pred.len() as f64;
+            let (scores, cc) = score_set(&gt, &pred).map_err(|e| read_err(subsets_json, e))?;
             let n = subset
                 .id
                 .split('_')
@@ -222,16 +241,10 @@ pub fn bench_real(data: &Path, subsets_json: &Path, method: &dyn Method) -> Resu
                 .trim_start_matches('N')
                 .to_owned();
             let size = n.parse::<usize>().unwrap_or(usize::MAX);
-            groups.entry((size, n)).or_default().push((
-                Scores {
-                    rra: acc.rra,
-                    rta: acc.rta,
-                    maa_30: acc.maa_30,
-                    registered,
-                },
-                cc,
-                seconds,
-            ));
+            groups
+                .entry((size, n))
+                .or_default()
+                .push((scores, cc, seconds));
         }
         for ((_, n), runs) in groups {
             let scores: Vec<Scores> = runs.iter().map(|r| r.0).collect();

@@ -525,7 +525,14 @@ pub fn estimate_from_matches(
         let mut bundle = bundle;
         bundle.refine_focal &= free_focal;
         let (before, phi_before) = (cameras.clone(), phi_refined);
-        let r = bundle_adjust(&tracks, &layout, &mut cameras, &mut phi_refined, reference, &bundle)?;
+        let r = bundle_adjust(
+            &tracks,
+            &layout,
+            &mut cameras,
+            &mut phi_refined,
+            reference,
+            &bundle,
+        )?;
         if bundle.refine_focal
             && !(config.focal_search.min..=config.focal_search.max).contains(&phi_refined)
         {
@@ -738,8 +745,19 @@ fn solve_at_focal(
     let cauchy = match config.refinement {
         Refinement::Converge(mut refine) => {
             refine.refine_focal &= refine_focal;
+            // Tied pairs (zero baseline) have no epipolar geometry: left out.
+            let baseline = |p: &&&PairMatches| match (cameras[p.first], cameras[p.second]) {
+                (Some(a), Some(b)) => (a.center - b.center).norm() > 0.0,
+                _ => false,
+            };
+            let lm_pairs: Vec<PairMatches> = matched
+                .iter()
+                .filter(baseline)
+                .map(|p| (*p).clone())
+                .collect();
+            let lm_set = pixel_match_set(n, &lm_pairs)?;
             refine_report = Some(refine_cameras(
-                set,
+                &lm_set,
                 layout,
                 &mut cameras,
                 &mut phi,

@@ -170,6 +170,18 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
     },
+    /// Score cameras against a ground truth with the official test.py metrics (every pair,
+    /// images not estimated failed in all their pairs).
+    Score {
+        /// A cameras.json (images not estimated allowed).
+        cameras: PathBuf,
+        /// Ground-truth cameras.json (same images, same order).
+        #[arg(long)]
+        gt: PathBuf,
+        /// Also write the scores as JSON here.
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
     /// Plot cameras (frusta from above and from the side), optionally against the ground truth.
     Plot {
         /// A cameras.json.
@@ -267,6 +279,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             quiet,
         },
         Command::Plot { cameras, gt, out } => return plot(&cameras, gt.as_deref(), &out),
+        Command::Score { cameras, gt, out } => return score(&cameras, &gt, out.as_deref()),
         Command::BenchReal {
             data,
             subsets,
@@ -642,8 +655,62 @@ fn write_outputs(
     Ok(())
 }
 
+fn score(cameras: &Path, gt: &Path, out: Option<&Path>) -> anyhow::Result<()> {
+    let est = read_cameras_json_partial(cameras)
+        .with_context(|| format!("reading {}", cameras.display()))?;
+    let truth = posediff::export::read_cameras_json(gt)
+        .with_context(|| format!("reading {}", gt.display()))?;
+    if truth.len() != est.len() {
+        bail!(
+            "{} has {} cameras, the ground truth {}",
+            cameras.display(),
+            est.len(),
+            truth.len()
+        );
+    }
+    let gt_cams: Vec<_> = truth.iter().map(|c| c.camera).collect();
+    let pred: Vec<_> = est
+        .iter()
+        .map(|e| e.camera.map(|c| c.cam_from_world))
+        .collect();
+    let (s, cc) = posediff::bench::score_set(&gt_cams, &pred)?;
+    println!(
+        "{} cameras ({} estimated): RRA@15 {:.3}  RTA@15 {:.3}  mAA(30) {:.3}  CC@0.1 {:.3}",
+        est.len(),
+        pred.iter().filter(|p| p.is_some()).count(),
+        s.rra[1],
+        s.rta[1],
+        s.maa_30,
+        cc
+    );
+    if let Some(out) = out {
+        let json = serde_json::json!({"cameras": cameras, "gt": gt, "scores": s, "cc_10": cc});
+        std::fs::write(out, serde_json::to_string_pretty(&json)?)
+            .with_context(|| format!("writing {}", out.display()))?;
+    }
+    Ok(())
+}
+
 fn plot(cameras: &Path, gt: Option<&Path>, out: &Path) -> anyhow::Result<()> {
-    let est = posediff::export::read_cameras_json(cameras)
+    let (est, truth) = plot_inputs(cameras, gt)?;
+    let errors = posediff::plot::plot_cameras(out, &est, truth.as_deref())?;
+    for e in &errors {
+        println!(
+            "{:<32} {:>8.2} deg {:>8.4} centre",
+            e.image, e.rotation_deg, e.center_rel
+        );
+    }
+    println!("wrote {}", out.display());
+    Ok(())
+}
+
+/// The estimated cameras and, when given, the ground truth of the same images (images not
+/// estimated are left out of both).
+fn plot_inputs(
+    cameras: &Path,
+    gt: Option<&Path>,
+) -> anyhow::Result<(Vec<NamedCamera>, Option<Vec<NamedCamera>>)> {
+    let est = read_cameras_json_partial(cameras)
         .with_context(|| format!("reading {}", cameras.display()))?;
     let truth = gt
         .map(|g| {
@@ -659,15 +726,27 @@ fn plot(cameras: &Path, gt: Option<&Path>, out: &Path) -> anyhow::Result<()> {
             t.len()
         );
     }
-    let errors = posediff::plot::plot_cameras(out, &est, truth.as_deref())?;
-    for e in &errors {
-        println!(
-            "{:<32} {:>8.2} deg {:>8.4} centre",
-            e.image, e.rotation_deg, e.center_rel
-        );
+    let keep: Vec<bool> = est.iter().map(|e| e.camera.is_some()).collect();
+    if keep.iter().filter(|k| **k).count() < 2 {
+        bail!("{} has fewer than two estimated cameras", cameras.display());
     }
-    println!("wrote {}", out.display());
-    Ok(())
+    let est_named = est
+        .iter()
+        .filter_map(|e| {
+            e.camera.map(|camera| NamedCamera {
+                image: e.image.clone(),
+                camera,
+            })
+        })
+        .collect();
+    let truth = truth.map(|t| {
+        t.into_iter()
+            .zip(&keep)
+            .filter(|(_, k)| **k)
+            .map(|(c, _)| c)
+            .collect()
+    });
+    Ok((est_named, truth))
 }
 
 fn command_line() -> String {
