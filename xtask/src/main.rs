@@ -11,10 +11,11 @@
 //! - `deps-check`: only the dependency invariants.
 //! - `bench-matching --data ../shared/data --out report.json`: match quality and speed on the
 //!   real sets (JSON + Markdown), with the OpenCV-python baseline when python3 has cv2.
-//! - `bench-real --data D --subsets S [--weights W] --out R.json` and `bench-co3d --co3d-dir D
-//!   --annotation-dir A [--categories seen|unseen|a,b] [--weights W] --out R.json`: the
-//!   accuracy benchmarks (`posediff bench-real | bench-co3d`); without weights they score the
-//!   ground truth (ceiling check).
+//! - `bench-real --data D --subsets S [--method M] [--weights W] --out R.json` and `bench-co3d
+//!   --co3d-dir D --annotation-dir A [--categories seen|unseen|a,b] [--method M] [--weights W]
+//!   --out R.json`: the accuracy benchmarks (`posediff bench-real | bench-co3d`); the method is
+//!   `geometric` (default without weights), `posediffusion` (default with) or `ground-truth`
+//!   (the ceiling check).
 //! - `convert-checkpoint IN OUT`: an official `.pth` (or safetensors) checkpoint to validated
 //!   safetensors with the official keys.
 //!
