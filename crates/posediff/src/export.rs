@@ -228,7 +228,9 @@ fn parse_err(path: &Path, what: &str) -> PosediffError {
     PosediffError::invalid(path, what)
 }
 
-/// Reads a COLMAP text model written by [`write_colmap_text`] (PINHOLE cameras).
+/// Reads a COLMAP text model: the one [`write_colmap_text`] writes, or COLMAP's own (PINHOLE,
+/// SIMPLE_PINHOLE, SIMPLE_RADIAL, RADIAL or OPENCV cameras; distortion parameters are dropped,
+/// so the cameras are pinhole approximations).
 ///
 /// # Errors
 /// I/O or format errors.
@@ -241,31 +243,44 @@ pub fn read_colmap_text(dir: &Path) -> Result<Vec<NamedCamera>> {
         .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
     {
         let f: Vec<&str> = line.split_whitespace().collect();
-        if f.len() != 8 || f[1] != "PINHOLE" {
-            return Err(parse_err(
-                &cams_path,
-                "expected `ID PINHOLE W H fx fy cx cy`",
-            ));
-        }
         let n = |i: usize| {
-            f[i].parse::<f64>()
-                .map_err(|_| parse_err(&cams_path, "not a number"))
+            f.get(i)
+                .and_then(|v| v.parse::<f64>().ok())
+                .ok_or_else(|| parse_err(&cams_path, "missing or non-numeric camera parameter"))
         };
+        // fx, fy, cx, cy and how many parameters the model has; distortion is not kept.
+        let (fx, fy, cx, cy, count) = match f.get(1).copied() {
+            Some("PINHOLE") => (n(4)?, n(5)?, n(6)?, n(7)?, 8),
+            Some("SIMPLE_PINHOLE") => (n(4)?, n(4)?, n(5)?, n(6)?, 7),
+            Some("SIMPLE_RADIAL") => (n(4)?, n(4)?, n(5)?, n(6)?, 8),
+            Some("RADIAL") => (n(4)?, n(4)?, n(5)?, n(6)?, 9),
+            Some("OPENCV") => (n(4)?, n(5)?, n(6)?, n(7)?, 12),
+            _ => {
+                return Err(parse_err(
+                    &cams_path,
+                    "expected a PINHOLE, SIMPLE_PINHOLE, SIMPLE_RADIAL, RADIAL or OPENCV camera",
+                ));
+            }
+        };
+        if f.len() != count {
+            return Err(parse_err(&cams_path, "wrong number of camera parameters"));
+        }
         let size = ImageSize::new(f[2].parse().unwrap_or(0), f[3].parse().unwrap_or(0))?;
-        let k = Intrinsics::new(
-            n(4)?,
-            n(5)?,
-            n(6)? - PIXEL_CENTRE_OFFSET,
-            n(7)? - PIXEL_CENTRE_OFFSET,
-        )?;
+        let k = Intrinsics::new(fx, fy, cx - PIXEL_CENTRE_OFFSET, cy - PIXEL_CENTRE_OFFSET)?;
         intrinsics.insert(f[0].to_owned(), (k, size));
     }
     let imgs_path = dir.join("images.txt");
+    let text = read("images.txt")?;
+    // Two lines per image: the pose, then its 2-D points (possibly empty).
+    let lines: Vec<&str> = text.lines().filter(|l| !l.starts_with('#')).collect();
     let mut out = Vec::new();
-    for line in read("images.txt")?
-        .lines()
-        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
-    {
+    let mut k = 0;
+    while k < lines.len() {
+        let line = lines[k];
+        if line.trim().is_empty() {
+            k += 1;
+            continue;
+        }
         let f: Vec<&str> = line.split_whitespace().collect();
         if f.len() < 10 {
             return Err(parse_err(
@@ -279,13 +294,15 @@ pub fn read_colmap_text(dir: &Path) -> Result<Vec<NamedCamera>> {
         };
         let r = Quaternion::new(n(1)?, n(2)?, n(3)?, n(4)?).to_rotation_matrix()?;
         let t = Vector3::new(n(5)?, n(6)?, n(7)?);
-        let (k, size) = *intrinsics
+        let (k_cam, size) = *intrinsics
             .get(f[8])
             .ok_or_else(|| parse_err(&imgs_path, "unknown CAMERA_ID"))?;
         out.push(NamedCamera {
             image: f[9..].join(" "),
-            camera: Camera::new(k, Pose::new(r, t), size),
+            camera: Camera::new(k_cam, Pose::new(r, t), size),
         });
+        // Skip the points line.
+        k += 2;
     }
     Ok(out)
 }
@@ -431,4 +448,60 @@ pub fn write_pytorch3d(
         })
         .collect::<Result<Vec<_>>>()?;
     write(path, &serde_json::to_string_pretty(&records)?)
+}
+
+/// The cameras of a COLMAP text model for the images of a folder, in the folder's order: an
+/// image COLMAP did not register is not estimated. Names match the model's image names, or their
+/// file names.
+///
+/// # Errors
+/// An unreadable model, an image in the folder that cannot be read for its size.
+pub fn colmap_for_images(
+    model: &Path,
+    images: &[std::path::PathBuf],
+    root: &Path,
+) -> Result<Vec<ImageCamera>> {
+    let cams = read_colmap_text(model)?;
+    let file_name = |s: &str| {
+        Path::new(s)
+            .file_name()
+            .map(|f| f.to_string_lossy().into_owned())
+    };
+    images
+        .iter()
+        .map(|path| {
+            let name = path
+                .strip_prefix(root)
+                .unwrap_or(path)
+                .to_string_lossy()
+                .into_owned();
+            let found = cams.iter().find(|c| c.image == name).or_else(|| {
+                cams.iter()
+                    .find(|c| file_name(&c.image) == file_name(&name))
+            });
+            match found {
+                Some(c) => Ok(ImageCamera {
+                    image: name,
+                    size: c.camera.image_size,
+                    camera: Some(c.camera),
+                }),
+                None => {
+                    let img = opencv::imgcodecs::imread(
+                        path.as_os_str(),
+                        opencv::imgcodecs::IMREAD_UNCHANGED,
+                    )?;
+                    let size = posediff_geometry::ImageSize::new(
+                        u32::try_from(opencv::prelude::MatTraitConst::cols(&img)).unwrap_or(0),
+                        u32::try_from(opencv::prelude::MatTraitConst::rows(&img)).unwrap_or(0),
+                    )
+                    .map_err(|_| PosediffError::UnreadableImage(path.clone()))?;
+                    Ok(ImageCamera {
+                        image: name,
+                        size,
+                        camera: None,
+                    })
+                }
+            }
+        })
+        .collect()
 }

@@ -170,6 +170,19 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
     },
+    /// Convert a COLMAP text model (cameras.txt, images.txt) to cameras.json, e.g. for
+    /// `estimate --init`: with --images, one entry per image of that folder in its order
+    /// (images COLMAP did not register are marked not estimated).
+    ImportColmap {
+        /// Folder of the COLMAP text model.
+        model: PathBuf,
+        /// The image folder the model belongs to.
+        #[arg(long)]
+        images: Option<PathBuf>,
+        /// Output cameras.json.
+        #[arg(long)]
+        out: PathBuf,
+    },
     /// Score cameras against a ground truth with the official test.py metrics (every pair,
     /// images not estimated failed in all their pairs).
     Score {
@@ -280,6 +293,32 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         },
         Command::Plot { cameras, gt, out } => return plot(&cameras, gt.as_deref(), &out),
         Command::Score { cameras, gt, out } => return score(&cameras, &gt, out.as_deref()),
+        Command::ImportColmap { model, images, out } => {
+            let entries = match images {
+                Some(dir) => {
+                    posediff::export::colmap_for_images(&model, &image_files(&dir)?, &dir)?
+                }
+                None => {
+                    let mut cams = posediff::export::read_colmap_text(&model)?;
+                    cams.sort_by(|a, b| a.image.cmp(&b.image));
+                    cams.into_iter()
+                        .map(|c| ImageCamera {
+                            image: c.image,
+                            size: c.camera.image_size,
+                            camera: Some(c.camera),
+                        })
+                        .collect()
+                }
+            };
+            write_cameras_json_partial(&out, &entries)?;
+            println!(
+                "wrote {} ({} of {} images registered)",
+                out.display(),
+                entries.iter().filter(|e| e.camera.is_some()).count(),
+                entries.len()
+            );
+            return Ok(());
+        }
         Command::BenchReal {
             data,
             subsets,

@@ -341,3 +341,107 @@ fn a_repeated_viewpoint_shares_its_centre_and_keeps_the_ring() {
         "worst pair: {rot}° / {worst_t}°"
     );
 }
+
+#[test]
+fn a_colmap_model_imports_and_initialises_the_refinement() {
+    let (images, gt) = set("strecha_fountainP11");
+    let dir = temp_dir("colmap");
+    let folder = dir.join("images");
+    std::fs::create_dir_all(&folder).unwrap();
+    for image in &images[..3] {
+        std::fs::copy(image, folder.join(image.file_name().unwrap())).unwrap();
+    }
+    // COLMAP's own layout: a SIMPLE_RADIAL camera, two lines per image (the second with 2-D
+    // points), image 0002 not registered, names with the folder prefix.
+    let model = dir.join("sparse");
+    std::fs::create_dir_all(&model).unwrap();
+    let k = gt[0].intrinsics;
+    std::fs::write(
+        model.join("cameras.txt"),
+        format!(
+            "# Camera list\n1 SIMPLE_RADIAL 1024 683 {} {} {} -0.01\n",
+            k.fx(),
+            k.cx() + 0.5,
+            k.cy() + 0.5
+        ),
+    )
+    .unwrap();
+    let mut lines = String::from("# Image list\n");
+    for (id, i) in [0usize, 1].iter().enumerate() {
+        let q = posediff_geometry::Quaternion::from_rotation_matrix(
+            &gt[*i].cam_from_world.rotation,
+            posediff_geometry::QuaternionSign::NonNegativeReal,
+        )
+        .unwrap();
+        let t = gt[*i].cam_from_world.translation;
+        lines.push_str(&format!(
+            "{} {} {} {} {} {} {} {} 1 images/{:04}.jpg\n10.5 20.5 -1 30.0 40.0 7\n",
+            id + 1,
+            q.w,
+            q.x,
+            q.y,
+            q.z,
+            t.x,
+            t.y,
+            t.z,
+            i
+        ));
+    }
+    std::fs::write(model.join("images.txt"), lines).unwrap();
+    std::fs::write(model.join("points3D.txt"), "").unwrap();
+    let out = dir.join("init.json");
+    let bin = env!("CARGO_BIN_EXE_posediff");
+    let run = Command::new(bin)
+        .arg("import-colmap")
+        .arg(&model)
+        .arg("--images")
+        .arg(&folder)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let entries = read_cameras_json_partial(&out).unwrap();
+    assert_eq!(entries.len(), 3);
+    assert!(entries[2].camera.is_none());
+    assert_eq!(
+        (entries[2].size.width(), entries[2].size.height()),
+        (1024, 683)
+    );
+    for i in 0..2 {
+        let c = entries[i].camera.unwrap();
+        assert!((c.cam_from_world.rotation - gt[i].cam_from_world.rotation).norm() < 1e-9);
+        assert!(
+            (c.intrinsics.cx() - k.cx()).abs() < 1e-9,
+            "COLMAP's half-pixel offset undone"
+        );
+    }
+
+    // The imported estimate initialises the refinement; the unregistered image stays so.
+    let refined = dir.join("refined");
+    let run = Command::new(bin)
+        .arg("estimate")
+        .arg(&folder)
+        .arg("--init")
+        .arg(&out)
+        .arg("--out")
+        .arg(&refined)
+        .arg("--quiet")
+        .output()
+        .unwrap();
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let entries = read_cameras_json_partial(&refined.join("cameras.json")).unwrap();
+    assert!(entries[0].camera.is_some() && entries[1].camera.is_some());
+    assert!(entries[2].camera.is_none());
+    let est = [entries[0].camera.unwrap(), entries[1].camera.unwrap()];
+    let (rot, trans) = worst_pair_errors(&est, &gt[..2]);
+    assert!(rot < 1.0 && trans < 1.0, "{rot}° / {trans}°");
+}
