@@ -445,3 +445,68 @@ fn a_colmap_model_imports_and_initialises_the_refinement() {
     let (rot, trans) = worst_pair_errors(&est, &gt[..2]);
     assert!(rot < 1.0 && trans < 1.0, "{rot}° / {trans}°");
 }
+
+#[test]
+fn the_official_ggs_schedule_is_an_option() {
+    let (images, gt) = set("strecha_fountainP11");
+    let config = GeometricConfig {
+        refinement: posediff::geometric::Refinement::Official(posediff_guidance::GgsConfig {
+            iter_num: 20,
+            ..posediff_guidance::GgsConfig::default()
+        }),
+        ..GeometricConfig::default()
+    };
+    let e = estimate_geometric(&images[..4], &config).unwrap();
+    let est: Vec<Camera> = e.cameras.iter().map(|c| c.unwrap()).collect();
+    // The averaged cameras refined by the official SGD in the 224 crops: still close.
+    let (rot, trans) = worst_pair_errors(&est, &gt[..4]);
+    assert!(rot < 3.0 && trans < 5.0, "worst pair: {rot}° / {trans}°");
+    assert!(e.report.times.refinement > 0.0);
+}
+
+#[test]
+fn known_intrinsics_from_a_file_are_returned_exactly() {
+    let dir = shared_path("data/strecha_fountainP11");
+    let out = temp_dir("intrinsics");
+    let run = Command::new(env!("CARGO_BIN_EXE_posediff"))
+        .arg("estimate")
+        .arg(dir.join("images"))
+        .arg("--intrinsics")
+        .arg(dir.join("cameras.json"))
+        .arg("--out")
+        .arg(&out)
+        .arg("--quiet")
+        .output()
+        .unwrap();
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let est = read_cameras_json(&out.join("cameras.json")).unwrap();
+    let gt = read_cameras_json(&dir.join("cameras.json")).unwrap();
+    for (e, g) in est.iter().zip(&gt) {
+        assert_eq!(e.camera.intrinsics, g.camera.intrinsics);
+    }
+    let run_json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("run.json")).unwrap()).unwrap();
+    assert_eq!(run_json["report"]["focal_source"], "given");
+    let est: Vec<Camera> = est.iter().map(|c| c.camera).collect();
+    let gt: Vec<Camera> = gt.iter().map(|c| c.camera).collect();
+    let (rot, trans) = worst_pair_errors(&est, &gt);
+    assert!(rot < 1.0 && trans < 1.0, "worst pair: {rot}° / {trans}°");
+
+    // A file for other images is refused.
+    let bad = Command::new(env!("CARGO_BIN_EXE_posediff"))
+        .arg("estimate")
+        .arg(dir.join("images/0000.jpg"))
+        .arg(dir.join("images/0001.jpg"))
+        .arg("--intrinsics")
+        .arg(dir.join("cameras.json"))
+        .arg("--out")
+        .arg(out.join("bad"))
+        .output()
+        .unwrap();
+    assert!(!bad.status.success());
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("11 entries for 2 images"));
+}
