@@ -101,6 +101,15 @@ pub fn largest_component(n: usize, edges: &[(usize, usize, f64)]) -> Vec<usize> 
         .unwrap_or_default()
 }
 
+/// The representative of `v` in a union-find forest (path halving).
+pub(crate) fn find(parent: &mut [usize], mut v: usize) -> usize {
+    while parent[v] != v {
+        parent[v] = parent[parent[v]];
+        v = parent[v];
+    }
+    v
+}
+
 /// Rotation-averaging settings.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct RotationAveragingConfig {
@@ -292,13 +301,6 @@ pub fn average_translations(
     config: &TranslationAveragingConfig,
 ) -> Vec<Option<Vector3<f64>>> {
     let mut parent: Vec<usize> = (0..n).collect();
-    fn find(parent: &mut [usize], mut v: usize) -> usize {
-        while parent[v] != v {
-            parent[v] = parent[parent[v]];
-            v = parent[v];
-        }
-        v
-    }
     let is_member = |v: usize| members.binary_search(&v).is_ok();
     for d in directions {
         if d.direction.is_none()

@@ -19,8 +19,9 @@ use std::collections::HashMap;
 
 use nalgebra::{DMatrix, DVector, Matrix3, Rotation3, SMatrix, SVector, Vector3};
 
-use crate::error::{GuidanceError, Result};
-use crate::refine::{ImageIntrinsics, RefineCamera};
+use crate::averaging::find;
+use crate::error::Result;
+use crate::refine::{ImageIntrinsics, RefineCamera, parameter_layout};
 
 /// One observation of a track: an image and pixel coordinates.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -51,13 +52,6 @@ pub fn build_tracks<'a>(
                     parent.len() - 1
                 })
         };
-    fn find(parent: &mut [usize], mut x: usize) -> usize {
-        while parent[x] != x {
-            parent[x] = parent[parent[x]];
-            x = parent[x];
-        }
-        x
-    }
     for (a, b, kp1, kp2) in pairs {
         if a >= n_images || b >= n_images || a == b {
             continue;
@@ -513,41 +507,19 @@ pub fn bundle_adjust(
     reference: usize,
     config: &BundleConfig,
 ) -> Result<BundleReport> {
-    let n = cameras.len();
-    if intrinsics.principal.len() != n || intrinsics.scale.len() != n {
-        return Err(GuidanceError::LengthMismatch {
-            what: "cameras / intrinsics",
-            left: n,
-            right: intrinsics.scale.len(),
-        });
-    }
-    if cameras.get(reference).copied().flatten().is_none() {
-        return Err(GuidanceError::InvalidConfig {
-            reason: "the reference camera must be estimated",
-        });
-    }
-    if !(*phi > 0.0 && phi.is_finite()) {
-        return Err(GuidanceError::NonFinite {
-            what: "focal factor",
-        });
-    }
-    let mut next = 0;
-    let offset: Vec<Option<usize>> = cameras
-        .iter()
-        .enumerate()
-        .map(|(i, c)| {
-            (c.is_some() && i != reference).then(|| {
-                next += 6;
-                next - 6
-            })
-        })
-        .collect();
-    let focal_index = config.refine_focal.then_some(next);
+    let (offset, focal_index, n_params) = parameter_layout(
+        cameras.len(),
+        intrinsics,
+        cameras,
+        *phi,
+        reference,
+        config.refine_focal,
+    )?;
     let layout = Layout {
         intrinsics,
         offset,
         focal_index,
-        n_params: next + usize::from(config.refine_focal),
+        n_params,
         cauchy: config.cauchy_px,
     };
     let min_angle = config.min_angle_deg.to_radians();

@@ -20,7 +20,7 @@ use nalgebra::{DMatrix, DVector, Matrix3, Rotation3, SMatrix, SVector, Vector3};
 use posediff_geometry::epipolar::skew;
 
 use crate::error::{GuidanceError, Result};
-use crate::matches::MatchSet;
+use crate::matches::{MatchSet, PairGroup};
 
 /// One camera's extrinsics: `x_cam = R (X − C)`.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -207,24 +207,26 @@ impl Problem<'_> {
         0.5 * c2 * (1.0 + r * r / c2).ln()
     }
 
+    /// The usable pairs with their two cameras and `F` (row-major).
+    fn pairs<'s>(
+        &'s self,
+        cams: &'s [Option<RefineCamera>],
+        phi: f64,
+    ) -> impl Iterator<Item = (&'s PairGroup, RefineCamera, RefineCamera, [f64; 9])> + 's {
+        self.matches.groups().iter().filter_map(move |g| {
+            if !self.usable(cams, g.first, g.second) {
+                return None;
+            }
+            let (a, b) = (cams[g.first]?, cams[g.second]?);
+            let f = pair_fundamental(&a, &b, phi, self.intrinsics, g.first, g.second);
+            Some((g, a, b, row_major(&f)))
+        })
+    }
+
     fn cost(&self, cams: &[Option<RefineCamera>], phi: f64) -> f64 {
         let m = self.matches;
         let mut total = 0.0;
-        for g in m.groups() {
-            if !self.usable(cams, g.first, g.second) {
-                continue;
-            }
-            let (Some(a), Some(b)) = (cams[g.first], cams[g.second]) else {
-                continue;
-            };
-            let f = row_major(&pair_fundamental(
-                &a,
-                &b,
-                phi,
-                self.intrinsics,
-                g.first,
-                g.second,
-            ));
+        for (g, _, _, f) in self.pairs(cams, phi) {
             for k in g.start..g.end {
                 if let Some((r, _)) =
                     residual_and_gradient(&f, [m.u1[k], m.v1[k]], [m.u2[k], m.v2[k]])
@@ -246,21 +248,7 @@ impl Problem<'_> {
         let mut h = DMatrix::<f64>::zeros(self.n_params, self.n_params);
         let mut grad = DVector::<f64>::zeros(self.n_params);
         let c2 = self.cauchy * self.cauchy;
-        for g in m.groups() {
-            if !self.usable(cams, g.first, g.second) {
-                continue;
-            }
-            let (Some(a), Some(b)) = (cams[g.first], cams[g.second]) else {
-                continue;
-            };
-            let f0 = row_major(&pair_fundamental(
-                &a,
-                &b,
-                phi,
-                self.intrinsics,
-                g.first,
-                g.second,
-            ));
+        for (g, a, b, f0) in self.pairs(cams, phi) {
             let mut df = PairJacobian::zeros();
             for p in 0..13 {
                 let step = DIFF_STEP;
@@ -338,21 +326,7 @@ impl Problem<'_> {
     fn statistics(&self, cams: &[Option<RefineCamera>], phi: f64) -> (usize, usize, f64) {
         let m = self.matches;
         let (mut inliers, mut used, mut sum) = (0, 0, 0.0);
-        for g in m.groups() {
-            let (Some(a), Some(b)) = (cams[g.first], cams[g.second]) else {
-                continue;
-            };
-            if !self.usable(cams, g.first, g.second) {
-                continue;
-            }
-            let f = row_major(&pair_fundamental(
-                &a,
-                &b,
-                phi,
-                self.intrinsics,
-                g.first,
-                g.second,
-            ));
+        for (g, _, _, f) in self.pairs(cams, phi) {
             for k in g.start..g.end {
                 if let Some((r, _)) =
                     residual_and_gradient(&f, [m.u1[k], m.v1[k]], [m.u2[k], m.v2[k]])
@@ -427,6 +401,55 @@ fn levenberg_marquardt(
     (iterations, converged, cost)
 }
 
+/// Where each camera's 6 parameters sit in the parameter vector (`None`: the reference or not
+/// estimated), the focal's index when refined, and the parameter count, after checking the
+/// inputs both adjustments share.
+pub(crate) fn parameter_layout(
+    n: usize,
+    intrinsics: &ImageIntrinsics,
+    cameras: &[Option<RefineCamera>],
+    phi: f64,
+    reference: usize,
+    refine_focal: bool,
+) -> Result<(Vec<Option<usize>>, Option<usize>, usize)> {
+    for (what, len) in [
+        ("cameras", cameras.len()),
+        ("principal points", intrinsics.principal.len()),
+        ("focal scales", intrinsics.scale.len()),
+    ] {
+        if len != n {
+            return Err(GuidanceError::LengthMismatch {
+                what,
+                left: n,
+                right: len,
+            });
+        }
+    }
+    if cameras.get(reference).copied().flatten().is_none() {
+        return Err(GuidanceError::InvalidConfig {
+            reason: "the reference camera must be estimated",
+        });
+    }
+    if !(phi > 0.0 && phi.is_finite()) {
+        return Err(GuidanceError::NonFinite {
+            what: "focal factor",
+        });
+    }
+    let mut next = 0;
+    let offset: Vec<Option<usize>> = cameras
+        .iter()
+        .enumerate()
+        .map(|(i, c)| {
+            (c.is_some() && i != reference).then(|| {
+                next += 6;
+                next - 6
+            })
+        })
+        .collect();
+    let focal_index = refine_focal.then_some(next);
+    Ok((offset, focal_index, next + usize::from(refine_focal)))
+}
+
 /// Rescales the centres about the reference's to unit mean distance.
 fn normalize_scale(cams: &mut [Option<RefineCamera>], reference: usize) {
     let Some(origin) = cams.get(reference).copied().flatten().map(|c| c.center) else {
@@ -499,48 +522,19 @@ pub fn refine_cameras(
     reference: usize,
     config: &RefineConfig,
 ) -> Result<RefineReport> {
-    let n = matches.n_frames();
-    for (what, len) in [
-        ("cameras", cameras.len()),
-        ("principal points", intrinsics.principal.len()),
-        ("focal scales", intrinsics.scale.len()),
-    ] {
-        if len != n {
-            return Err(GuidanceError::LengthMismatch {
-                what,
-                left: n,
-                right: len,
-            });
-        }
-    }
-    if cameras.get(reference).copied().flatten().is_none() {
-        return Err(GuidanceError::InvalidConfig {
-            reason: "the reference camera must be estimated",
-        });
-    }
-    if !(*phi > 0.0 && phi.is_finite()) {
-        return Err(GuidanceError::NonFinite {
-            what: "focal factor",
-        });
-    }
     if !(config.cauchy_px > 0.0 && config.cauchy_px.is_finite()) {
         return Err(GuidanceError::InvalidConfig {
             reason: "cauchy_px must be positive and finite",
         });
     }
-    let mut next = 0;
-    let offset: Vec<Option<usize>> = cameras
-        .iter()
-        .enumerate()
-        .map(|(i, c)| {
-            (c.is_some() && i != reference).then(|| {
-                next += 6;
-                next - 6
-            })
-        })
-        .collect();
-    let focal_index = config.refine_focal.then_some(next);
-    let n_params = next + usize::from(config.refine_focal);
+    let (offset, focal_index, n_params) = parameter_layout(
+        matches.n_frames(),
+        intrinsics,
+        cameras,
+        *phi,
+        reference,
+        config.refine_focal,
+    )?;
     let mut problem = Problem {
         matches,
         intrinsics,

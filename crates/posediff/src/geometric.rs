@@ -210,6 +210,17 @@ pub fn estimate_geometric(
     images: &[PathBuf],
     config: &GeometricConfig,
 ) -> Result<GeometricEstimate> {
+    let (sizes, pairs, matching) = match_all(images, &config.matching)?;
+    let mut estimate = estimate_from_matches(&sizes, pairs, config)?;
+    estimate.report.times.matching = matching;
+    Ok(estimate)
+}
+
+/// Image sizes and the matches of every pair, with the seconds it took.
+fn match_all(
+    images: &[PathBuf],
+    config: &MatchConfig,
+) -> Result<(Vec<ImageSize>, Vec<PairMatches>, f64)> {
     if images.len() < 2 {
         return Err(PosediffError::TooFewImages {
             needed: 2,
@@ -217,12 +228,9 @@ pub fn estimate_geometric(
         });
     }
     let start = Instant::now();
-    let (features, pairs) = match_images(images, None, &config.matching)?;
-    let matching = start.elapsed().as_secs_f64();
-    let sizes: Vec<ImageSize> = features.iter().map(|f| f.image_size).collect();
-    let mut estimate = estimate_from_matches(&sizes, pairs, config)?;
-    estimate.report.times.matching = matching;
-    Ok(estimate)
+    let (features, pairs) = match_images(images, None, config)?;
+    let sizes = features.iter().map(|f| f.image_size).collect();
+    Ok((sizes, pairs, start.elapsed().as_secs_f64()))
 }
 
 /// Refines cameras from elsewhere (e.g. COLMAP's, converted to cameras.json) on the matches of
@@ -245,16 +253,7 @@ pub fn refine_given_cameras(
             images.len()
         )));
     }
-    if images.len() < 2 {
-        return Err(PosediffError::TooFewImages {
-            needed: 2,
-            got: images.len(),
-        });
-    }
-    let start = Instant::now();
-    let (features, pairs) = match_images(images, None, &config.matching)?;
-    let matching = start.elapsed().as_secs_f64();
-    let sizes: Vec<ImageSize> = features.iter().map(|f| f.image_size).collect();
+    let (sizes, pairs, matching) = match_all(images, &config.matching)?;
     let n = sizes.len();
     let (layout, known_phi) = intrinsics_layout(&sizes, &config.intrinsics)?;
     let given: Vec<f64> = init
@@ -328,51 +327,60 @@ pub fn refine_given_cameras(
     })
 }
 
+/// Per image, the known intrinsics in original pixels (`None` when unknown); a focal alone puts
+/// the principal point at the image centre.
+///
+/// # Errors
+/// A count that does not match the images, a non-positive focal.
+pub fn resolve_intrinsics(
+    known: &KnownIntrinsics,
+    sizes: &[ImageSize],
+) -> Result<Option<Vec<Intrinsics>>> {
+    match known {
+        KnownIntrinsics::Unknown => Ok(None),
+        KnownIntrinsics::FocalPx(f) => sizes
+            .iter()
+            .map(|s| {
+                let c = image_centre(*s);
+                Intrinsics::new(*f, *f, c[0], c[1]).map_err(|_| {
+                    PosediffError::InvalidArgument(format!(
+                        "focal length must be positive, got {f}"
+                    ))
+                })
+            })
+            .collect::<Result<Vec<_>>>()
+            .map(Some),
+        KnownIntrinsics::PerImage(k) if k.len() == sizes.len() => Ok(Some(k.clone())),
+        KnownIntrinsics::PerImage(k) => Err(PosediffError::InvalidArgument(format!(
+            "{} intrinsics for {} images",
+            k.len(),
+            sizes.len()
+        ))),
+    }
+}
+
 /// The per-image principal points and focal scales, and `φ` when the focal is known.
 fn intrinsics_layout(
     sizes: &[ImageSize],
     known: &KnownIntrinsics,
 ) -> Result<(ImageIntrinsics, Option<f64>)> {
-    match known {
-        KnownIntrinsics::Unknown => Ok((
+    Ok(match resolve_intrinsics(known, sizes)? {
+        None => (
             ImageIntrinsics {
                 principal: sizes.iter().map(|s| image_centre(*s)).collect(),
                 scale: sizes.iter().map(|s| focal_scale(*s)).collect(),
             },
             None,
-        )),
-        KnownIntrinsics::FocalPx(f) => {
-            if !(*f > 0.0 && f.is_finite()) {
-                return Err(PosediffError::InvalidArgument(format!(
-                    "focal length must be positive, got {f}"
-                )));
-            }
-            Ok((
-                ImageIntrinsics {
-                    principal: sizes.iter().map(|s| image_centre(*s)).collect(),
-                    scale: vec![*f; sizes.len()],
-                },
-                Some(1.0),
-            ))
-        }
-        KnownIntrinsics::PerImage(k) => {
-            if k.len() != sizes.len() {
-                return Err(PosediffError::InvalidArgument(format!(
-                    "{} intrinsics for {} images",
-                    k.len(),
-                    sizes.len()
-                )));
-            }
-            // Square pixels are assumed by the refinement: the mean of fx and fy.
-            Ok((
-                ImageIntrinsics {
-                    principal: k.iter().map(|k| [k.cx(), k.cy()]).collect(),
-                    scale: k.iter().map(|k| 0.5 * (k.fx() + k.fy())).collect(),
-                },
-                Some(1.0),
-            ))
-        }
-    }
+        ),
+        // Square pixels are assumed by the refinement: the mean of fx and fy.
+        Some(k) => (
+            ImageIntrinsics {
+                principal: k.iter().map(|k| [k.cx(), k.cy()]).collect(),
+                scale: k.iter().map(|k| 0.5 * (k.fx() + k.fy())).collect(),
+            },
+            Some(1.0),
+        ),
+    })
 }
 
 fn k_of(layout: &ImageIntrinsics, phi: f64, i: usize) -> Matrix3<f64> {

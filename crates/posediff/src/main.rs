@@ -68,57 +68,7 @@ enum DeviceArg {
 #[derive(Subcommand)]
 enum Command {
     /// Estimate the cameras of a folder of images (or a list of image files).
-    Estimate {
-        /// A folder (its .png/.jpg/.jpeg files, sorted) or image files (in the order given).
-        #[arg(required = true)]
-        inputs: Vec<PathBuf>,
-        /// Official PoseDiffusion checkpoint (.pth or safetensors). Without it the cameras come
-        /// from the images' geometry alone (matching, averaging, refinement).
-        #[arg(long)]
-        weights: Option<PathBuf>,
-        /// Start from an estimate: `geometric` (the checkpoint-free cameras) or a cameras.json.
-        /// With --weights the reverse diffusion starts at --start-step from the noised estimate;
-        /// without, a cameras.json is refined on the matches.
-        #[arg(long)]
-        init: Option<String>,
-        /// With --weights and --init: the diffusion step the estimate is noised to (0-99; larger
-        /// trusts it less).
-        #[arg(long, default_value_t = 30)]
-        start_step: usize,
-        /// Known focal length in pixels for every image (principal points at the centres); the
-        /// focal is not estimated.
-        #[arg(long, conflicts_with = "intrinsics")]
-        focal_px: Option<f64>,
-        /// Known intrinsics: a cameras.json whose "K" per image is used (same images, same
-        /// order; R and t are ignored).
-        #[arg(long)]
-        intrinsics: Option<PathBuf>,
-        /// Refinement of the checkpoint-free cameras: to convergence (Levenberg–Marquardt on
-        /// the Sampson distances), the official GGS schedule, or none.
-        #[arg(long, value_enum, default_value = "converge")]
-        refine: RefineArg,
-        /// Output folder (created).
-        #[arg(long)]
-        out: PathBuf,
-        /// Seed of the sampler.
-        #[arg(long, default_value_t = 0)]
-        seed: u64,
-        /// Samples per image set (spread reported in run.json).
-        #[arg(long, default_value_t = 1)]
-        samples: usize,
-        /// Skip geometry-guided sampling (and matching).
-        #[arg(long)]
-        no_ggs: bool,
-        /// Keypoint detector for GGS matches.
-        #[arg(long, value_enum, default_value = "sift")]
-        matcher: Matcher,
-        /// Where the network runs.
-        #[arg(long, value_enum, default_value = "cpu")]
-        device: DeviceArg,
-        /// Print nothing but errors.
-        #[arg(long)]
-        quiet: bool,
-    },
+    Estimate(EstimateArgs),
     /// Score a method on the real sets of `--data` over `--subsets` (JSON + Markdown report).
     BenchReal {
         /// Folder of sets in the cameras.json layout.
@@ -260,37 +210,7 @@ fn main() -> ExitCode {
 
 fn run(cli: Cli) -> anyhow::Result<()> {
     let args = match cli.command {
-        Command::Estimate {
-            inputs,
-            weights,
-            init,
-            start_step,
-            focal_px,
-            intrinsics,
-            refine,
-            out,
-            seed,
-            samples,
-            no_ggs,
-            matcher,
-            device,
-            quiet,
-        } => EstimateArgs {
-            inputs,
-            weights,
-            init,
-            start_step,
-            focal_px,
-            intrinsics,
-            refine,
-            out,
-            seed,
-            samples,
-            no_ggs,
-            matcher,
-            device,
-            quiet,
-        },
+        Command::Estimate(args) => args,
         Command::Plot { cameras, gt, out } => return plot(&cameras, gt.as_deref(), &out),
         Command::Score { cameras, gt, out } => return score(&cameras, &gt, out.as_deref()),
         Command::ImportColmap { model, images, out } => {
@@ -384,20 +304,56 @@ fn run(cli: Cli) -> anyhow::Result<()> {
 }
 
 /// The arguments of `posediff estimate`.
+#[derive(clap::Args)]
 struct EstimateArgs {
+    /// A folder (its .png/.jpg/.jpeg files, sorted) or image files (in the order given).
+    #[arg(required = true)]
     inputs: Vec<PathBuf>,
+    /// Official PoseDiffusion checkpoint (.pth or safetensors). Without it the cameras come
+    /// from the images' geometry alone (matching, averaging, refinement).
+    #[arg(long)]
     weights: Option<PathBuf>,
+    /// Start from an estimate: `geometric` (the checkpoint-free cameras) or a cameras.json.
+    /// With --weights the reverse diffusion starts at --start-step from the noised estimate;
+    /// without, a cameras.json is refined on the matches.
+    #[arg(long)]
     init: Option<String>,
+    /// With --weights and --init: the diffusion step the estimate is noised to (0-99; larger
+    /// trusts it less).
+    #[arg(long, default_value_t = 30)]
     start_step: usize,
+    /// Known focal length in pixels for every image (principal points at the centres); the
+    /// focal is not estimated.
+    #[arg(long, conflicts_with = "intrinsics")]
     focal_px: Option<f64>,
+    /// Known intrinsics: a cameras.json whose "K" per image is used (same images, same
+    /// order; R and t are ignored).
+    #[arg(long)]
     intrinsics: Option<PathBuf>,
+    /// Refinement of the checkpoint-free cameras: to convergence (Levenberg–Marquardt on
+    /// the Sampson distances), the official GGS schedule, or none.
+    #[arg(long, value_enum, default_value = "converge")]
     refine: RefineArg,
+    /// Output folder (created).
+    #[arg(long)]
     out: PathBuf,
+    /// Seed of the sampler.
+    #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// Samples per image set (spread reported in run.json).
+    #[arg(long, default_value_t = 1)]
     samples: usize,
+    /// Skip geometry-guided sampling (and matching).
+    #[arg(long)]
     no_ggs: bool,
+    /// Keypoint detector for GGS matches.
+    #[arg(long, value_enum, default_value = "sift")]
     matcher: Matcher,
+    /// Where the network runs.
+    #[arg(long, value_enum, default_value = "cpu")]
     device: DeviceArg,
+    /// Print nothing but errors.
+    #[arg(long)]
     quiet: bool,
 }
 
@@ -431,16 +387,7 @@ fn estimate(args: EstimateArgs) -> anyhow::Result<()> {
     let known = match (args.focal_px, &args.intrinsics) {
         (Some(f), _) => KnownIntrinsics::FocalPx(f),
         (None, Some(path)) => {
-            let given = read_cameras_json_partial(path)
-                .with_context(|| format!("reading intrinsics {}", path.display()))?;
-            if given.len() != images.len() {
-                bail!(
-                    "{} has {} entries for {} images",
-                    path.display(),
-                    given.len(),
-                    images.len()
-                );
-            }
+            let given = read_per_image(path, images.len(), "intrinsics")?;
             KnownIntrinsics::PerImage(
                 given
                     .iter()
@@ -460,16 +407,7 @@ fn estimate(args: EstimateArgs) -> anyhow::Result<()> {
         Some(path) => Some(InitSource::File(PathBuf::from(path))),
     };
     let read_init = |path: &Path| -> anyhow::Result<Vec<Option<posediff_geometry::Camera>>> {
-        let given = read_cameras_json_partial(path)
-            .with_context(|| format!("reading initial cameras {}", path.display()))?;
-        if given.len() != images.len() {
-            bail!(
-                "{} has {} cameras for {} images",
-                path.display(),
-                given.len(),
-                images.len()
-            );
-        }
+        let given = read_per_image(path, images.len(), "initial cameras")?;
         Ok(given.into_iter().map(|g| g.camera).collect())
     };
     let mut geometric = GeometricConfig {
@@ -621,6 +559,20 @@ fn estimate(args: EstimateArgs) -> anyhow::Result<()> {
         "warnings": warnings,
     });
     write_outputs(&args.out, &entries, &run, quiet)
+}
+
+/// A cameras.json with one entry per image.
+fn read_per_image(path: &Path, n: usize, what: &str) -> anyhow::Result<Vec<ImageCamera>> {
+    let given = read_cameras_json_partial(path)
+        .with_context(|| format!("reading {what} {}", path.display()))?;
+    if given.len() != n {
+        bail!(
+            "{} has {} entries for {n} images",
+            path.display(),
+            given.len()
+        );
+    }
+    Ok(given)
 }
 
 fn detector(m: Matcher) -> Detector {

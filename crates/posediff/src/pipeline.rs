@@ -15,7 +15,7 @@ use posediff_matching::{MatchConfig, PairMatches, match_images};
 
 use crate::error::{PosediffError, Result};
 use crate::export::NamedCamera;
-use crate::geometric::KnownIntrinsics;
+use crate::geometric::{KnownIntrinsics, resolve_intrinsics};
 use crate::loader::{LoadedImage, load_images};
 
 /// Estimation settings; `Default` is the official demo's behaviour (one sample, GGS on).
@@ -46,38 +46,6 @@ impl Default for EstimateConfig {
             matching: MatchConfig::default(),
             intrinsics: KnownIntrinsics::Unknown,
         }
-    }
-}
-
-/// Per image, the known intrinsics in original pixels (`None` when unknown); a focal alone puts
-/// the principal point at the image centre.
-///
-/// # Errors
-/// A count that does not match the images, a non-positive focal.
-pub fn resolve_intrinsics(
-    known: &KnownIntrinsics,
-    sizes: &[ImageSize],
-) -> Result<Option<Vec<Intrinsics>>> {
-    match known {
-        KnownIntrinsics::Unknown => Ok(None),
-        KnownIntrinsics::FocalPx(f) => sizes
-            .iter()
-            .map(|s| {
-                let c = crate::geometric::image_centre(*s);
-                Intrinsics::new(*f, *f, c[0], c[1]).map_err(|_| {
-                    PosediffError::InvalidArgument(format!(
-                        "focal length must be positive, got {f}"
-                    ))
-                })
-            })
-            .collect::<Result<Vec<_>>>()
-            .map(Some),
-        KnownIntrinsics::PerImage(k) if k.len() == sizes.len() => Ok(Some(k.clone())),
-        KnownIntrinsics::PerImage(k) => Err(PosediffError::InvalidArgument(format!(
-            "{} intrinsics for {} images",
-            k.len(),
-            sizes.len()
-        ))),
     }
 }
 

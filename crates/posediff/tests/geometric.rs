@@ -5,6 +5,7 @@
 // Test helpers outside #[test] functions unwrap too: a failure is the test failing.
 #![allow(clippy::unwrap_used)]
 
+use std::ffi::OsString;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
@@ -53,6 +54,22 @@ fn set(name: &str) -> (Vec<PathBuf>, Vec<Camera>) {
         gt.iter().map(|c| dir.join(&c.image)).collect(),
         gt.iter().map(|c| c.camera).collect(),
     )
+}
+
+/// Runs the `posediff` command; with `ok`, asserts success (showing stderr otherwise).
+fn posediff<const N: usize>(args: [OsString; N], ok: bool) -> std::process::Output {
+    let run = Command::new(env!("CARGO_BIN_EXE_posediff"))
+        .args(args)
+        .output()
+        .unwrap();
+    if ok {
+        assert!(
+            run.status.success(),
+            "{}",
+            String::from_utf8_lossy(&run.stderr)
+        );
+    }
+    run
 }
 
 fn temp_dir(tag: &str) -> PathBuf {
@@ -147,15 +164,17 @@ fn images_without_any_match_are_an_error() {
 
     // The command says so and fails.
     let out = temp_dir("nomatch");
-    let run = Command::new(env!("CARGO_BIN_EXE_posediff"))
-        .arg("estimate")
-        .arg(&fountain[0])
-        .arg(&temple[0])
-        .arg("--out")
-        .arg(&out)
-        .arg("--quiet")
-        .output()
-        .unwrap();
+    let run = posediff(
+        [
+            OsString::from("estimate"),
+            OsString::from(&fountain[0]),
+            OsString::from(&temple[0]),
+            OsString::from("--out"),
+            OsString::from(&out),
+            OsString::from("--quiet"),
+        ],
+        false,
+    );
     assert!(!run.status.success());
     let stderr = String::from_utf8_lossy(&run.stderr);
     assert!(stderr.contains("share enough verified matches"), "{stderr}");
@@ -194,18 +213,15 @@ fn a_second_group_is_reported_not_estimated() {
         .unwrap();
     }
     let out = dir.join("out");
-    let run = Command::new(env!("CARGO_BIN_EXE_posediff"))
-        .arg("estimate")
-        .arg(&dir)
-        .arg("--out")
-        .arg(&out)
-        .arg("--quiet")
-        .output()
-        .unwrap();
-    assert!(
-        run.status.success(),
-        "{}",
-        String::from_utf8_lossy(&run.stderr)
+    let run = posediff(
+        [
+            OsString::from("estimate"),
+            OsString::from(&dir),
+            OsString::from("--out"),
+            OsString::from(&out),
+            OsString::from("--quiet"),
+        ],
+        true,
     );
     let entries = read_cameras_json_partial(&out.join("cameras.json")).unwrap();
     let estimated: Vec<bool> = entries.iter().map(|e| e.camera.is_some()).collect();
@@ -390,20 +406,16 @@ fn a_colmap_model_imports_and_initialises_the_refinement() {
     std::fs::write(model.join("images.txt"), lines).unwrap();
     std::fs::write(model.join("points3D.txt"), "").unwrap();
     let out = dir.join("init.json");
-    let bin = env!("CARGO_BIN_EXE_posediff");
-    let run = Command::new(bin)
-        .arg("import-colmap")
-        .arg(&model)
-        .arg("--images")
-        .arg(&folder)
-        .arg("--out")
-        .arg(&out)
-        .output()
-        .unwrap();
-    assert!(
-        run.status.success(),
-        "{}",
-        String::from_utf8_lossy(&run.stderr)
+    let run = posediff(
+        [
+            OsString::from("import-colmap"),
+            OsString::from(&model),
+            OsString::from("--images"),
+            OsString::from(&folder),
+            OsString::from("--out"),
+            OsString::from(&out),
+        ],
+        true,
     );
     let entries = read_cameras_json_partial(&out).unwrap();
     assert_eq!(entries.len(), 3);
@@ -423,20 +435,17 @@ fn a_colmap_model_imports_and_initialises_the_refinement() {
 
     // The imported estimate initialises the refinement; the unregistered image stays so.
     let refined = dir.join("refined");
-    let run = Command::new(bin)
-        .arg("estimate")
-        .arg(&folder)
-        .arg("--init")
-        .arg(&out)
-        .arg("--out")
-        .arg(&refined)
-        .arg("--quiet")
-        .output()
-        .unwrap();
-    assert!(
-        run.status.success(),
-        "{}",
-        String::from_utf8_lossy(&run.stderr)
+    let run = posediff(
+        [
+            OsString::from("estimate"),
+            OsString::from(&folder),
+            OsString::from("--init"),
+            OsString::from(&out),
+            OsString::from("--out"),
+            OsString::from(&refined),
+            OsString::from("--quiet"),
+        ],
+        true,
     );
     let entries = read_cameras_json_partial(&refined.join("cameras.json")).unwrap();
     assert!(entries[0].camera.is_some() && entries[1].camera.is_some());
@@ -468,20 +477,17 @@ fn the_official_ggs_schedule_is_an_option() {
 fn known_intrinsics_from_a_file_are_returned_exactly() {
     let dir = shared_path("data/strecha_fountainP11");
     let out = temp_dir("intrinsics");
-    let run = Command::new(env!("CARGO_BIN_EXE_posediff"))
-        .arg("estimate")
-        .arg(dir.join("images"))
-        .arg("--intrinsics")
-        .arg(dir.join("cameras.json"))
-        .arg("--out")
-        .arg(&out)
-        .arg("--quiet")
-        .output()
-        .unwrap();
-    assert!(
-        run.status.success(),
-        "{}",
-        String::from_utf8_lossy(&run.stderr)
+    let run = posediff(
+        [
+            OsString::from("estimate"),
+            OsString::from(dir.join("images")),
+            OsString::from("--intrinsics"),
+            OsString::from(dir.join("cameras.json")),
+            OsString::from("--out"),
+            OsString::from(&out),
+            OsString::from("--quiet"),
+        ],
+        true,
     );
     let est = read_cameras_json(&out.join("cameras.json")).unwrap();
     let gt = read_cameras_json(&dir.join("cameras.json")).unwrap();
@@ -497,16 +503,18 @@ fn known_intrinsics_from_a_file_are_returned_exactly() {
     assert!(rot < 1.0 && trans < 1.0, "worst pair: {rot}° / {trans}°");
 
     // A file for other images is refused.
-    let bad = Command::new(env!("CARGO_BIN_EXE_posediff"))
-        .arg("estimate")
-        .arg(dir.join("images/0000.jpg"))
-        .arg(dir.join("images/0001.jpg"))
-        .arg("--intrinsics")
-        .arg(dir.join("cameras.json"))
-        .arg("--out")
-        .arg(out.join("bad"))
-        .output()
-        .unwrap();
+    let bad = posediff(
+        [
+            OsString::from("estimate"),
+            OsString::from(dir.join("images/0000.jpg")),
+            OsString::from(dir.join("images/0001.jpg")),
+            OsString::from("--intrinsics"),
+            OsString::from(dir.join("cameras.json")),
+            OsString::from("--out"),
+            OsString::from(out.join("bad")),
+        ],
+        false,
+    );
     assert!(!bad.status.success());
     assert!(String::from_utf8_lossy(&bad.stderr).contains("11 entries for 2 images"));
 }
