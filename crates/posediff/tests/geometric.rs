@@ -213,7 +213,7 @@ fn a_second_group_is_reported_not_estimated() {
         .unwrap();
     }
     let out = dir.join("out");
-    let run = posediff(
+    posediff(
         [
             OsString::from("estimate"),
             OsString::from(&dir),
@@ -406,7 +406,7 @@ fn a_colmap_model_imports_and_initialises_the_refinement() {
     std::fs::write(model.join("images.txt"), lines).unwrap();
     std::fs::write(model.join("points3D.txt"), "").unwrap();
     let out = dir.join("init.json");
-    let run = posediff(
+    posediff(
         [
             OsString::from("import-colmap"),
             OsString::from(&model),
@@ -435,7 +435,7 @@ fn a_colmap_model_imports_and_initialises_the_refinement() {
 
     // The imported estimate initialises the refinement; the unregistered image stays so.
     let refined = dir.join("refined");
-    let run = posediff(
+    posediff(
         [
             OsString::from("estimate"),
             OsString::from(&folder),
@@ -477,7 +477,7 @@ fn the_official_ggs_schedule_is_an_option() {
 fn known_intrinsics_from_a_file_are_returned_exactly() {
     let dir = shared_path("data/strecha_fountainP11");
     let out = temp_dir("intrinsics");
-    let run = posediff(
+    posediff(
         [
             OsString::from("estimate"),
             OsString::from(dir.join("images")),
