@@ -3,10 +3,13 @@
 //! - `ci`: what CI runs (the README's test command): system set-up, fmt check, clippy with
 //!   warnings denied, nextest, doc tests, docs with warnings denied, the dependency invariants,
 //!   and a build of `posediff-geometry` alone. Everything builds in the one `ci` profile.
-//! - `demo`: the README's main job. System set-up, a release build of the `posediff` command,
-//!   then for each real set in `../shared/data`: cameras without a checkpoint (`posediff
+//! - `demo`: the README's main job. System set-up, a release build of the `posediff` and
+//!   `synth` commands, a rendered 10-frame synthetic scene with exact cameras, then on it and on
+//!   each real set in `../shared/data` (when present): cameras without a checkpoint (`posediff
 //!   estimate`), their scores against the ground truth (`posediff score`) and a plot against it
 //!   (`posediff plot`), all under `out/demo/<set>/`.
+//! - `synth --out D [--sequences S --frames F --seed N --size WxH,...]`: synthetic CO3D-style
+//!   sequences (`posediff-synth`).
 //! - `setup`: only the system set-up (Debian packages for the OpenCV bindings, cargo-nextest).
 //! - `deps-check`: only the dependency invariants.
 //! - `bench-matching --data ../shared/data --out report.json`: match quality and speed on the
@@ -42,9 +45,13 @@ const HEAVY_CRATES: [&str; 6] = ["candle-core", "candle-nn", "opencv", "faer", "
 /// Per crate: the crates that must not appear in its normal dependency tree. Downstream users
 /// import the geometry and metrics crates alone; guidance may use rayon (and faer), never the
 /// tensor or image back ends.
-const FORBIDDEN: [(&str, &[&str]); 3] = [
+const FORBIDDEN: [(&str, &[&str]); 4] = [
     ("posediff-geometry", &HEAVY_CRATES),
     ("posediff-metrics", &HEAVY_CRATES),
+    (
+        "posediff-synth",
+        &["candle-core", "candle-nn", "opencv", "faer", "tch"],
+    ),
     (
         "posediff-guidance",
         &["candle-core", "candle-nn", "opencv", "tch"],
@@ -52,7 +59,8 @@ const FORBIDDEN: [(&str, &[&str]); 3] = [
 ];
 
 /// Per crate: the workspace crates it may depend on.
-const ALLOWED_WORKSPACE_DEPS: [(&str, &[&str]); 5] = [
+const ALLOWED_WORKSPACE_DEPS: [(&str, &[&str]); 6] = [
+    ("posediff-synth", &["posediff-geometry"]),
     ("posediff-geometry", &[]),
     ("posediff-metrics", &["posediff-geometry"]),
     ("posediff-guidance", &["posediff-geometry"]),
@@ -103,6 +111,12 @@ fn main() -> Result<()> {
             run("cargo", &args, &[])
         }
         "demo" => demo(),
+        "synth" => {
+            let rest = caller_args()?;
+            let mut args = vec!["run", "--release", "--quiet", "-p", "posediff-synth", "--"];
+            args.extend(rest.iter().map(String::as_str));
+            run("cargo", &args, &[])
+        }
         "convert-checkpoint" => {
             // Paths are the caller's, relative to where they ran the command.
             let cwd = std::env::current_dir()?;
@@ -125,7 +139,7 @@ fn main() -> Result<()> {
         }
         _ => {
             eprintln!(
-                "usage: cargo xtask <demo | ci | setup | deps-check | convert-checkpoint IN OUT | bench-matching --data D --out F.json | bench-real ... | bench-co3d ...>"
+                "usage: cargo xtask <demo | synth ... | ci | setup | deps-check | convert-checkpoint IN OUT | bench-matching --data D --out F.json | bench-real ... | bench-co3d ...>"
             );
             bail!("unknown task {task:?}")
         }
@@ -203,7 +217,15 @@ fn demo() -> Result<()> {
     setup()?;
     run(
         "cargo",
-        &["build", "--release", "--quiet", "-p", "posediff"],
+        &[
+            "build",
+            "--release",
+            "--quiet",
+            "-p",
+            "posediff",
+            "-p",
+            "posediff-synth",
+        ],
         &[],
     )?;
     let root = workspace_root();
@@ -212,15 +234,43 @@ fn demo() -> Result<()> {
         .unwrap_or_else(|| root.join("..").join("shared"));
     let bin = root.join("target/release/posediff");
     let bin = bin.to_string_lossy();
+    let scenes = root.join("out/demo/scenes");
+    let _ = std::fs::remove_dir_all(&scenes);
+    run(
+        &root.join("target/release/posediff-synth").to_string_lossy(),
+        &[
+            "--out",
+            &scenes.to_string_lossy(),
+            "--sequences",
+            "1",
+            "--frames",
+            "10",
+            "--seed",
+            "7",
+            "--size",
+            "640x480",
+            "--test-every",
+            "0",
+        ],
+        &[],
+    )?;
+    let mut sets = vec![(
+        "synthetic".to_owned(),
+        scenes.join("synthetic/synthetic_0000"),
+    )];
     for set in DEMO_SETS {
         let data = shared.join("data").join(set);
-        if !data.join("cameras.json").is_file() {
-            bail!(
-                "{} not found: the shared data must be beside the checkout (or set POSEDIFF_SHARED)",
+        if data.join("cameras.json").is_file() {
+            sets.push((set.to_owned(), data));
+        } else {
+            eprintln!(
+                "{} not found (the shared data sits beside the checkout, or set POSEDIFF_SHARED): skipped",
                 data.display()
             );
         }
-        let out = root.join("out/demo").join(set);
+    }
+    for (set, data) in sets {
+        let out = root.join("out/demo").join(&set);
         let (images, gt) = (data.join("images"), data.join("cameras.json"));
         let (cams, plot) = (out.join("cameras.json"), out.join("cameras.png"));
         let arg = |p: &std::path::Path| p.to_string_lossy().into_owned();
@@ -248,7 +298,7 @@ fn demo() -> Result<()> {
         )?;
     }
     eprintln!(
-        "\ncameras.json, COLMAP text model, transforms.json, pytorch3d.json, run.json, scores.json and cameras.png per set in {}",
+        "\ncameras.json, COLMAP text model, transforms.json, pytorch3d.json, run.json, scores.json and cameras.png per set in {} (the rendered scene in out/demo/scenes)",
         root.join("out/demo").display()
     );
     Ok(())

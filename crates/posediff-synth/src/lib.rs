@@ -211,6 +211,39 @@ pub fn sequence_seed(seed: u64, k: usize) -> u64 {
         .rotate_left(17)
 }
 
+/// One sequence of a dataset: its scene and cameras.
+#[derive(Debug, Clone)]
+pub struct Sequence {
+    /// `synthetic_NNNN`.
+    pub name: String,
+    /// Its seed.
+    pub seed: u64,
+    /// The scene.
+    pub scene: Scene,
+    /// One camera per frame.
+    pub cameras: Vec<Camera>,
+}
+
+/// Sequence `k` of `spec` (what [`write_dataset`] renders), at least one frame.
+pub fn sequence(spec: &DatasetSpec, k: usize) -> Sequence {
+    let seed = sequence_seed(spec.seed, k);
+    let scene = Scene::random(seed);
+    let size = match spec.sizes.get(k % spec.sizes.len().max(1)) {
+        Some(s) => *s,
+        None => match ImageSize::new(320, 240) {
+            Ok(s) => s,
+            Err(_) => unreachable!("a valid size"),
+        },
+    };
+    let cameras = trajectory(&scene, spec.frames.max(1), size, seed ^ 0x7A7A);
+    Sequence {
+        name: format!("{CATEGORY}_{k:04}"),
+        seed,
+        scene,
+        cameras,
+    }
+}
+
 /// Renders and writes a dataset under `out`: `synthetic/<sequence>/images/frameNNNNNN.png`,
 /// `synthetic/<sequence>/cameras.json`, and `synthetic_train.jgz` / `synthetic_test.jgz` whose
 /// file paths are relative to `out`. Deterministic for a spec.
@@ -229,11 +262,13 @@ pub fn write_dataset(out: &Path, spec: &DatasetSpec) -> Result<DatasetSummary> {
     ];
     let mut names = Vec::new();
     for k in 0..spec.sequences {
-        let name = format!("{CATEGORY}_{:04}", k);
-        let seed = sequence_seed(spec.seed, k);
-        let scene = Scene::random(seed);
-        let size = spec.sizes[k % spec.sizes.len()];
-        let cameras = trajectory(&scene, spec.frames, size, seed ^ 0x7A7A);
+        let Sequence {
+            name,
+            seed,
+            scene,
+            cameras,
+        } = sequence(spec, k);
+        let size = cameras[0].image_size;
         let dir = out.join(CATEGORY).join(&name);
         let frames: Vec<Co3dFrameOut> = cameras
             .par_iter()

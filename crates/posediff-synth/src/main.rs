@@ -30,6 +30,9 @@ struct Cli {
     /// Every N-th sequence goes to the test split (0: none).
     #[arg(long, default_value_t = 5)]
     test_every: usize,
+    /// Also write a PNG grid of the first, middle and last frame of up to four sequences.
+    #[arg(long)]
+    contact_sheet: Option<PathBuf>,
 }
 
 fn main() -> anyhow::Result<()> {
@@ -58,5 +61,49 @@ fn main() -> anyhow::Result<()> {
         cli.out.display(),
         summary.annotations.join(", ")
     );
+    if let Some(sheet) = &cli.contact_sheet {
+        contact_sheet(&cli.out, &summary.sequences, cli.frames, sheet)?;
+        println!("wrote {}", sheet.display());
+    }
+    Ok(())
+}
+
+/// Rows of sequences, columns of frames (first, middle, last), each cell 240×180 (letterboxed).
+fn contact_sheet(
+    out: &std::path::Path,
+    sequences: &[String],
+    frames: usize,
+    path: &std::path::Path,
+) -> anyhow::Result<()> {
+    let (cw, ch) = (240u32, 180u32);
+    let rows = sequences.len().min(4) as u32;
+    let picks = [0, frames / 2, frames.saturating_sub(1)];
+    let mut sheet = image::RgbImage::from_pixel(cw * 3, ch * rows, image::Rgb([255, 255, 255]));
+    for (r, seq) in sequences.iter().take(4).enumerate() {
+        for (c, f) in picks.iter().enumerate() {
+            let file = out.join(seq).join(format!("images/frame{f:06}.png"));
+            let img = image::open(&file)
+                .with_context(|| format!("reading {}", file.display()))?
+                .to_rgb8();
+            let scale = f64::min(
+                f64::from(cw) / f64::from(img.width()),
+                f64::from(ch) / f64::from(img.height()),
+            );
+            let (w, h) = (
+                (f64::from(img.width()) * scale) as u32,
+                (f64::from(img.height()) * scale) as u32,
+            );
+            let small = image::imageops::resize(&img, w, h, image::imageops::FilterType::Triangle);
+            image::imageops::overlay(
+                &mut sheet,
+                &small,
+                i64::from(c as u32 * cw + (cw - w) / 2),
+                i64::from(r as u32 * ch + (ch - h) / 2),
+            );
+        }
+    }
+    sheet
+        .save(path)
+        .with_context(|| format!("writing {}", path.display()))?;
     Ok(())
 }
