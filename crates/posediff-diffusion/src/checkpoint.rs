@@ -202,7 +202,7 @@ fn count_indexed(keys: &BTreeSet<String>, prefix: &str) -> usize {
 /// A checkpoint's tensors, validated against the PoseDiffusion layout.
 #[derive(Debug, Clone)]
 pub struct Checkpoint {
-    tensors: HashMap<String, Tensor>,
+    pub(crate) tensors: HashMap<String, Tensor>,
     depths: ModelDepths,
 }
 

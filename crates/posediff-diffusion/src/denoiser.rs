@@ -110,7 +110,7 @@ impl EncoderLayer {
         };
         let q = (split(0)? * (1.0 / (head_dim as f64).sqrt()))?;
         let (k, v) = (split(1)?, split(2)?);
-        let attn = candle_nn::ops::softmax_last_dim(&q.matmul(&k.t()?)?)?;
+        let attn = crate::norm::softmax_last_dim(&q.matmul(&k.t()?)?)?;
         let out = attn.matmul(&v)?.transpose(1, 2)?.reshape((b, n, c))?;
         Ok(self.out_proj.forward(&out)?)
     }

@@ -18,6 +18,7 @@ pub mod norm;
 pub mod resize;
 pub mod sampler;
 pub mod schedule;
+pub mod train;
 pub mod vit;
 
 use std::path::Path;

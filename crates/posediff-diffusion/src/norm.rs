@@ -32,7 +32,10 @@ impl LayerNorm {
     /// # Errors
     /// Tensor errors.
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        if x.dtype() != DType::F64 {
+        // candle's fused layer norm has no backward pass: the explicit formula (also the F64
+        // path) when gradients are tracked.
+        let tracked = x.track_op() || self.weight.track_op() || self.bias.track_op();
+        if x.dtype() != DType::F64 && !tracked {
             return Ok(candle_nn::ops::layer_norm(
                 &x.contiguous()?,
                 &self.weight,
@@ -48,4 +51,17 @@ impl LayerNorm {
             .broadcast_mul(&self.weight)?
             .broadcast_add(&self.bias)?)
     }
+}
+
+/// Softmax over the last dimension: candle's fused kernel, or (it has no backward pass) the
+/// composed, differentiable one when gradients are tracked.
+///
+/// # Errors
+/// Tensor errors.
+pub fn softmax_last_dim(x: &Tensor) -> Result<Tensor> {
+    Ok(if x.track_op() {
+        candle_nn::ops::softmax(x, D::Minus1)?
+    } else {
+        candle_nn::ops::softmax_last_dim(x)?
+    })
 }

@@ -69,7 +69,7 @@ impl Attention {
         let v = qkv.i(2)?.contiguous()?;
         let scale = (head_dim as f64).powf(-0.5);
         let attn = (q.matmul(&k.t()?)? * scale)?;
-        let attn = candle_nn::ops::softmax_last_dim(&attn)?;
+        let attn = crate::norm::softmax_last_dim(&attn)?;
         let out = attn.matmul(&v)?.transpose(1, 2)?.reshape((b, n, c))?;
         Ok(self.proj.forward(&out)?)
     }

@@ -109,6 +109,17 @@ impl SafetensorsFixture {
         }
     }
 
+    /// The names of the tensors in the file.
+    #[track_caller]
+    pub fn names(&self) -> Vec<String> {
+        safetensors::SafeTensors::deserialize(&self.bytes)
+            .unwrap_or_else(|e| panic!("{}: {e}", self.path.display()))
+            .names()
+            .into_iter()
+            .map(|n| n.to_string())
+            .collect()
+    }
+
     /// Tensor `name` as `f64` (F16, F32, F64, I64, I32, U8 storage).
     #[track_caller]
     pub fn tensor(&self, name: &str) -> Tensor {

@@ -1,0 +1,169 @@
+//! The official training step on candle (SPEC.md §7; `train.py`): ε-prediction with an L1 loss,
+//! one diffusion step `t` per sequence, gradient-norm clipping at 1.0 and torch's AdamW.
+//!
+//! The parameters live in a [`VarMap`] under the official key names (the checkpoint's, without
+//! the 13 `diffuser.*` schedule buffers), so a trained model saves in the official layout.
+//! Gradients flow through the whole network; candle's fused softmax and layer norm have no
+//! backward pass, so the network switches to their composed forms whenever a tensor tracks
+//! gradients (inference keeps the fused kernels).
+
+use candle_core::backprop::GradStore;
+use candle_core::{DType, Device, Tensor, Var};
+use candle_nn::{VarBuilder, VarMap};
+
+use crate::checkpoint::Checkpoint;
+use crate::error::{DiffusionError, Result};
+use crate::{Denoiser, ImageFeatureExtractor, PoseDiffusionModel, Schedule};
+
+/// `clip_grad_norm_`'s epsilon: the coefficient is `max_norm / (total + 1e-6)`.
+pub const CLIP_EPS: f64 = 1e-6;
+
+/// Whether a checkpoint key is a trainable parameter (not one of the schedule buffers
+/// `diffuser.*` outside `diffuser.model.*`).
+pub fn is_parameter(key: &str) -> bool {
+    !key.starts_with("diffuser.") || key.starts_with("diffuser.model.")
+}
+
+/// A model whose parameters are variables.
+pub struct Trainable {
+    /// The parameters by official key.
+    pub varmap: VarMap,
+    /// The network built on them.
+    pub model: PoseDiffusionModel,
+}
+
+impl std::fmt::Debug for Trainable {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Trainable")
+            .field("parameters", &self.varmap.all_vars().len())
+            .finish()
+    }
+}
+
+impl Trainable {
+    /// Variables initialised from `checkpoint` (F32 on `device`) and the model over them.
+    ///
+    /// # Errors
+    /// Tensor errors.
+    pub fn from_checkpoint(checkpoint: &Checkpoint, device: &Device) -> Result<Self> {
+        let varmap = VarMap::new();
+        {
+            let mut data = varmap
+                .data()
+                .lock()
+                .map_err(|_| DiffusionError::Invalid("variable map lock poisoned"))?;
+            for (key, tensor) in &checkpoint.tensors {
+                if is_parameter(key) {
+                    let value = tensor.to_dtype(DType::F32)?.to_device(device)?;
+                    data.insert(key.to_string(), Var::from_tensor(&value)?);
+                }
+            }
+        }
+        let depths = checkpoint.depths();
+        let vb = VarBuilder::from_varmap(&varmap, DType::F32, device);
+        let model = PoseDiffusionModel {
+            extractor: ImageFeatureExtractor::new(depths.vit_blocks, vb.clone())?,
+            denoiser: Denoiser::new(depths.trunk_layers, vb)?,
+            schedule: Schedule::from_checkpoint(checkpoint)?,
+            depths,
+        };
+        Ok(Self { varmap, model })
+    }
+
+    /// The variables and their keys, sorted by key.
+    pub fn named_variables(&self) -> Vec<(String, Var)> {
+        let mut out: Vec<(String, Var)> = match self.varmap.data().lock() {
+            Ok(data) => data.iter().map(|(k, v)| (k.clone(), v.clone())).collect(),
+            Err(_) => Vec::new(),
+        };
+        out.sort_by(|a, b| a.0.cmp(&b.0));
+        out
+    }
+}
+
+/// The values of one training forward pass.
+#[derive(Debug, Clone)]
+pub struct StepForward {
+    /// Image features `(B, N, 384)`.
+    pub z: Tensor,
+    /// `x_t = √ᾱ_t x0 + √(1 − ᾱ_t) ε`.
+    pub x_t: Tensor,
+    /// `ε̂`.
+    pub pred_noise: Tensor,
+    /// `mean |ε̂ − ε|`.
+    pub loss: Tensor,
+}
+
+/// The official training forward (`PoseDiffusionModel.forward(training=True)` with the loss of
+/// `train.py`) for images `(B, N, 3, H, W)` in `[0, 1]`, encodings `x0` `(B, N, 9)`, one step per
+/// sequence and noise `ε` `(B, N, 9)`. With `freeze_backbone` the features are detached.
+///
+/// # Errors
+/// Mismatched shapes, steps outside the schedule, tensor errors.
+pub fn training_forward(
+    model: &PoseDiffusionModel,
+    images: &Tensor,
+    x0: &Tensor,
+    t: &[usize],
+    noise: &Tensor,
+    freeze_backbone: bool,
+) -> Result<StepForward> {
+    let (b, n, _) = x0.dims3()?;
+    if t.len() != b || noise.dims3()? != (b, n, crate::denoiser::POSE_DIM) {
+        return Err(DiffusionError::Invalid(
+            "one step per sequence and noise shaped like x0",
+        ));
+    }
+    let s = &model.schedule;
+    if t.iter().any(|&t| t >= s.len()) {
+        return Err(DiffusionError::Invalid(
+            "diffusion step outside the schedule",
+        ));
+    }
+    let mut z = model.image_features(images)?;
+    if freeze_backbone {
+        z = z.detach();
+    }
+    let device = x0.device();
+    let coef = |v: &[f64]| -> Result<Tensor> {
+        let c: Vec<f32> = t.iter().map(|&t| v[t] as f32).collect();
+        Ok(Tensor::from_vec(c, (b, 1, 1), device)?.to_dtype(x0.dtype())?)
+    };
+    let x_t = (x0.broadcast_mul(&coef(&s.sqrt_alphas_cumprod)?)?
+        + noise.broadcast_mul(&coef(&s.sqrt_one_minus_alphas_cumprod)?)?)?;
+    let pred_noise = model.denoiser.forward(&x_t, t, &z)?;
+    let loss = (&pred_noise - noise)?.abs()?.mean_all()?;
+    Ok(StepForward {
+        z,
+        x_t,
+        pred_noise,
+        loss,
+    })
+}
+
+/// `torch.nn.utils.clip_grad_norm_`: the 2-norm over all gradients of `vars` (accumulated in
+/// f64), then every gradient times `min(1, max_norm / (norm + 1e-6))`. Returns the norm and the
+/// coefficient.
+///
+/// # Errors
+/// Tensor errors.
+pub fn clip_grad_norm(grads: &mut GradStore, vars: &[Var], max_norm: f64) -> Result<(f64, f64)> {
+    let mut sum = 0.0f64;
+    for v in vars {
+        if let Some(g) = grads.get(v) {
+            let values: Vec<f64> = g.flatten_all()?.to_dtype(DType::F64)?.to_vec1()?;
+            sum += values.iter().map(|x| x * x).sum::<f64>();
+        }
+    }
+    let norm = sum.sqrt();
+    let coef = (max_norm / (norm + CLIP_EPS)).min(1.0);
+    if coef < 1.0 {
+        for v in vars {
+            if let Some(g) = grads.get(v) {
+                let scaled = (g * coef)?;
+                grads.insert(v, scaled);
+            }
+        }
+    }
+    Ok((norm, coef))
+}
