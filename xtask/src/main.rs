@@ -19,6 +19,8 @@
 //!   --out R.json`: the accuracy benchmarks (`posediff bench-real | bench-co3d`); the method is
 //!   `geometric` (default without weights), `posediffusion` (default with) or `ground-truth`
 //!   (the ceiling check).
+//! - `train --co3d-dir D --annotation-dir A --categories C --out DIR --init W --freeze-backbone
+//!   [--config tiny|official] [--resume] [--iterations N]`: training (`posediff train`).
 //! - `convert-checkpoint IN OUT`: an official `.pth` (or safetensors) checkpoint to validated
 //!   safetensors with the official keys.
 //!
@@ -96,7 +98,7 @@ fn main() -> Result<()> {
             args.extend(rest.iter().map(String::as_str));
             run("cargo", &args, &[])
         }
-        "bench-co3d" | "bench-real" => {
+        "bench-co3d" | "bench-real" | "train" => {
             let rest = caller_args()?;
             let mut args = vec![
                 "run",
@@ -180,7 +182,8 @@ fn output(program: &str, args: &[&str]) -> Result<String> {
 }
 
 /// Flags of the benchmark commands whose values are paths.
-const PATH_FLAGS: [&str; 6] = [
+const PATH_FLAGS: [&str; 7] = [
+    "--init",
     "--data",
     "--subsets",
     "--out",

@@ -314,8 +314,13 @@ impl Checkpoint {
         VarBuilder::from_tensors(self.tensors.clone(), dtype, device)
     }
 
+    /// The tensors by official key (un-prefixed).
+    pub fn tensor_map(&self) -> &HashMap<String, Tensor> {
+        &self.tensors
+    }
+
     /// Writes the tensors (un-prefixed keys, stored dtypes) as safetensors: the `.pth` →
-    /// safetensors converter.
+    /// safetensors converter, and the trainer's checkpoints.
     ///
     /// # Errors
     /// I/O errors.

@@ -124,21 +124,49 @@ pub fn training_forward(
     if freeze_backbone {
         z = z.detach();
     }
-    let device = x0.device();
-    let coef = |v: &[f64]| -> Result<Tensor> {
-        let c: Vec<f32> = t.iter().map(|&t| v[t] as f32).collect();
-        Ok(Tensor::from_vec(c, (b, 1, 1), device)?.to_dtype(x0.dtype())?)
-    };
-    let x_t = (x0.broadcast_mul(&coef(&s.sqrt_alphas_cumprod)?)?
-        + noise.broadcast_mul(&coef(&s.sqrt_one_minus_alphas_cumprod)?)?)?;
-    let pred_noise = model.denoiser.forward(&x_t, t, &z)?;
-    let loss = (&pred_noise - noise)?.abs()?.mean_all()?;
+    let (x_t, pred_noise, loss) = denoising_loss(&model.denoiser, s, &z, x0, t, noise)?;
     Ok(StepForward {
         z,
         x_t,
         pred_noise,
         loss,
     })
+}
+
+/// The denoiser part of the training forward for given features `z` `(B, N, 384)`: `x_t`, `ε̂`
+/// and `mean |ε̂ − ε|`.
+///
+/// # Errors
+/// Mismatched shapes, steps outside the schedule, tensor errors.
+pub fn denoising_loss(
+    denoiser: &Denoiser,
+    schedule: &Schedule,
+    z: &Tensor,
+    x0: &Tensor,
+    t: &[usize],
+    noise: &Tensor,
+) -> Result<(Tensor, Tensor, Tensor)> {
+    let (b, n, _) = x0.dims3()?;
+    if t.len() != b || noise.dims3()? != (b, n, crate::denoiser::POSE_DIM) {
+        return Err(DiffusionError::Invalid(
+            "one step per sequence and noise shaped like x0",
+        ));
+    }
+    if t.iter().any(|&t| t >= schedule.len()) {
+        return Err(DiffusionError::Invalid(
+            "diffusion step outside the schedule",
+        ));
+    }
+    let device = x0.device();
+    let coef = |v: &[f64]| -> Result<Tensor> {
+        let c: Vec<f32> = t.iter().map(|&t| v[t] as f32).collect();
+        Ok(Tensor::from_vec(c, (b, 1, 1), device)?.to_dtype(x0.dtype())?)
+    };
+    let x_t = (x0.broadcast_mul(&coef(&schedule.sqrt_alphas_cumprod)?)?
+        + noise.broadcast_mul(&coef(&schedule.sqrt_one_minus_alphas_cumprod)?)?)?;
+    let pred_noise = denoiser.forward(&x_t, t, z)?;
+    let loss = (&pred_noise - noise)?.abs()?.mean_all()?;
+    Ok((x_t, pred_noise, loss))
 }
 
 /// `torch.nn.utils.clip_grad_norm_`: the 2-norm over all gradients of `vars` (accumulated in
@@ -166,4 +194,120 @@ pub fn clip_grad_norm(grads: &mut GradStore, vars: &[Var], max_norm: f64) -> Res
         }
     }
     Ok((norm, coef))
+}
+
+/// torch's `AdamW` (decoupled weight decay on every parameter, bias-corrected moments) with its
+/// state exposed for checkpoints: the first step is exactly the one the parity fixture records.
+#[derive(Debug)]
+pub struct AdamW {
+    /// `(key, parameter, first moment, second moment)`.
+    params: Vec<(String, Var, Tensor, Tensor)>,
+    /// Steps taken.
+    pub step: u64,
+    /// β₁.
+    pub beta1: f64,
+    /// β₂.
+    pub beta2: f64,
+    /// ε.
+    pub eps: f64,
+    /// Decoupled weight decay.
+    pub weight_decay: f64,
+}
+
+impl AdamW {
+    /// torch's defaults (β 0.9/0.999, ε 1e-8, weight decay 0.01) over `params`.
+    ///
+    /// # Errors
+    /// Tensor errors.
+    pub fn new(params: Vec<(String, Var)>) -> Result<Self> {
+        let params = params
+            .into_iter()
+            .map(|(k, v)| {
+                let zeros = v.as_tensor().zeros_like()?;
+                Ok((k, v, zeros.clone(), zeros))
+            })
+            .collect::<Result<Vec<_>>>()?;
+        Ok(Self {
+            params,
+            step: 0,
+            beta1: 0.9,
+            beta2: 0.999,
+            eps: 1e-8,
+            weight_decay: 0.01,
+        })
+    }
+
+    /// The parameters it updates.
+    pub fn vars(&self) -> Vec<Var> {
+        self.params.iter().map(|p| p.1.clone()).collect()
+    }
+
+    /// One step at learning rate `lr` with `grads` (parameters without a gradient only decay
+    /// when torch would update them, i.e. never: they are skipped).
+    ///
+    /// # Errors
+    /// Tensor errors.
+    pub fn step(&mut self, grads: &GradStore, lr: f64) -> Result<()> {
+        self.step += 1;
+        let t = self.step as i32;
+        let (b1, b2) = (self.beta1, self.beta2);
+        let scale_m = 1.0 / (1.0 - b1.powi(t));
+        let scale_v = 1.0 / (1.0 - b2.powi(t));
+        for (_, var, m, v) in &mut self.params {
+            let Some(g) = grads.get(var) else { continue };
+            *m = ((&*m * b1)? + (g * (1.0 - b1))?)?;
+            *v = ((&*v * b2)? + (g.sqr()? * (1.0 - b2))?)?;
+            let update = ((&*m * scale_m)? / ((&*v * scale_v)?.sqrt()? + self.eps)?)?;
+            let decayed = (var.as_tensor() * (1.0 - lr * self.weight_decay))?;
+            var.set(&(decayed - (update * lr)?)?)?;
+        }
+        Ok(())
+    }
+
+    /// The moments as `m.<key>` / `v.<key>` tensors (for a checkpoint).
+    pub fn state_tensors(&self) -> Vec<(String, Tensor)> {
+        self.params
+            .iter()
+            .flat_map(|(k, _, m, v)| [(format!("m.{k}"), m.clone()), (format!("v.{k}"), v.clone())])
+            .collect()
+    }
+
+    /// Restores the moments from [`Self::state_tensors`] and the step count.
+    ///
+    /// # Errors
+    /// A missing or mis-shaped moment.
+    pub fn load_state(
+        &mut self,
+        tensors: &std::collections::HashMap<String, Tensor>,
+        step: u64,
+    ) -> Result<()> {
+        for (k, var, m, v) in &mut self.params {
+            for (prefix, slot) in [("m", &mut *m), ("v", &mut *v)] {
+                let saved =
+                    tensors
+                        .get(&format!("{prefix}.{k}"))
+                        .ok_or(DiffusionError::Invalid(
+                            "optimizer state misses a parameter",
+                        ))?;
+                if saved.dims() != var.as_tensor().dims() {
+                    return Err(DiffusionError::Invalid("optimizer state has a wrong shape"));
+                }
+                *slot = saved.to_dtype(var.dtype())?.to_device(var.device())?;
+            }
+        }
+        self.step = step;
+        Ok(())
+    }
+}
+
+/// The official `WarmupCosineRestarts` learning rate at iteration `it` (0-based): linear warm-up
+/// from `warmup_init` to `base` over `warmup` iterations, then cosine annealing to 0 restarting
+/// every `period` iterations.
+pub fn learning_rate(it: u64, base: f64, warmup_init: f64, warmup: u64, period: u64) -> f64 {
+    if it < warmup {
+        return warmup_init + (base - warmup_init) * it as f64 / warmup.max(1) as f64;
+    }
+    let period = period.max(1);
+    let phase = ((it - warmup) % period) as f64 / period as f64;
+    0.5 * base * (1.0 + (std::f64::consts::PI * phase).cos())
 }

@@ -5,10 +5,8 @@
 #![allow(clippy::unwrap_used)]
 
 use candle_core::{DType, Device, IndexOp, Tensor, Var};
-use candle_nn::Optimizer;
-use candle_nn::optim::{AdamW, ParamsAdamW};
 use posediff_diffusion::checkpoint::Checkpoint;
-use posediff_diffusion::train::{Trainable, clip_grad_norm, training_forward};
+use posediff_diffusion::train::{AdamW, Trainable, clip_grad_norm, training_forward};
 use posediff_fixtures::tensors::{tensor, values};
 use posediff_fixtures::{SafetensorsFixture, shared_path};
 
@@ -155,18 +153,8 @@ fn training_step_matches_the_official_one() {
     );
 
     // One AdamW step with torch's defaults (weight decay 0.01 on every parameter).
-    let mut opt = AdamW::new(
-        vars,
-        ParamsAdamW {
-            lr: 1e-4,
-            beta1: 0.9,
-            beta2: 0.999,
-            eps: 1e-8,
-            weight_decay: 0.01,
-        },
-    )
-    .unwrap();
-    opt.step(&grads).unwrap();
+    let mut opt = AdamW::new(s.trainable.named_variables()).unwrap();
+    opt.step(&grads, 1e-4).unwrap();
     for key in KEYS {
         let v = var_of(&s.trainable, key);
         let ours = stored_rows(&s.fx, key, v.as_tensor());

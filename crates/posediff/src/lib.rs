@@ -6,6 +6,7 @@
 //! - [`loader`]: the official image loader (sorted files, centre crop, 224 px).
 //! - [`export`]: cameras.json, COLMAP text, nerfstudio and PyTorch3D writers and readers.
 //! - [`pipeline`]: [`Estimator`], images to cameras.
+//! - [`train`]: training on CO3D-layout data (frozen backbone, cached features).
 //! - [`plot`]: camera frusta from above and from the side, against the ground truth.
 #![deny(missing_docs)]
 #![forbid(unsafe_code)]
@@ -18,6 +19,7 @@ pub mod geometric;
 pub mod loader;
 pub mod pipeline;
 pub mod plot;
+pub mod train;
 
 pub use error::{PosediffError, Result};
 pub use pipeline::{Estimate, EstimateConfig, Estimator, GgsHook, Progress, Silent, StageTimes};

@@ -120,6 +120,52 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
     },
+    /// Train on CO3D-layout data (e.g. `cargo xtask synth` output): the official recipe with a
+    /// frozen backbone whose features are computed once.
+    Train {
+        /// CO3D root (image paths of the annotations are relative to it).
+        #[arg(long)]
+        co3d_dir: PathBuf,
+        /// Folder of `{category}_{split}.jgz`.
+        #[arg(long)]
+        annotation_dir: PathBuf,
+        /// Comma-separated categories.
+        #[arg(long)]
+        categories: String,
+        /// Checkpoint folder (model.safetensors, optimizer.safetensors, trainer.json, loss.csv,
+        /// loss.png).
+        #[arg(long)]
+        out: PathBuf,
+        /// Settings: `tiny` (a CPU-sized run) or `official` (cfgs/default_train.yaml).
+        #[arg(long, default_value = "tiny")]
+        config: String,
+        /// Initial weights in the official layout (e.g. the official checkpoint to fine-tune, or
+        /// ../shared/reference/tiny/model_tiny.safetensors for the tiny network).
+        #[arg(long)]
+        init: Option<PathBuf>,
+        /// Keep the backbone fixed and cache its features (required for now).
+        #[arg(long)]
+        freeze_backbone: bool,
+        /// Continue the run saved in --out.
+        #[arg(long)]
+        resume: bool,
+        /// Override the iteration count of the preset.
+        #[arg(long)]
+        iterations: Option<u64>,
+        /// Stop after this many iterations of this invocation (the schedule still spans
+        /// --iterations; --resume continues).
+        #[arg(long)]
+        stop_after: Option<u64>,
+        /// Annotation split.
+        #[arg(long, default_value = "train")]
+        split: String,
+        /// Where the network runs.
+        #[arg(long, value_enum, default_value = "cpu")]
+        device: DeviceArg,
+        /// No progress bar.
+        #[arg(long)]
+        quiet: bool,
+    },
     /// Convert a COLMAP text model (cameras.txt, images.txt) to cameras.json, e.g. for
     /// `estimate --init`: with --images, one entry per image of that folder in its order
     /// (images COLMAP did not register are marked not estimated).
@@ -213,6 +259,99 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Estimate(args) => args,
         Command::Plot { cameras, gt, out } => return plot(&cameras, gt.as_deref(), &out),
         Command::Score { cameras, gt, out } => return score(&cameras, &gt, out.as_deref()),
+        Command::Train {
+            co3d_dir,
+            annotation_dir,
+            categories,
+            out,
+            config,
+            init,
+            freeze_backbone,
+            resume,
+            iterations,
+            stop_after,
+            split,
+            device,
+            quiet,
+        } => {
+            let mut cfg = match config.as_str() {
+                "tiny" => posediff::train::TrainConfig::tiny(),
+                "official" => posediff::train::TrainConfig::official(),
+                other => bail!("unknown --config {other:?} (tiny or official)"),
+            };
+            if let Some(k) = iterations {
+                cfg.iterations = k;
+                cfg.period = cfg.period.min(k.max(1));
+            }
+            let device = match device {
+                DeviceArg::Cpu => Device::Cpu,
+                DeviceArg::Cuda => Device::new_cuda(0)
+                    .context("--device cuda needs a CUDA build (feature `cuda`) and a GPU")?,
+            };
+            let init = match (&init, resume) {
+                (Some(i), _) => i.clone(),
+                (None, true) => out.join("model.safetensors"),
+                (None, false) => bail!(
+                    "give --init: random initialisation is not implemented yet (the tiny network: ../shared/reference/tiny/model_tiny.safetensors)"
+                ),
+            };
+            let mut trainer =
+                posediff::train::Trainer::open(&init, &out, cfg, freeze_backbone, resume, &device)?;
+            if let (true, Some(k)) = (resume, iterations) {
+                // A resumed run keeps its schedule; only its length changes.
+                trainer.state.config.iterations = k;
+            }
+            let list: Vec<String> = categories
+                .split(',')
+                .map(|c| c.trim().to_owned())
+                .filter(|c| !c.is_empty())
+                .collect();
+            let bar = if quiet {
+                indicatif::ProgressBar::hidden()
+            } else {
+                indicatif::ProgressBar::new(0)
+            };
+            if let Ok(style) = indicatif::ProgressStyle::with_template(
+                "{msg:>12} [{bar:40}] {pos}/{len} {elapsed}",
+            ) {
+                bar.set_style(style.progress_chars("=> "));
+            }
+            bar.set_message("features");
+            let data = posediff::train::load_training_data(
+                &co3d_dir,
+                &annotation_dir,
+                &list,
+                &split,
+                trainer.state.config.min_frames,
+                &trainer.trainable.model,
+                &device,
+                |done, total| {
+                    bar.set_length(total as u64);
+                    bar.set_position(done as u64);
+                },
+            )?;
+            bar.set_length(trainer.state.config.iterations);
+            bar.set_position(trainer.state.iteration);
+            bar.set_message("training");
+            trainer.run(&data, stop_after, |row, images_per_s| {
+                bar.set_position(row.iteration + 1);
+                bar.set_message(format!(
+                    "loss {:.4} lr {:.1e} {:.0} img/s",
+                    row.loss, row.lr, images_per_s
+                ));
+            })?;
+            bar.finish_and_clear();
+            if !quiet {
+                println!(
+                    "{} sequences; iteration {} of {}; checkpoint in {}",
+                    data.len(),
+                    trainer.state.iteration,
+                    trainer.state.config.iterations,
+                    out.display()
+                );
+            }
+            return Ok(());
+        }
         Command::ImportColmap { model, images, out } => {
             let entries = match images {
                 Some(dir) => {

@@ -1,0 +1,503 @@
+//! Training PoseDiffusion on CO3D-layout data (`posediff train`, `cargo xtask train`; SPEC.md
+//! §7.2, `train.py`).
+//!
+//! Per iteration: one frame count `n ∈ [3, max_frames]`, `⌊images_per_batch / n⌋` sequences
+//! (with replacement) of `n` random frames each (without replacement), the ground truth of each
+//! set normalised as the official dataset does (camera 0's PyTorch3D frame, optical-axis
+//! scale) and encoded; `batch_repeat` draws of `(t, ε)` per set (one `t` per set); the L1
+//! ε-prediction loss; `clip_grad_norm_(1.0)`; torch's AdamW under the warm-up + cosine-restarts
+//! schedule. The random numbers of iteration `k` come from a generator seeded by
+//! `(seed, k)`, so a resumed run continues exactly as an uninterrupted one.
+//!
+//! With a frozen backbone the features of every frame are computed once (official centre crop,
+//! the test-time loader) and cached: the practical mode on a CPU. Training the backbone with
+//! the official bbox and colour jitter is not implemented yet and is refused.
+//!
+//! A checkpoint folder holds `model.safetensors` (official keys, schedule buffers included:
+//! `posediff estimate --weights` and PyTorch load it), `optimizer.safetensors` (AdamW moments),
+//! `trainer.json` (iteration, settings), `loss.csv` and `loss.png`.
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use candle_core::{DType, Device, Tensor};
+use posediff_diffusion::checkpoint::Checkpoint;
+use posediff_diffusion::train::{AdamW, Trainable, clip_grad_norm, denoising_loss, learning_rate};
+use posediff_geometry::{Camera, PoseEncoding, QuaternionSign};
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+use rand_distr::{Distribution, StandardNormal};
+use serde::{Deserialize, Serialize};
+
+use crate::co3d::{frame_path, load_annotations, usable_sequences};
+use crate::error::{PosediffError, Result};
+use crate::loader::load_images;
+
+/// Training settings.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrainConfig {
+    /// `tiny` or `official`.
+    pub preset: String,
+    /// Peak learning rate.
+    pub lr: f64,
+    /// Learning rate at the start of the warm-up.
+    pub warmup_init: f64,
+    /// Warm-up iterations.
+    pub warmup: u64,
+    /// Cosine period (restarts) in iterations.
+    pub period: u64,
+    /// Largest frame count per set.
+    pub max_frames: usize,
+    /// Images per batch (`⌊images_per_batch / n⌋` sets).
+    pub images_per_batch: usize,
+    /// `(t, ε)` draws per set.
+    pub batch_repeat: usize,
+    /// Iterations in all.
+    pub iterations: u64,
+    /// Gradient-norm clip.
+    pub clip: f64,
+    /// Sequences with fewer frames are skipped.
+    pub min_frames: usize,
+    /// Seed of the sampling.
+    pub seed: u64,
+    /// Write a checkpoint every this many iterations (and at the end).
+    pub checkpoint_every: u64,
+}
+
+impl TrainConfig {
+    /// The official recipe (`cfgs/default_train.yaml`): lr 1e-4, 10 % warm-up from 1e-7, cosine
+    /// restarts every 50 epochs of 16384 batches, 3–50 frames, 512 images per batch, batch repeat
+    /// 90, 100 epochs, sequences of ≥ 50 frames.
+    pub fn official() -> Self {
+        let epoch = 16_384;
+        Self {
+            preset: "official".into(),
+            lr: 1e-4,
+            warmup_init: 1e-7,
+            warmup: 5 * epoch,
+            period: 50 * epoch,
+            max_frames: 50,
+            images_per_batch: 512,
+            batch_repeat: 90,
+            iterations: 100 * epoch,
+            clip: 1.0,
+            min_frames: 50,
+            seed: 0,
+            checkpoint_every: epoch,
+        }
+    }
+
+    /// A CPU-sized run: lr 5e-4 after 100 warm-up iterations, one cosine period, 3–10 frames,
+    /// 40 images per batch, batch repeat 4, sequences of ≥ 10 frames.
+    pub fn tiny() -> Self {
+        Self {
+            preset: "tiny".into(),
+            lr: 5e-4,
+            warmup_init: 1e-6,
+            warmup: 100,
+            period: 2_000,
+            max_frames: 10,
+            images_per_batch: 40,
+            batch_repeat: 4,
+            iterations: 2_000,
+            clip: 1.0,
+            min_frames: 10,
+            seed: 0,
+            checkpoint_every: 500,
+        }
+    }
+}
+
+/// One training sequence: its frames' cameras (the 224 crop, OpenCV) and cached features.
+#[derive(Debug, Clone)]
+pub struct TrainSequence {
+    /// Sequence name.
+    pub name: String,
+    /// Camera of each frame's 224 crop.
+    pub cameras: Vec<Camera>,
+    /// Features `(F, 384)` of the frames.
+    pub features: Tensor,
+}
+
+#[allow(clippy::too_many_arguments)] // the data's location, selection and the model to encode it
+/// Reads the `{category}_{split}.jgz` annotations and computes every usable frame's features
+/// with `model`'s (frozen) backbone, `chunk` images at a time.
+///
+/// # Errors
+/// Unreadable annotations or images, no usable sequence, model errors.
+pub fn load_training_data(
+    co3d_dir: &Path,
+    annotation_dir: &Path,
+    categories: &[String],
+    split: &str,
+    min_frames: usize,
+    model: &posediff_diffusion::PoseDiffusionModel,
+    device: &Device,
+    mut progress: impl FnMut(usize, usize),
+) -> Result<Vec<TrainSequence>> {
+    let mut all = Vec::new();
+    for category in categories {
+        let sequences = load_annotations(&annotation_dir.join(format!("{category}_{split}.jgz")))?;
+        all.extend(
+            usable_sequences(&sequences, min_frames)
+                .into_iter()
+                .cloned(),
+        );
+    }
+    if all.is_empty() {
+        return Err(PosediffError::InvalidArgument(format!(
+            "no {split} sequence with at least {min_frames} frames in {}",
+            annotation_dir.display()
+        )));
+    }
+    let total = all.len();
+    let mut out = Vec::with_capacity(total);
+    for (k, seq) in all.iter().enumerate() {
+        let paths: Vec<PathBuf> = seq.frames.iter().map(|f| frame_path(co3d_dir, f)).collect();
+        let mut features = Vec::new();
+        let mut cameras = Vec::new();
+        for (chunk_paths, chunk_frames) in paths.chunks(16).zip(seq.frames.chunks(16)) {
+            let loaded = load_images(chunk_paths)?;
+            for (l, f) in loaded.iter().zip(chunk_frames) {
+                cameras.push(f.crop_camera(l.size)?);
+            }
+            let pixels: Vec<f32> = loaded
+                .iter()
+                .flat_map(|l| l.pixels.iter().copied())
+                .collect();
+            let side = posediff_geometry::MODEL_INPUT_SIDE as usize;
+            let images = Tensor::from_vec(pixels, (1, loaded.len(), 3, side, side), device)?;
+            features.push(model.image_features(&images)?.squeeze(0)?.detach());
+        }
+        out.push(TrainSequence {
+            name: seq.name.clone(),
+            cameras,
+            features: Tensor::cat(&features, 0)?,
+        });
+        progress(k + 1, total);
+    }
+    Ok(out)
+}
+
+/// Encodings `(n, 9)` of a set of crop cameras, normalised as the official dataset does.
+fn normalised_encodings(cameras: &[Camera]) -> Result<Vec<f32>> {
+    let canonical = posediff_geometry::normalize::canonicalize(cameras)
+        .or_else(|_| posediff_geometry::normalize::canonicalize_without_optical_axis(cameras))?;
+    Ok(canonical
+        .cameras
+        .iter()
+        .map(|c| PoseEncoding::from_camera(c, QuaternionSign::default()).map(|e| e.0))
+        .collect::<std::result::Result<Vec<_>, _>>()?
+        .into_iter()
+        .flatten()
+        .map(|v| v as f32)
+        .collect())
+}
+
+/// The generator of iteration `it`.
+fn iteration_rng(seed: u64, it: u64) -> StdRng {
+    StdRng::seed_from_u64(seed ^ (it + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15))
+}
+
+/// One batch: features `(B, n, 384)` and normalised encodings `(B, n, 9)`.
+fn sample_batch(
+    data: &[TrainSequence],
+    config: &TrainConfig,
+    rng: &mut StdRng,
+    device: &Device,
+) -> Result<(Tensor, Tensor)> {
+    let longest = data.iter().map(|s| s.cameras.len()).max().unwrap_or(0);
+    let top = config.max_frames.min(longest);
+    if top < 3 {
+        return Err(PosediffError::InvalidArgument(
+            "training needs sequences of at least 3 frames".into(),
+        ));
+    }
+    let n = rng.random_range(3..=top);
+    let eligible: Vec<&TrainSequence> = data.iter().filter(|s| s.cameras.len() >= n).collect();
+    let sets = (config.images_per_batch / n).max(1);
+    let (mut z, mut x0) = (Vec::with_capacity(sets), Vec::with_capacity(sets * n * 9));
+    for _ in 0..sets {
+        let seq = eligible[rng.random_range(0..eligible.len())];
+        let ids = rand::seq::index::sample(rng, seq.cameras.len(), n).into_vec();
+        let cams: Vec<Camera> = ids.iter().map(|&i| seq.cameras[i]).collect();
+        x0.extend(normalised_encodings(&cams)?);
+        let index = Tensor::from_vec(
+            ids.iter().map(|&i| i as u32).collect::<Vec<u32>>(),
+            n,
+            device,
+        )?;
+        z.push(seq.features.index_select(&index, 0)?);
+    }
+    Ok((
+        Tensor::stack(&z, 0)?,
+        Tensor::from_vec(x0, (sets, n, 9), device)?,
+    ))
+}
+
+/// One logged iteration.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct LogRow {
+    /// Iteration (0-based).
+    pub iteration: u64,
+    /// L1 loss.
+    pub loss: f64,
+    /// Learning rate used.
+    pub lr: f64,
+    /// Gradient norm before clipping.
+    pub grad_norm: f64,
+    /// Sets × frames in the batch (before the repeat).
+    pub images: usize,
+}
+
+/// What `trainer.json` holds.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct TrainerState {
+    /// Iterations done.
+    pub iteration: u64,
+    /// Settings.
+    pub config: TrainConfig,
+    /// The checkpoint the run started from.
+    pub init: PathBuf,
+    /// Whether the backbone was frozen.
+    pub freeze_backbone: bool,
+}
+
+/// A training run: the model, its optimizer and where it saves.
+pub struct Trainer {
+    /// Model variables.
+    pub trainable: Trainable,
+    /// Optimizer over the trained variables.
+    pub optimizer: AdamW,
+    /// Settings and progress.
+    pub state: TrainerState,
+    /// The loss log so far.
+    pub log: Vec<LogRow>,
+    /// Schedule buffers of the initial checkpoint (saved with the model).
+    buffers: HashMap<String, Tensor>,
+    out: PathBuf,
+    device: Device,
+}
+
+impl std::fmt::Debug for Trainer {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Trainer")
+            .field("iteration", &self.state.iteration)
+            .field("out", &self.out)
+            .finish()
+    }
+}
+
+fn io_err(path: &Path, source: std::io::Error) -> PosediffError {
+    PosediffError::Write {
+        path: path.to_owned(),
+        source,
+    }
+}
+
+impl Trainer {
+    /// A new run from `init` (official layout) writing to `out`, or, with `resume`, the run
+    /// saved in `out` continued.
+    ///
+    /// # Errors
+    /// Unreadable checkpoints or state, an unfrozen backbone (not implemented).
+    pub fn open(
+        init: &Path,
+        out: &Path,
+        config: TrainConfig,
+        freeze_backbone: bool,
+        resume: bool,
+        device: &Device,
+    ) -> Result<Self> {
+        if !freeze_backbone {
+            return Err(PosediffError::InvalidArgument(
+                "training the backbone (with the official bbox and colour jitter) is not \
+                 implemented yet: use --freeze-backbone"
+                    .into(),
+            ));
+        }
+        let state_path = out.join("trainer.json");
+        let (weights, state, log) = if resume {
+            let text = crate::error::read_text(&state_path)?;
+            let state: TrainerState =
+                serde_json::from_str(&text).map_err(|e| PosediffError::invalid(&state_path, e))?;
+            let log = read_log(&out.join("loss.csv"))?
+                .into_iter()
+                .filter(|r| r.iteration < state.iteration)
+                .collect();
+            (out.join("model.safetensors"), state, log)
+        } else {
+            let state = TrainerState {
+                iteration: 0,
+                config,
+                init: init.to_owned(),
+                freeze_backbone,
+            };
+            (init.to_owned(), state, Vec::new())
+        };
+        let checkpoint = Checkpoint::load(&weights, device)?;
+        let buffers = checkpoint
+            .tensor_map()
+            .iter()
+            .filter(|(k, _)| !posediff_diffusion::train::is_parameter(k))
+            .map(|(k, t)| (k.clone(), t.clone()))
+            .collect();
+        let trainable = Trainable::from_checkpoint(&checkpoint, device)?;
+        let trained: Vec<_> = trainable
+            .named_variables()
+            .into_iter()
+            .filter(|(k, _)| !freeze_backbone || k.starts_with("diffuser."))
+            .collect();
+        let mut optimizer = AdamW::new(trained)?;
+        if resume {
+            let path = out.join("optimizer.safetensors");
+            let tensors = candle_core::safetensors::load(&path, device)?;
+            optimizer.load_state(&tensors, state.iteration)?;
+        }
+        Ok(Self {
+            trainable,
+            optimizer,
+            state,
+            log,
+            buffers,
+            out: out.to_owned(),
+            device: device.clone(),
+        })
+    }
+
+    /// Runs iterations until `config.iterations` (or `stop_after` more), saving checkpoints;
+    /// `on_step` sees every logged row.
+    ///
+    /// # Errors
+    /// Tensor and I/O errors.
+    pub fn run(
+        &mut self,
+        data: &[TrainSequence],
+        stop_after: Option<u64>,
+        mut on_step: impl FnMut(&LogRow, f64),
+    ) -> Result<()> {
+        let config = self.state.config.clone();
+        let device = self.device.clone();
+        let end = stop_after.map_or(config.iterations, |k| {
+            (self.state.iteration + k).min(config.iterations)
+        });
+        let steps = self.trainable.model.schedule.len();
+        while self.state.iteration < end {
+            let it = self.state.iteration;
+            let start = Instant::now();
+            let mut rng = iteration_rng(config.seed, it);
+            let (z, x0) = sample_batch(data, &config, &mut rng, &device)?;
+            let (sets, n, _) = x0.dims3()?;
+            let r = config.batch_repeat.max(1);
+            let z = z.repeat((r, 1, 1))?;
+            let x0 = x0.repeat((r, 1, 1))?;
+            let t: Vec<usize> = (0..sets * r).map(|_| rng.random_range(0..steps)).collect();
+            let noise: Vec<f32> = (0..sets * r * n * 9)
+                .map(|_| StandardNormal.sample(&mut rng))
+                .collect();
+            let noise = Tensor::from_vec(noise, (sets * r, n, 9), &device)?;
+            let model = &self.trainable.model;
+            let (_, _, loss) =
+                denoising_loss(&model.denoiser, &model.schedule, &z, &x0, &t, &noise)?;
+            let mut grads = loss.backward()?;
+            let (grad_norm, _) = clip_grad_norm(&mut grads, &self.optimizer.vars(), config.clip)?;
+            let lr = learning_rate(
+                it,
+                config.lr,
+                config.warmup_init,
+                config.warmup,
+                config.period,
+            );
+            self.optimizer.step(&grads, lr)?;
+            let row = LogRow {
+                iteration: it,
+                loss: f64::from(loss.to_dtype(DType::F32)?.to_scalar::<f32>()?),
+                lr,
+                grad_norm,
+                images: sets * n,
+            };
+            self.log.push(row);
+            self.state.iteration += 1;
+            let seconds = start.elapsed().as_secs_f64();
+            on_step(&row, (sets * n * r) as f64 / seconds.max(1e-9));
+            if self
+                .state
+                .iteration
+                .is_multiple_of(config.checkpoint_every.max(1))
+                || self.state.iteration == end
+            {
+                self.save()?;
+            }
+        }
+        Ok(())
+    }
+
+    /// Writes the checkpoint folder.
+    ///
+    /// # Errors
+    /// I/O errors; a model that no longer validates.
+    pub fn save(&self) -> Result<()> {
+        std::fs::create_dir_all(&self.out).map_err(|e| io_err(&self.out, e))?;
+        let mut tensors: Vec<(String, Tensor)> = self
+            .trainable
+            .named_variables()
+            .into_iter()
+            .map(|(k, v)| (k, v.as_tensor().clone()))
+            .collect();
+        tensors.extend(self.buffers.iter().map(|(k, t)| (k.clone(), t.clone())));
+        Checkpoint::from_tensors(tensors)?.save_safetensors(&self.out.join("model.safetensors"))?;
+        let state: HashMap<String, Tensor> = self.optimizer.state_tensors().into_iter().collect();
+        candle_core::safetensors::save(&state, self.out.join("optimizer.safetensors"))?;
+        let json = serde_json::to_string_pretty(&self.state)?;
+        std::fs::write(self.out.join("trainer.json"), json)
+            .map_err(|e| io_err(&self.out.join("trainer.json"), e))?;
+        write_log(&self.out.join("loss.csv"), &self.log)?;
+        crate::plot::plot_loss(&self.out.join("loss.png"), &self.log)?;
+        Ok(())
+    }
+}
+
+/// Writes the loss log as CSV.
+///
+/// # Errors
+/// I/O errors.
+pub fn write_log(path: &Path, rows: &[LogRow]) -> Result<()> {
+    let mut text = String::from("iteration,loss,lr,grad_norm,images\n");
+    for r in rows {
+        text.push_str(&format!(
+            "{},{:e},{:e},{:e},{}\n",
+            r.iteration, r.loss, r.lr, r.grad_norm, r.images
+        ));
+    }
+    std::fs::write(path, text).map_err(|e| io_err(path, e))
+}
+
+/// Reads a loss log written by [`write_log`].
+///
+/// # Errors
+/// Unreadable or malformed files.
+pub fn read_log(path: &Path) -> Result<Vec<LogRow>> {
+    let text = crate::error::read_text(path)?;
+    text.lines()
+        .skip(1)
+        .filter(|l| !l.trim().is_empty())
+        .map(|line| {
+            let f: Vec<&str> = line.split(',').collect();
+            let bad = || PosediffError::InvalidFile {
+                path: path.to_owned(),
+                reason: format!("malformed log line {line:?}"),
+            };
+            if f.len() != 5 {
+                return Err(bad());
+            }
+            Ok(LogRow {
+                iteration: f[0].parse().map_err(|_| bad())?,
+                loss: f[1].parse().map_err(|_| bad())?,
+                lr: f[2].parse().map_err(|_| bad())?,
+                grad_norm: f[3].parse().map_err(|_| bad())?,
+                images: f[4].parse().map_err(|_| bad())?,
+            })
+        })
+        .collect()
+}
