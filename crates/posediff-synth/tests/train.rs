@@ -1,0 +1,147 @@
+//! Training on synthetic data: a resumed run continues with exactly the loss curve of an
+//! uninterrupted one, and the checkpoint it writes loads in `posediff estimate`.
+#![allow(clippy::unwrap_used)]
+
+use std::path::{Path, PathBuf};
+
+use candle_core::Device;
+use posediff::train::{LogRow, TrainConfig, Trainer, load_training_data, read_log};
+use posediff::{EstimateConfig, Estimator};
+use posediff_geometry::ImageSize;
+use posediff_synth::{DatasetSpec, write_dataset};
+
+fn temp(tag: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("posediff-train-{tag}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    d
+}
+
+fn tiny_model() -> PathBuf {
+    posediff_fixtures::shared_path("reference/tiny/model_tiny.safetensors")
+}
+
+fn config() -> TrainConfig {
+    TrainConfig {
+        iterations: 4,
+        period: 4,
+        warmup: 1,
+        images_per_batch: 12,
+        batch_repeat: 2,
+        max_frames: 5,
+        min_frames: 5,
+        checkpoint_every: 100,
+        ..TrainConfig::tiny()
+    }
+}
+
+/// Runs `config()` in `out`, `split` iterations first and the rest after a resume (or all at
+/// once with `None`); returns the log.
+fn run(data_dir: &Path, out: &Path, split: Option<u64>) -> Vec<LogRow> {
+    let device = Device::Cpu;
+    let mut trainer = Trainer::open(&tiny_model(), out, config(), true, false, &device).unwrap();
+    let data = load_training_data(
+        data_dir,
+        data_dir,
+        &["synthetic".to_owned()],
+        "train",
+        5,
+        &trainer.trainable.model,
+        &device,
+        |_, _| {},
+    )
+    .unwrap();
+    trainer.run(&data, split, |_, _| {}).unwrap();
+    if let Some(done) = split {
+        drop(trainer);
+        let mut resumed = Trainer::open(&tiny_model(), out, config(), true, true, &device).unwrap();
+        assert_eq!(resumed.state.iteration, done);
+        resumed.run(&data, None, |_, _| {}).unwrap();
+        return resumed.log.clone();
+    }
+    trainer.log.clone()
+}
+
+#[test]
+fn a_resumed_run_repeats_the_uninterrupted_loss_curve_and_its_checkpoint_loads() {
+    let data = temp("data");
+    write_dataset(
+        &data,
+        &DatasetSpec {
+            sequences: 3,
+            frames: 6,
+            seed: 9,
+            sizes: vec![ImageSize::new(160, 120).unwrap()],
+            test_every: 0,
+        },
+    )
+    .unwrap();
+    let (a, b) = (temp("a"), temp("b"));
+    let straight = run(&data, &a, None);
+    let resumed = run(&data, &b, Some(2));
+    assert_eq!(straight.len(), 4);
+    assert_eq!(resumed.len(), 4);
+    for (x, y) in straight.iter().zip(&resumed) {
+        assert_eq!(x.iteration, y.iteration);
+        assert_eq!(x.images, y.images);
+        assert!(
+            (x.loss - y.loss).abs() <= 1e-6 * x.loss.abs(),
+            "{x:?} vs {y:?}"
+        );
+        assert_eq!(x.lr, y.lr);
+    }
+    // The files say the same.
+    assert_eq!(read_log(&b.join("loss.csv")).unwrap().len(), 4);
+    assert!(b.join("loss.png").is_file());
+
+    // The trained checkpoint is in the official layout: the estimator loads and runs it.
+    let estimator = Estimator::load(
+        &b.join("model.safetensors"),
+        Device::Cpu,
+        EstimateConfig {
+            ggs: false,
+            ..EstimateConfig::default()
+        },
+    )
+    .unwrap();
+    let dir = data.join("synthetic/synthetic_0000/images");
+    let images: Vec<PathBuf> = (0..3)
+        .map(|i| dir.join(format!("frame{i:06}.png")))
+        .collect();
+    let e = estimator.estimate(&images, None).unwrap();
+    assert_eq!(e.samples[0].len(), 3);
+    // Training moved the denoiser: the saved weights differ from the initial ones.
+    let before =
+        posediff_diffusion::checkpoint::Checkpoint::load(&tiny_model(), &Device::Cpu).unwrap();
+    let after = posediff_diffusion::checkpoint::Checkpoint::load(
+        &b.join("model.safetensors"),
+        &Device::Cpu,
+    )
+    .unwrap();
+    let key = "diffuser.model._last.3.bias";
+    let d = (before.tensor_map()[key]
+        .to_dtype(candle_core::DType::F32)
+        .unwrap()
+        - &after.tensor_map()[key])
+        .unwrap()
+        .abs()
+        .unwrap()
+        .max_all()
+        .unwrap()
+        .to_scalar::<f32>()
+        .unwrap();
+    assert!(d > 0.0);
+    // ... while the frozen backbone did not move.
+    let key = "image_feature_extractor._net.cls_token";
+    let d = (before.tensor_map()[key]
+        .to_dtype(candle_core::DType::F32)
+        .unwrap()
+        - &after.tensor_map()[key])
+        .unwrap()
+        .abs()
+        .unwrap()
+        .max_all()
+        .unwrap()
+        .to_scalar::<f32>()
+        .unwrap();
+    assert_eq!(d, 0.0);
+}
