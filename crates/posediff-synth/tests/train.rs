@@ -45,7 +45,7 @@ fn run(data_dir: &Path, out: &Path, split: Option<u64>) -> Vec<LogRow> {
         &["synthetic".to_owned()],
         "train",
         5,
-        &trainer.trainable.model,
+        Some(&trainer.trainable.model),
         &device,
         |_, _| {},
     )
@@ -144,4 +144,67 @@ fn a_resumed_run_repeats_the_uninterrupted_loss_curve_and_its_checkpoint_loads()
         .to_scalar::<f32>()
         .unwrap();
     assert_eq!(d, 0.0);
+}
+
+#[test]
+fn an_unfrozen_run_trains_the_backbone_on_augmented_batches() {
+    let data = temp("data-unfrozen");
+    write_dataset(
+        &data,
+        &DatasetSpec {
+            sequences: 2,
+            frames: 5,
+            seed: 4,
+            sizes: vec![ImageSize::new(160, 120).unwrap()],
+            test_every: 0,
+        },
+    )
+    .unwrap();
+    let out = temp("unfrozen");
+    let device = Device::Cpu;
+    let cfg = TrainConfig {
+        iterations: 2,
+        images_per_batch: 6,
+        max_frames: 3,
+        batch_repeat: 1,
+        ..config()
+    };
+    let mut trainer = Trainer::open(&tiny_model(), &out, cfg, false, false, &device).unwrap();
+    let seqs = load_training_data(
+        &data,
+        &data,
+        &["synthetic".to_owned()],
+        "train",
+        5,
+        None,
+        &device,
+        |_, _| {},
+    )
+    .unwrap();
+    assert!(seqs.iter().all(|s| s.features.is_none()));
+    trainer.run(&seqs, None, |_, _| {}).unwrap();
+    assert_eq!(trainer.log.len(), 2);
+    assert!(
+        trainer
+            .log
+            .iter()
+            .all(|r| r.loss.is_finite() && r.grad_norm > 0.0)
+    );
+    let before = posediff_diffusion::checkpoint::Checkpoint::load(&tiny_model(), &device).unwrap();
+    let after =
+        posediff_diffusion::checkpoint::Checkpoint::load(&out.join("model.safetensors"), &device)
+            .unwrap();
+    let key = "image_feature_extractor._net.cls_token";
+    let d = (before.tensor_map()[key]
+        .to_dtype(candle_core::DType::F32)
+        .unwrap()
+        - &after.tensor_map()[key])
+        .unwrap()
+        .abs()
+        .unwrap()
+        .max_all()
+        .unwrap()
+        .to_scalar::<f32>()
+        .unwrap();
+    assert!(d > 0.0, "the backbone moved");
 }

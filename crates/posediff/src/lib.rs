@@ -1,5 +1,6 @@
 //! posediff: camera poses from a handful of photos.
 //!
+//! - [`augment`]: the official training augmentation (jittered crops, colour jitter).
 //! - [`bench`](mod@bench): accuracy benchmarks (real sets over subsets, the CO3D test protocol).
 //! - [`co3d`]: CO3Dv2 annotations and the official test protocol's frame choice.
 //! - [`geometric`]: cameras without a checkpoint (two-view geometry, averaging, refinement).
@@ -11,6 +12,7 @@
 #![deny(missing_docs)]
 #![forbid(unsafe_code)]
 
+pub mod augment;
 pub mod bench;
 pub mod co3d;
 pub mod error;

@@ -143,7 +143,9 @@ enum Command {
         /// ../shared/reference/tiny/model_tiny.safetensors for the tiny network).
         #[arg(long)]
         init: Option<PathBuf>,
-        /// Keep the backbone fixed and cache its features (required for now).
+        /// Keep the backbone fixed and cache its features (no augmentation; the practical mode
+        /// on a CPU). Without it every batch is read, augmented as the official dataset does
+        /// and the backbone is trained too.
         #[arg(long)]
         freeze_backbone: bool,
         /// Continue the run saved in --out.
@@ -323,7 +325,10 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 &list,
                 &split,
                 trainer.state.config.min_frames,
-                &trainer.trainable.model,
+                trainer
+                    .state
+                    .freeze_backbone
+                    .then_some(&trainer.trainable.model),
                 &device,
                 |done, total| {
                     bar.set_length(total as u64);

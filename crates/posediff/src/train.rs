@@ -10,8 +10,9 @@
 //! `(seed, k)`, so a resumed run continues exactly as an uninterrupted one.
 //!
 //! With a frozen backbone the features of every frame are computed once (official centre crop,
-//! the test-time loader) and cached: the practical mode on a CPU. Training the backbone with
-//! the official bbox and colour jitter is not implemented yet and is refused.
+//! the test-time loader) and cached: the practical mode on a CPU. Otherwise every batch is read
+//! and augmented as the official dataset does ([`crate::augment`]: jittered square crops, colour
+//! jitter per sequence) and the gradients reach the backbone.
 //!
 //! A checkpoint folder holds `model.safetensors` (official keys, schedule buffers included:
 //! `posediff estimate --weights` and PyTorch load it), `optimizer.safetensors` (AdamW moments),
@@ -30,9 +31,10 @@ use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, StandardNormal};
 use serde::{Deserialize, Serialize};
 
+use crate::augment::{AugmentConfig, SequenceColour, crop_and_resize, crop_camera, jittered_crop};
 use crate::co3d::{frame_path, load_annotations, usable_sequences};
 use crate::error::{PosediffError, Result};
-use crate::loader::load_images;
+use crate::loader::{load_images, read_rgb};
 
 /// Training settings.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -109,30 +111,32 @@ impl TrainConfig {
     }
 }
 
-/// One training sequence: its frames' cameras (the 224 crop, OpenCV) and cached features.
+/// One training sequence: its frames' cameras and, with a frozen backbone, cached features.
 #[derive(Debug, Clone)]
 pub struct TrainSequence {
     /// Sequence name.
     pub name: String,
-    /// Camera of each frame's 224 crop.
+    /// Camera of each frame's official (unjittered) 224 crop.
     pub cameras: Vec<Camera>,
-    /// Features `(F, 384)` of the frames.
-    pub features: Tensor,
+    /// Features `(F, 384)` of those crops (frozen backbone), else `None`.
+    pub features: Option<Tensor>,
+    /// Each frame's image file and camera of the whole image (for the jittered crops).
+    pub frames: Vec<(PathBuf, Camera)>,
 }
 
-#[allow(clippy::too_many_arguments)] // the data's location, selection and the model to encode it
-/// Reads the `{category}_{split}.jgz` annotations and computes every usable frame's features
-/// with `model`'s (frozen) backbone, `chunk` images at a time.
+/// Reads the `{category}_{split}.jgz` annotations; with a frozen backbone (`features`) also
+/// computes every usable frame's features with `model`'s backbone, 16 images at a time.
 ///
 /// # Errors
 /// Unreadable annotations or images, no usable sequence, model errors.
+#[allow(clippy::too_many_arguments)] // the data's location, selection and the model to encode it
 pub fn load_training_data(
     co3d_dir: &Path,
     annotation_dir: &Path,
     categories: &[String],
     split: &str,
     min_frames: usize,
-    model: &posediff_diffusion::PoseDiffusionModel,
+    features: Option<&posediff_diffusion::PoseDiffusionModel>,
     device: &Device,
     mut progress: impl FnMut(usize, usize),
 ) -> Result<Vec<TrainSequence>> {
@@ -155,25 +159,34 @@ pub fn load_training_data(
     let mut out = Vec::with_capacity(total);
     for (k, seq) in all.iter().enumerate() {
         let paths: Vec<PathBuf> = seq.frames.iter().map(|f| frame_path(co3d_dir, f)).collect();
-        let mut features = Vec::new();
+        let mut chunks = Vec::new();
         let mut cameras = Vec::new();
+        let mut frames = Vec::new();
         for (chunk_paths, chunk_frames) in paths.chunks(16).zip(seq.frames.chunks(16)) {
             let loaded = load_images(chunk_paths)?;
-            for (l, f) in loaded.iter().zip(chunk_frames) {
+            for ((l, f), path) in loaded.iter().zip(chunk_frames).zip(chunk_paths) {
                 cameras.push(f.crop_camera(l.size)?);
+                frames.push((path.clone(), f.pytorch3d().to_opencv(l.size)?));
             }
-            let pixels: Vec<f32> = loaded
-                .iter()
-                .flat_map(|l| l.pixels.iter().copied())
-                .collect();
-            let side = posediff_geometry::MODEL_INPUT_SIDE as usize;
-            let images = Tensor::from_vec(pixels, (1, loaded.len(), 3, side, side), device)?;
-            features.push(model.image_features(&images)?.squeeze(0)?.detach());
+            if let Some(model) = features {
+                let pixels: Vec<f32> = loaded
+                    .iter()
+                    .flat_map(|l| l.pixels.iter().copied())
+                    .collect();
+                let side = posediff_geometry::MODEL_INPUT_SIDE as usize;
+                let images = Tensor::from_vec(pixels, (1, loaded.len(), 3, side, side), device)?;
+                chunks.push(model.image_features(&images)?.squeeze(0)?.detach());
+            }
         }
         out.push(TrainSequence {
             name: seq.name.clone(),
             cameras,
-            features: Tensor::cat(&features, 0)?,
+            features: if chunks.is_empty() {
+                None
+            } else {
+                Some(Tensor::cat(&chunks, 0)?)
+            },
+            frames,
         });
         progress(k + 1, total);
     }
@@ -200,13 +213,12 @@ fn iteration_rng(seed: u64, it: u64) -> StdRng {
     StdRng::seed_from_u64(seed ^ (it + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15))
 }
 
-/// One batch: features `(B, n, 384)` and normalised encodings `(B, n, 9)`.
-fn sample_batch(
-    data: &[TrainSequence],
+/// The sets of one batch: per set the sequence and its frame indices.
+fn sample_sets<'d>(
+    data: &'d [TrainSequence],
     config: &TrainConfig,
     rng: &mut StdRng,
-    device: &Device,
-) -> Result<(Tensor, Tensor)> {
+) -> Result<Vec<(&'d TrainSequence, Vec<usize>)>> {
     let longest = data.iter().map(|s| s.cameras.len()).max().unwrap_or(0);
     let top = config.max_frames.min(longest);
     if top < 3 {
@@ -217,22 +229,72 @@ fn sample_batch(
     let n = rng.random_range(3..=top);
     let eligible: Vec<&TrainSequence> = data.iter().filter(|s| s.cameras.len() >= n).collect();
     let sets = (config.images_per_batch / n).max(1);
-    let (mut z, mut x0) = (Vec::with_capacity(sets), Vec::with_capacity(sets * n * 9));
-    for _ in 0..sets {
-        let seq = eligible[rng.random_range(0..eligible.len())];
-        let ids = rand::seq::index::sample(rng, seq.cameras.len(), n).into_vec();
+    Ok((0..sets)
+        .map(|_| {
+            let seq = eligible[rng.random_range(0..eligible.len())];
+            (
+                seq,
+                rand::seq::index::sample(rng, seq.cameras.len(), n).into_vec(),
+            )
+        })
+        .collect())
+}
+
+/// Cached features `(B, n, 384)` and normalised encodings `(B, n, 9)` of the sets.
+fn cached_batch(
+    sets: &[(&TrainSequence, Vec<usize>)],
+    device: &Device,
+) -> Result<(Tensor, Tensor)> {
+    let n = sets.first().map_or(0, |s| s.1.len());
+    let (mut z, mut x0) = (Vec::with_capacity(sets.len()), Vec::new());
+    for (seq, ids) in sets {
         let cams: Vec<Camera> = ids.iter().map(|&i| seq.cameras[i]).collect();
         x0.extend(normalised_encodings(&cams)?);
+        let features = seq.features.as_ref().ok_or_else(|| {
+            PosediffError::InvalidArgument("no cached features: the backbone is not frozen".into())
+        })?;
         let index = Tensor::from_vec(
             ids.iter().map(|&i| i as u32).collect::<Vec<u32>>(),
-            n,
+            ids.len(),
             device,
         )?;
-        z.push(seq.features.index_select(&index, 0)?);
+        z.push(features.index_select(&index, 0)?);
     }
     Ok((
         Tensor::stack(&z, 0)?,
-        Tensor::from_vec(x0, (sets, n, 9), device)?,
+        Tensor::from_vec(x0, (sets.len(), n, 9), device)?,
+    ))
+}
+
+/// Augmented images `(B, n, 3, 224, 224)` (jittered crops, per-sequence colour jitter) and the
+/// normalised encodings `(B, n, 9)` of their crop cameras.
+fn image_batch(
+    sets: &[(&TrainSequence, Vec<usize>)],
+    rng: &mut StdRng,
+    device: &Device,
+) -> Result<(Tensor, Tensor)> {
+    let config = AugmentConfig::default();
+    let side = posediff_geometry::MODEL_INPUT_SIDE;
+    let n = sets.first().map_or(0, |s| s.1.len());
+    let (mut pixels, mut x0) = (Vec::new(), Vec::new());
+    for (seq, ids) in sets {
+        let colour = SequenceColour::draw(&config, rng);
+        let mut cams = Vec::with_capacity(ids.len());
+        for &i in ids {
+            let (path, camera) = &seq.frames[i];
+            let (size, rgb) = read_rgb(path)?;
+            let crop = jittered_crop(size, &config, rng);
+            let mut chw = crop_and_resize(&rgb, size, &crop, side);
+            colour.apply(&mut chw);
+            pixels.extend(chw);
+            cams.push(crop_camera(camera, &crop, side)?);
+        }
+        x0.extend(normalised_encodings(&cams)?);
+    }
+    let s = side as usize;
+    Ok((
+        Tensor::from_vec(pixels, (sets.len(), n, 3, s, s), device)?,
+        Tensor::from_vec(x0, (sets.len(), n, 9), device)?,
     ))
 }
 
@@ -310,13 +372,6 @@ impl Trainer {
         resume: bool,
         device: &Device,
     ) -> Result<Self> {
-        if !freeze_backbone {
-            return Err(PosediffError::InvalidArgument(
-                "training the backbone (with the official bbox and colour jitter) is not \
-                 implemented yet: use --freeze-backbone"
-                    .into(),
-            ));
-        }
         let state_path = out.join("trainer.json");
         let (weights, state, log) = if resume {
             let text = crate::error::read_text(&state_path)?;
@@ -387,7 +442,13 @@ impl Trainer {
             let it = self.state.iteration;
             let start = Instant::now();
             let mut rng = iteration_rng(config.seed, it);
-            let (z, x0) = sample_batch(data, &config, &mut rng, &device)?;
+            let sets = sample_sets(data, &config, &mut rng)?;
+            let (z, x0) = if self.state.freeze_backbone {
+                cached_batch(&sets, &device)?
+            } else {
+                let (images, x0) = image_batch(&sets, &mut rng, &device)?;
+                (self.trainable.model.image_features(&images)?, x0)
+            };
             let (sets, n, _) = x0.dims3()?;
             let r = config.batch_repeat.max(1);
             let z = z.repeat((r, 1, 1))?;
