@@ -311,3 +311,135 @@ pub fn learning_rate(it: u64, base: f64, warmup_init: f64, warmup: u64, period: 
     let phase = ((it - warmup) % period) as f64 / period as f64;
     0.5 * base * (1.0 + (std::f64::consts::PI * phase).cos())
 }
+
+/// A freshly initialised model of `depths` as a validated checkpoint (F32): PyTorch's default
+/// initialisation for the denoiser (`Linear`: weights and biases `U(±1/√fan_in)`;
+/// `MultiheadAttention`: Xavier-uniform `in_proj_weight`, zero projection biases; `LayerNorm`:
+/// 1 and 0), DINO's for the ViT (normal σ = 0.02, truncated at ±2 as timm does, for `Linear`
+/// weights, the position table and the class token; zero biases; the patch convolution
+/// `U(±1/√fan_in)`), and the
+/// official schedule buffers. Deterministic for a seed.
+///
+/// # Errors
+/// Tensor errors.
+pub fn initial_checkpoint(
+    depths: crate::checkpoint::ModelDepths,
+    seed: u64,
+    device: &Device,
+) -> Result<Checkpoint> {
+    use rand::{Rng, SeedableRng};
+    use rand_distr::{Distribution, StandardNormal};
+    let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+    let params = crate::checkpoint::expected_parameters(depths);
+    let shapes: std::collections::HashMap<&str, &Vec<usize>> =
+        params.iter().map(|(k, s)| (k.as_str(), s)).collect();
+    let fan_in = |shape: &[usize]| shape[1..].iter().product::<usize>().max(1) as f64;
+    let mut tensors = Vec::with_capacity(params.len() + 13);
+    for (key, shape) in &params {
+        let count: usize = shape.iter().product();
+        let is_vit = key.starts_with(crate::checkpoint::VIT_PREFIX);
+        let leaf = key.rsplit('.').next().unwrap_or("");
+        let is_norm = key.contains("norm") || key.contains("_last.1.");
+        let uniform = |rng: &mut rand::rngs::StdRng, bound: f64| -> Vec<f32> {
+            (0..count)
+                .map(|_| rng.random_range(-bound..=bound) as f32)
+                .collect()
+        };
+        // timm's `trunc_normal_(std=0.02)` truncates at ±2 in absolute units: 100σ, never hit.
+        let trunc_normal = |rng: &mut rand::rngs::StdRng| -> Vec<f32> {
+            (0..count)
+                .map(|_| {
+                    let v: f64 = StandardNormal.sample(rng);
+                    (0.02 * v).clamp(-2.0, 2.0) as f32
+                })
+                .collect()
+        };
+        let values: Vec<f32> = if is_norm {
+            vec![if leaf == "weight" { 1.0 } else { 0.0 }; count]
+        } else if key.ends_with("in_proj_weight") {
+            let bound = (6.0 / (shape[0] / 3 + shape[1]) as f64).sqrt();
+            uniform(&mut rng, bound)
+        } else if key.ends_with("in_proj_bias") || key.ends_with("out_proj.bias") {
+            vec![0.0; count]
+        } else if is_vit && (leaf == "cls_token" || leaf == "pos_embed") {
+            trunc_normal(&mut rng)
+        } else if is_vit && !key.contains("patch_embed") {
+            if leaf == "weight" {
+                trunc_normal(&mut rng)
+            } else {
+                vec![0.0; count]
+            }
+        } else if leaf == "weight" {
+            uniform(&mut rng, 1.0 / fan_in(shape).sqrt())
+        } else {
+            // A bias: bounded by its weight's fan-in.
+            let weight = format!("{}.weight", key.trim_end_matches(".bias"));
+            let fan = shapes.get(weight.as_str()).map_or(1.0, |s| fan_in(s));
+            uniform(&mut rng, 1.0 / fan.sqrt())
+        };
+        tensors.push((
+            key.clone(),
+            Tensor::from_vec(values, shape.as_slice(), device)?,
+        ));
+    }
+    let schedule = Schedule::official();
+    for (name, values) in crate::checkpoint::SCHEDULE_BUFFERS
+        .iter()
+        .zip(schedule.buffers())
+    {
+        let v: Vec<f32> = values.iter().map(|&x| x as f32).collect();
+        tensors.push((
+            format!("{}.{name}", crate::checkpoint::SCHEDULE_PREFIX),
+            Tensor::from_vec(v, values.len(), device)?,
+        ));
+    }
+    Checkpoint::from_tensors(tensors)
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+    use crate::checkpoint::ModelDepths;
+
+    #[test]
+    fn a_fresh_model_validates_and_has_the_default_statistics() {
+        let depths = ModelDepths {
+            vit_blocks: 1,
+            trunk_layers: 1,
+        };
+        let ckpt = initial_checkpoint(depths, 3, &Device::Cpu).unwrap();
+        let t = ckpt.tensor_map();
+        let stats = |k: &str| {
+            let v: Vec<f32> = t[k].flatten_all().unwrap().to_vec1().unwrap();
+            let max = v.iter().map(|x| x.abs()).fold(0.0f32, f32::max);
+            let sd = (v.iter().map(|x| x * x).sum::<f32>() / v.len() as f32).sqrt();
+            (max, sd)
+        };
+        // Linear 702 → 512: U(±1/√702).
+        let (max, _) = stats("diffuser.model._first.weight");
+        assert!(max <= 1.0 / 702f32.sqrt() && max > 0.9 / 702f32.sqrt());
+        let (_, sd) = stats("image_feature_extractor._net.pos_embed");
+        assert!((sd - 0.02).abs() < 0.002, "{sd}");
+        assert!(stats("diffuser.model._trunk.layers.0.norm1.bias").0 == 0.0);
+        let (max, sd) = stats("diffuser.model._trunk.layers.0.norm1.weight");
+        assert!(max == 1.0 && sd == 1.0);
+        // Deterministic; another seed differs.
+        let again = initial_checkpoint(depths, 3, &Device::Cpu).unwrap();
+        let other = initial_checkpoint(depths, 4, &Device::Cpu).unwrap();
+        let first = |c: &Checkpoint| -> Vec<f32> {
+            c.tensor_map()["diffuser.model._first.bias"]
+                .to_vec1()
+                .unwrap()
+        };
+        assert_eq!(first(&ckpt), first(&again));
+        assert_ne!(first(&ckpt), first(&other));
+        // It runs.
+        let trainable = Trainable::from_checkpoint(&ckpt, &Device::Cpu).unwrap();
+        assert_eq!(trainable.named_variables().len(), expected_count(depths));
+    }
+
+    fn expected_count(depths: ModelDepths) -> usize {
+        crate::checkpoint::expected_parameters(depths).len()
+    }
+}

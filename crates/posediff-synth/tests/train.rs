@@ -38,7 +38,8 @@ fn config() -> TrainConfig {
 /// once with `None`); returns the log.
 fn run(data_dir: &Path, out: &Path, split: Option<u64>) -> Vec<LogRow> {
     let device = Device::Cpu;
-    let mut trainer = Trainer::open(&tiny_model(), out, config(), true, false, &device).unwrap();
+    let mut trainer =
+        Trainer::open(Some(&tiny_model()), out, config(), true, false, &device).unwrap();
     let data = load_training_data(
         data_dir,
         data_dir,
@@ -53,7 +54,8 @@ fn run(data_dir: &Path, out: &Path, split: Option<u64>) -> Vec<LogRow> {
     trainer.run(&data, split, |_, _| {}).unwrap();
     if let Some(done) = split {
         drop(trainer);
-        let mut resumed = Trainer::open(&tiny_model(), out, config(), true, true, &device).unwrap();
+        let mut resumed =
+            Trainer::open(Some(&tiny_model()), out, config(), true, true, &device).unwrap();
         assert_eq!(resumed.state.iteration, done);
         resumed.run(&data, None, |_, _| {}).unwrap();
         return resumed.log.clone();
@@ -147,7 +149,7 @@ fn a_resumed_run_repeats_the_uninterrupted_loss_curve_and_its_checkpoint_loads()
 }
 
 #[test]
-fn an_unfrozen_run_trains_the_backbone_on_augmented_batches() {
+fn a_fresh_unfrozen_run_trains_the_backbone_on_augmented_batches() {
     let data = temp("data-unfrozen");
     write_dataset(
         &data,
@@ -169,7 +171,7 @@ fn an_unfrozen_run_trains_the_backbone_on_augmented_batches() {
         batch_repeat: 1,
         ..config()
     };
-    let mut trainer = Trainer::open(&tiny_model(), &out, cfg, false, false, &device).unwrap();
+    let mut trainer = Trainer::open(None, &out, cfg, false, false, &device).unwrap();
     let seqs = load_training_data(
         &data,
         &data,
@@ -190,7 +192,16 @@ fn an_unfrozen_run_trains_the_backbone_on_augmented_batches() {
             .iter()
             .all(|r| r.loss.is_finite() && r.grad_norm > 0.0)
     );
-    let before = posediff_diffusion::checkpoint::Checkpoint::load(&tiny_model(), &device).unwrap();
+    // A fresh model (no --init) of the tiny depths, the same seed as the run's.
+    let before = posediff_diffusion::train::initial_checkpoint(
+        posediff_diffusion::checkpoint::ModelDepths {
+            vit_blocks: 2,
+            trunk_layers: 2,
+        },
+        TrainConfig::tiny().seed,
+        &device,
+    )
+    .unwrap();
     let after =
         posediff_diffusion::checkpoint::Checkpoint::load(&out.join("model.safetensors"), &device)
             .unwrap();

@@ -140,7 +140,9 @@ enum Command {
         #[arg(long, default_value = "tiny")]
         config: String,
         /// Initial weights in the official layout (e.g. the official checkpoint to fine-tune, or
-        /// ../shared/reference/tiny/model_tiny.safetensors for the tiny network).
+        /// ../shared/reference/tiny/model_tiny.safetensors); without it a fresh model of the
+        /// preset's depths (PyTorch's default initialisation; DINO's for the ViT, so a frozen
+        /// fresh backbone gives random features: fine-tune from pretrained weights instead).
         #[arg(long)]
         init: Option<PathBuf>,
         /// Keep the backbone fixed and cache its features (no augmentation; the practical mode
@@ -290,15 +292,14 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 DeviceArg::Cuda => Device::new_cuda(0)
                     .context("--device cuda needs a CUDA build (feature `cuda`) and a GPU")?,
             };
-            let init = match (&init, resume) {
-                (Some(i), _) => i.clone(),
-                (None, true) => out.join("model.safetensors"),
-                (None, false) => bail!(
-                    "give --init: random initialisation is not implemented yet (the tiny network: ../shared/reference/tiny/model_tiny.safetensors)"
-                ),
-            };
-            let mut trainer =
-                posediff::train::Trainer::open(&init, &out, cfg, freeze_backbone, resume, &device)?;
+            let mut trainer = posediff::train::Trainer::open(
+                init.as_deref(),
+                &out,
+                cfg,
+                freeze_backbone,
+                resume,
+                &device,
+            )?;
             if let (true, Some(k)) = (resume, iterations) {
                 // A resumed run keeps its schedule; only its length changes.
                 trainer.state.config.iterations = k;

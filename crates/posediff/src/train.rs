@@ -65,6 +65,10 @@ pub struct TrainConfig {
     pub seed: u64,
     /// Write a checkpoint every this many iterations (and at the end).
     pub checkpoint_every: u64,
+    /// ViT blocks of a freshly initialised model (without `--init`).
+    pub vit_blocks: usize,
+    /// Denoiser trunk layers of a freshly initialised model.
+    pub trunk_layers: usize,
 }
 
 impl TrainConfig {
@@ -87,11 +91,14 @@ impl TrainConfig {
             min_frames: 50,
             seed: 0,
             checkpoint_every: epoch,
+            vit_blocks: 12,
+            trunk_layers: 8,
         }
     }
 
     /// A CPU-sized run: lr 5e-4 after 100 warm-up iterations, one cosine period, 3–10 frames,
-    /// 40 images per batch, batch repeat 4, sequences of ≥ 10 frames.
+    /// 40 images per batch, batch repeat 4, sequences of ≥ 10 frames; fresh models have the tiny
+    /// fixture's depths (2 ViT blocks, 2 trunk layers).
     pub fn tiny() -> Self {
         Self {
             preset: "tiny".into(),
@@ -107,6 +114,8 @@ impl TrainConfig {
             min_frames: 10,
             seed: 0,
             checkpoint_every: 500,
+            vit_blocks: 2,
+            trunk_layers: 2,
         }
     }
 }
@@ -320,8 +329,8 @@ pub struct TrainerState {
     pub iteration: u64,
     /// Settings.
     pub config: TrainConfig,
-    /// The checkpoint the run started from.
-    pub init: PathBuf,
+    /// The checkpoint the run started from (`None`: freshly initialised).
+    pub init: Option<PathBuf>,
     /// Whether the backbone was frozen.
     pub freeze_backbone: bool,
 }
@@ -359,13 +368,14 @@ fn io_err(path: &Path, source: std::io::Error) -> PosediffError {
 }
 
 impl Trainer {
-    /// A new run from `init` (official layout) writing to `out`, or, with `resume`, the run
+    /// A new run from `init` (official layout; `None`: a fresh model of the preset's depths,
+    /// PyTorch's and DINO's default initialisation) writing to `out`, or, with `resume`, the run
     /// saved in `out` continued.
     ///
     /// # Errors
-    /// Unreadable checkpoints or state, an unfrozen backbone (not implemented).
+    /// Unreadable checkpoints or state.
     pub fn open(
-        init: &Path,
+        init: Option<&Path>,
         out: &Path,
         config: TrainConfig,
         freeze_backbone: bool,
@@ -381,17 +391,27 @@ impl Trainer {
                 .into_iter()
                 .filter(|r| r.iteration < state.iteration)
                 .collect();
-            (out.join("model.safetensors"), state, log)
+            (Some(out.join("model.safetensors")), state, log)
         } else {
             let state = TrainerState {
                 iteration: 0,
                 config,
-                init: init.to_owned(),
+                init: init.map(Path::to_owned),
                 freeze_backbone,
             };
-            (init.to_owned(), state, Vec::new())
+            (init.map(Path::to_owned), state, Vec::new())
         };
-        let checkpoint = Checkpoint::load(&weights, device)?;
+        let checkpoint = match &weights {
+            Some(w) => Checkpoint::load(w, device)?,
+            None => posediff_diffusion::train::initial_checkpoint(
+                posediff_diffusion::checkpoint::ModelDepths {
+                    vit_blocks: state.config.vit_blocks,
+                    trunk_layers: state.config.trunk_layers,
+                },
+                state.config.seed,
+                device,
+            )?,
+        };
         let buffers = checkpoint
             .tensor_map()
             .iter()
