@@ -245,6 +245,7 @@ pub fn plot_loss(png: &Path, rows: &[crate::train::LogRow]) -> Result<()> {
         .configure_mesh()
         .x_desc("iteration")
         .y_desc("loss")
+        .y_label_formatter(&|v| format!("{v:.2}"))
         .draw()
         .map_err(|e| plot_error(png, e))?;
     chart

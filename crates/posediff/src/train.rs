@@ -66,9 +66,16 @@ pub struct TrainConfig {
     /// Write a checkpoint every this many iterations (and at the end).
     pub checkpoint_every: u64,
     /// ViT blocks of a freshly initialised model (without `--init`).
+    #[serde(default = "tiny_depth")]
     pub vit_blocks: usize,
     /// Denoiser trunk layers of a freshly initialised model.
+    #[serde(default = "tiny_depth")]
     pub trunk_layers: usize,
+}
+
+/// Depth of the tiny network (state files written before the depth fields existed).
+fn tiny_depth() -> usize {
+    2
 }
 
 impl TrainConfig {
@@ -506,11 +513,13 @@ impl Trainer {
                 .state
                 .iteration
                 .is_multiple_of(config.checkpoint_every.max(1))
-                || self.state.iteration == end
+                && self.state.iteration < end
             {
                 self.save()?;
             }
         }
+        // At the end, also when nothing was left to do: the files (and the plot) are current.
+        self.save()?;
         Ok(())
     }
 
