@@ -20,6 +20,25 @@ fn tiny_model() -> PathBuf {
     posediff_fixtures::shared_path("reference/tiny/model_tiny.safetensors")
 }
 
+/// The largest change of parameter `key` between two checkpoints.
+fn max_change(
+    before: &posediff_diffusion::checkpoint::Checkpoint,
+    after: &posediff_diffusion::checkpoint::Checkpoint,
+    key: &str,
+) -> f32 {
+    (before.tensor_map()[key]
+        .to_dtype(candle_core::DType::F32)
+        .unwrap()
+        - &after.tensor_map()[key])
+        .unwrap()
+        .abs()
+        .unwrap()
+        .max_all()
+        .unwrap()
+        .to_scalar::<f32>()
+        .unwrap()
+}
+
 fn config() -> TrainConfig {
     TrainConfig {
         iterations: 4,
@@ -120,31 +139,11 @@ fn a_resumed_run_repeats_the_uninterrupted_loss_curve_and_its_checkpoint_loads()
     )
     .unwrap();
     let key = "diffuser.model._last.3.bias";
-    let d = (before.tensor_map()[key]
-        .to_dtype(candle_core::DType::F32)
-        .unwrap()
-        - &after.tensor_map()[key])
-        .unwrap()
-        .abs()
-        .unwrap()
-        .max_all()
-        .unwrap()
-        .to_scalar::<f32>()
-        .unwrap();
+    let d = max_change(&before, &after, key);
     assert!(d > 0.0);
     // ... while the frozen backbone did not move.
     let key = "image_feature_extractor._net.cls_token";
-    let d = (before.tensor_map()[key]
-        .to_dtype(candle_core::DType::F32)
-        .unwrap()
-        - &after.tensor_map()[key])
-        .unwrap()
-        .abs()
-        .unwrap()
-        .max_all()
-        .unwrap()
-        .to_scalar::<f32>()
-        .unwrap();
+    let d = max_change(&before, &after, key);
     assert_eq!(d, 0.0);
 }
 
@@ -206,16 +205,6 @@ fn a_fresh_unfrozen_run_trains_the_backbone_on_augmented_batches() {
         posediff_diffusion::checkpoint::Checkpoint::load(&out.join("model.safetensors"), &device)
             .unwrap();
     let key = "image_feature_extractor._net.cls_token";
-    let d = (before.tensor_map()[key]
-        .to_dtype(candle_core::DType::F32)
-        .unwrap()
-        - &after.tensor_map()[key])
-        .unwrap()
-        .abs()
-        .unwrap()
-        .max_all()
-        .unwrap()
-        .to_scalar::<f32>()
-        .unwrap();
+    let d = max_change(&before, &after, key);
     assert!(d > 0.0, "the backbone moved");
 }

@@ -86,6 +86,21 @@ pub struct ImageCamera {
     pub camera: Option<Camera>,
 }
 
+impl ImageCamera {
+    /// The estimated cameras of `images` as named cameras (the others left out).
+    pub fn estimated(images: &[ImageCamera]) -> Vec<NamedCamera> {
+        images
+            .iter()
+            .filter_map(|e| {
+                e.camera.map(|camera| NamedCamera {
+                    image: e.image.clone(),
+                    camera,
+                })
+            })
+            .collect()
+    }
+}
+
 /// The `cameras.json` entry of an image without a camera.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 struct MissingRecord {

@@ -737,15 +737,7 @@ fn write_outputs(
 ) -> anyhow::Result<()> {
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     write_cameras_json_partial(&out.join("cameras.json"), entries)?;
-    let estimated: Vec<NamedCamera> = entries
-        .iter()
-        .filter_map(|e| {
-            e.camera.map(|camera| NamedCamera {
-                image: e.image.clone(),
-                camera,
-            })
-        })
-        .collect();
+    let estimated = ImageCamera::estimated(entries);
     write_colmap_text(out, &estimated)?;
     write_nerfstudio(&out.join("transforms.json"), &estimated)?;
     let with_crops: Vec<_> = estimated
@@ -866,15 +858,7 @@ fn plot_inputs(
     if keep.iter().filter(|k| **k).count() < 2 {
         bail!("{} has fewer than two estimated cameras", cameras.display());
     }
-    let est_named = est
-        .iter()
-        .filter_map(|e| {
-            e.camera.map(|camera| NamedCamera {
-                image: e.image.clone(),
-                camera,
-            })
-        })
-        .collect();
+    let est_named = ImageCamera::estimated(&est);
     let truth = truth.map(|t| {
         t.into_iter()
             .zip(&keep)

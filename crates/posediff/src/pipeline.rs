@@ -556,9 +556,19 @@ fn known_focal_entries(known: &[Intrinsics], loaded: &[LoadedImage]) -> Result<V
 /// # Errors
 /// Cameras that cannot be normalised or encoded.
 pub fn model_encodings(cameras: &[Camera], device: &Device) -> Result<Tensor> {
+    let flat = normalised_encodings(cameras)?;
+    Ok(Tensor::from_vec(flat, (cameras.len(), 9), device)?)
+}
+
+/// The rows of [`model_encodings`] as `n × 9` values (F32, row-major): what the official
+/// dataset feeds the model as `x0` for a set of crop cameras.
+///
+/// # Errors
+/// Cameras that cannot be normalised or encoded.
+pub fn normalised_encodings(cameras: &[Camera]) -> Result<Vec<f32>> {
     let canonical = posediff_geometry::normalize::canonicalize(cameras)
         .or_else(|_| posediff_geometry::normalize::canonicalize_without_optical_axis(cameras))?;
-    let flat = canonical
+    Ok(canonical
         .cameras
         .iter()
         .map(|c| PoseEncoding::from_camera(c, QuaternionSign::default()).map(|e| e.0))
@@ -566,8 +576,7 @@ pub fn model_encodings(cameras: &[Camera], device: &Device) -> Result<Tensor> {
         .into_iter()
         .flatten()
         .map(|v| v as f32)
-        .collect::<Vec<f32>>();
-    Ok(Tensor::from_vec(flat, (cameras.len(), 9), device)?)
+        .collect())
 }
 
 /// A path relative to `root` when under it, else its file name.

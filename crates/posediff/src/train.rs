@@ -25,7 +25,7 @@ use std::time::Instant;
 use candle_core::{DType, Device, Tensor};
 use posediff_diffusion::checkpoint::Checkpoint;
 use posediff_diffusion::train::{AdamW, Trainable, clip_grad_norm, denoising_loss, learning_rate};
-use posediff_geometry::{Camera, PoseEncoding, QuaternionSign};
+use posediff_geometry::Camera;
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, StandardNormal};
@@ -35,6 +35,7 @@ use crate::augment::{AugmentConfig, SequenceColour, crop_and_resize, crop_camera
 use crate::co3d::{frame_path, load_annotations, usable_sequences};
 use crate::error::{PosediffError, Result};
 use crate::loader::{load_images, read_rgb};
+use crate::pipeline::normalised_encodings;
 
 /// Training settings.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -207,21 +208,6 @@ pub fn load_training_data(
         progress(k + 1, total);
     }
     Ok(out)
-}
-
-/// Encodings `(n, 9)` of a set of crop cameras, normalised as the official dataset does.
-fn normalised_encodings(cameras: &[Camera]) -> Result<Vec<f32>> {
-    let canonical = posediff_geometry::normalize::canonicalize(cameras)
-        .or_else(|_| posediff_geometry::normalize::canonicalize_without_optical_axis(cameras))?;
-    Ok(canonical
-        .cameras
-        .iter()
-        .map(|c| PoseEncoding::from_camera(c, QuaternionSign::default()).map(|e| e.0))
-        .collect::<std::result::Result<Vec<_>, _>>()?
-        .into_iter()
-        .flatten()
-        .map(|v| v as f32)
-        .collect())
 }
 
 /// The generator of iteration `it`.
