@@ -83,42 +83,17 @@ fn main() -> Result<()> {
         "ci" => ci(),
         "setup" => setup(),
         "deps-check" => deps_check(),
-        "bench-matching" => {
-            let rest = caller_args()?;
-            let mut args = vec![
-                "run",
-                "--release",
-                "--quiet",
-                "-p",
-                "posediff-matching",
-                "--example",
-                "bench_matching",
-                "--",
-            ];
-            args.extend(rest.iter().map(String::as_str));
-            run("cargo", &args, &[])
-        }
+        "bench-matching" => cargo_run(
+            &["-p", "posediff-matching", "--example", "bench_matching"],
+            &caller_args()?,
+        ),
         "bench-co3d" | "bench-real" | "train" => {
-            let rest = caller_args()?;
-            let mut args = vec![
-                "run",
-                "--release",
-                "--quiet",
-                "-p",
-                "posediff",
-                "--",
-                task.as_str(),
-            ];
-            args.extend(rest.iter().map(String::as_str));
-            run("cargo", &args, &[])
+            let mut rest = vec![task.clone()];
+            rest.extend(caller_args()?);
+            cargo_run(&["-p", "posediff"], &rest)
         }
         "demo" => demo(),
-        "synth" => {
-            let rest = caller_args()?;
-            let mut args = vec!["run", "--release", "--quiet", "-p", "posediff-synth", "--"];
-            args.extend(rest.iter().map(String::as_str));
-            run("cargo", &args, &[])
-        }
+        "synth" => cargo_run(&["-p", "posediff-synth"], &caller_args()?),
         "convert-checkpoint" => {
             // Paths are the caller's, relative to where they ran the command.
             let cwd = std::env::current_dir()?;
@@ -126,18 +101,15 @@ fn main() -> Result<()> {
                 .skip(2)
                 .map(|a| cwd.join(a).to_string_lossy().into_owned())
                 .collect();
-            let mut args = vec![
-                "run",
-                "--release",
-                "--quiet",
-                "-p",
-                "posediff-diffusion",
-                "--example",
-                "convert_checkpoint",
-                "--",
-            ];
-            args.extend(rest.iter().map(String::as_str));
-            run("cargo", &args, &[])
+            cargo_run(
+                &[
+                    "-p",
+                    "posediff-diffusion",
+                    "--example",
+                    "convert_checkpoint",
+                ],
+                &rest,
+            )
         }
         _ => {
             eprintln!(
@@ -146,6 +118,15 @@ fn main() -> Result<()> {
             bail!("unknown task {task:?}")
         }
     }
+}
+
+/// `cargo run --release --quiet <target…> -- <rest…>` in the workspace root.
+fn cargo_run(target: &[&str], rest: &[String]) -> Result<()> {
+    let mut args = vec!["run", "--release", "--quiet"];
+    args.extend_from_slice(target);
+    args.push("--");
+    args.extend(rest.iter().map(String::as_str));
+    run("cargo", &args, &[])
 }
 
 /// Runs `program args…` in the workspace root, echoing it and its duration.

@@ -179,8 +179,11 @@ pub fn clip_grad_norm(grads: &mut GradStore, vars: &[Var], max_norm: f64) -> Res
     let mut sum = 0.0f64;
     for v in vars {
         if let Some(g) = grads.get(v) {
-            let values: Vec<f64> = g.flatten_all()?.to_dtype(DType::F64)?.to_vec1()?;
-            sum += values.iter().map(|x| x * x).sum::<f64>();
+            sum += g
+                .to_dtype(DType::F64)?
+                .sqr()?
+                .sum_all()?
+                .to_scalar::<f64>()?;
         }
     }
     let norm = sum.sqrt();

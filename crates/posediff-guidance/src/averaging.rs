@@ -40,15 +40,11 @@ pub struct CenterDirection {
     pub second: usize,
     /// Unit vector in the world frame along `C_first − C_second`; `None` for a pair with no
     /// measurable baseline (pure rotation, identical images), which ties the two centres
-    /// together.
+    /// together (one centre for both).
     pub direction: Option<Vector3<f64>>,
     /// Confidence.
     pub weight: f64,
 }
-
-/// Relative weight of a zero-baseline tie against a direction measurement of the same weight:
-/// small, so that it only decides the centre of an image that has no direction measurement.
-pub const ZERO_BASELINE_WEIGHT: f64 = 1e-3;
 
 /// The images of the largest connected component of the graph with `n` nodes and `edges`
 /// (ties: the component with the larger total weight, then the one with the smallest image),
@@ -348,10 +344,18 @@ pub fn average_translations(
     out
 }
 
-/// LUD on direction edges (ties, if any, weigh [`ZERO_BASELINE_WEIGHT`]): the centres of the
-/// images `members`, `C_reference
-/// = 0`; `None` for images outside `members`. Every member must be connected to the reference
-/// through `directions` (zero-baseline ties included).
+/// A direction edge of the (tie-merged) graph: `C_a − C_b ∝ v`, unit `v`.
+#[derive(Debug, Clone, Copy)]
+struct DirectionEdge {
+    a: usize,
+    b: usize,
+    v: Vector3<f64>,
+    weight: f64,
+}
+
+/// LUD on direction edges: the centres of the images `members`, `C_reference = 0`; `None` for
+/// images outside `members`. Every member must be connected to the reference through
+/// `directions` (ties are merged by [`average_translations`] before; any left here are ignored).
 ///
 /// Each IRLS round fixes the weights `w_e / max(‖r_e‖, δ)` and solves the weighted least-squares
 /// problem in the centres and the scales `s_e ≥ 1` jointly by an active-set method (scales at
@@ -371,48 +375,45 @@ fn lud_centres(
     }
     let index = unknown_index(&centers, reference);
     let unknowns = index.iter().filter(|i| i.is_some()).count();
-    let edges: Vec<&CenterDirection> = directions
+    let edges: Vec<DirectionEdge> = directions
         .iter()
         .filter(|d| centers[d.first].is_some() && centers[d.second].is_some())
+        .filter_map(|d| {
+            d.direction.map(|v| DirectionEdge {
+                a: d.first,
+                b: d.second,
+                v,
+                weight: d.weight,
+            })
+        })
         .collect();
     if unknowns == 0 || edges.is_empty() {
         return centers;
     }
-    let base: Vec<f64> = edges
-        .iter()
-        .map(|e| match e.direction {
-            Some(_) => e.weight,
-            None => e.weight * ZERO_BASELINE_WEIGHT,
-        })
-        .collect();
-    let mut weights = base.clone();
-    // Scale of each direction edge: `None` = held at the bound 1.
+    let mut weights: Vec<f64> = edges.iter().map(|e| e.weight).collect();
+    // Whether each edge's scale is free (else held at the bound 1).
     let mut free: Vec<bool> = vec![false; edges.len()];
-    let mut scales: Vec<f64> = edges
-        .iter()
-        .map(|e| if e.direction.is_some() { 1.0 } else { 0.0 })
-        .collect();
     for _ in 0..config.max_iterations {
         let mut solved = None;
         for _ in 0..4 * edges.len() + 4 {
-            let Some(solution) = solve_centres(&edges, &weights, &free, &index, unknowns) else {
+            let Some((new_centres, new_scales)) =
+                solve_centres(&edges, &weights, &free, &index, unknowns)
+            else {
                 break;
             };
-            let (new_centres, new_scales) = solution;
             // Active-set update: free scales that want to shrink below 1 are fixed; fixed ones
             // whose residual pulls outwards are freed.
             let mut changed = false;
             for (k, e) in edges.iter().enumerate() {
-                let Some(v) = e.direction else { continue };
                 if free[k] {
                     if new_scales[k] < 1.0 {
                         free[k] = false;
                         changed = true;
                     }
                 } else {
-                    let ca = centre_of(&new_centres, &index, e.first);
-                    let cb = centre_of(&new_centres, &index, e.second);
-                    if v.dot(&(ca - cb - v)) > 1e-12 {
+                    let ca = centre_of(&new_centres, &index, e.a);
+                    let cb = centre_of(&new_centres, &index, e.b);
+                    if e.v.dot(&(ca - cb - e.v)) > 1e-12 {
                         free[k] = true;
                         changed = true;
                     }
@@ -437,16 +438,11 @@ fn lud_centres(
             }
         }
         for (k, e) in edges.iter().enumerate() {
-            scales[k] = match e.direction {
-                Some(_) if free[k] => new_scales[k].max(1.0),
-                Some(_) => 1.0,
-                None => 0.0,
-            };
-            let (Some(ca), Some(cb)) = (centers[e.first], centers[e.second]) else {
+            let scale = if free[k] { new_scales[k].max(1.0) } else { 1.0 };
+            let (Some(ca), Some(cb)) = (centers[e.a], centers[e.b]) else {
                 continue;
             };
-            let target = e.direction.map_or(Vector3::zeros(), |v| v * scales[k]);
-            weights[k] = base[k] / (ca - cb - target).norm().max(config.delta);
+            weights[k] = e.weight / (ca - cb - e.v * scale).norm().max(config.delta);
         }
         if moved <= config.tolerance * extent.max(1.0) {
             break;
@@ -461,11 +457,10 @@ fn centre_of(solution: &DVector<f64>, index: &[Option<usize>], v: usize) -> Vect
     })
 }
 
-/// Weighted least squares of `Σ w_e ‖C_a − C_b − s_e v_e‖²` with `s_e` unknown where `free`,
-/// 1 for the other direction edges and 0 for zero-baseline ties. Returns the centres (3 per
-/// unknown) and a scale per edge.
+/// Weighted least squares of `Σ w_e ‖C_a − C_b − s_e v_e‖²` with `s_e` unknown where `free`
+/// and 1 elsewhere. Returns the centres (3 per unknown) and a scale per edge.
 fn solve_centres(
-    edges: &[&CenterDirection],
+    edges: &[DirectionEdge],
     weights: &[f64],
     free: &[bool],
     index: &[Option<usize>],
@@ -487,16 +482,11 @@ fn solve_centres(
     let mut g = DVector::<f64>::zeros(size);
     for (k, e) in edges.iter().enumerate() {
         let w = weights[k];
-        let v = e.direction.unwrap_or_else(Vector3::zeros);
         // r = C_a − C_b − s v; constant part with s held at 1.
-        let r0 = if e.direction.is_some() && !free[k] {
-            -v
-        } else {
-            Vector3::zeros()
-        };
+        let r0 = if free[k] { Vector3::zeros() } else { -e.v };
         // Jacobian columns: (index, 3×1 column per unknown coordinate).
         let mut cols: Vec<(usize, Vector3<f64>)> = Vec::with_capacity(7);
-        for (node, sign) in [(e.first, 1.0), (e.second, -1.0)] {
+        for (node, sign) in [(e.a, 1.0), (e.b, -1.0)] {
             if let Some(p) = index[node] {
                 for d in 0..3 {
                     let mut c = Vector3::zeros();
@@ -506,7 +496,7 @@ fn solve_centres(
             }
         }
         if let Some(si) = scale_index[k] {
-            cols.push((si, -v));
+            cols.push((si, -e.v));
         }
         for &(i, ci) in &cols {
             g[i] += w * ci.dot(&r0);

@@ -129,9 +129,9 @@ pub const GEOMETRIC_MAX_KEYPOINTS: usize = 8192;
 pub struct GeometricTimes {
     /// Features and matching.
     pub matching: f64,
-    /// Two-view geometry, focal, averaging.
+    /// Every focal start: two-view geometry, averaging and the Sampson refinement.
     pub initialisation: f64,
-    /// Refinement.
+    /// The bundle adjustment of the chosen start (or the official GGS schedule).
     pub refinement: f64,
 }
 
@@ -172,6 +172,17 @@ pub struct GeometricReport {
     pub bundle_rms_px: f64,
     /// Stage timings.
     pub times: GeometricTimes,
+}
+
+impl GeometricReport {
+    /// Takes the refinement's statistics.
+    fn record_refine(&mut self, r: &RefineReport) {
+        self.refine_iterations = r.iterations;
+        self.refine_converged = r.converged;
+        self.refine_inliers = r.inliers;
+        self.refine_matches = r.matches;
+        self.refine_inlier_rms_px = r.inlier_rms_px;
+    }
 }
 
 /// The cameras of a geometric estimate: `None` for images that were not estimated.
@@ -294,11 +305,7 @@ pub fn refine_given_cameras(
         refine.refine_focal &= known_phi.is_none();
         let set = pixel_match_set(n, &pairs)?;
         let r = refine_cameras(&set, &layout, &mut cameras, &mut phi, reference, &refine)?;
-        report.refine_iterations = r.iterations;
-        report.refine_converged = r.converged;
-        report.refine_inliers = r.inliers;
-        report.refine_matches = r.matches;
-        report.refine_inlier_rms_px = r.inlier_rms_px;
+        report.record_refine(&r);
         for (i, (o, c)) in out.iter_mut().zip(&cameras).enumerate() {
             if let (Some(o), Some(c)) = (o.as_mut(), c) {
                 let r = *c.rotation.matrix();
@@ -393,7 +400,10 @@ fn k_of(layout: &ImageIntrinsics, phi: f64, i: usize) -> Matrix3<f64> {
 ///
 /// # Errors
 /// Invalid pairs.
-pub fn pixel_match_set(n_images: usize, pairs: &[PairMatches]) -> Result<MatchSet> {
+pub fn pixel_match_set<'p>(
+    n_images: usize,
+    pairs: impl IntoIterator<Item = &'p PairMatches>,
+) -> Result<MatchSet> {
     let (mut kp1, mut kp2, mut frames) = (Vec::new(), Vec::new(), Vec::new());
     for p in pairs {
         kp1.extend_from_slice(&p.kp1);
@@ -512,6 +522,8 @@ pub fn estimate_from_matches(
     let Some(best) = best else {
         return Err(PosediffError::NoMatches { images: n });
     };
+    report.times.initialisation = start.elapsed().as_secs_f64();
+    let start = Instant::now();
     let Solution {
         mut cameras,
         members,
@@ -564,15 +576,11 @@ pub fn estimate_from_matches(
                 .into(),
         );
     }
-    if let Some(r) = refine {
-        report.refine_iterations = r.iterations;
-        report.refine_converged = r.converged;
-        report.refine_inliers = r.inliers;
-        report.refine_matches = r.matches;
-        report.refine_inlier_rms_px = r.inlier_rms_px;
+    if let Some(r) = &refine {
+        report.record_refine(r);
     }
     report.focal_factor = phi_refined;
-    report.times.initialisation = start.elapsed().as_secs_f64();
+    report.times.refinement = start.elapsed().as_secs_f64();
     report.estimated = members.clone();
     let not_estimated = n - members.len();
     if not_estimated > 0 {
@@ -604,7 +612,7 @@ pub fn estimate_from_matches(
         let mut ggs = ggs;
         ggs.fix_focal |= known_phi.is_some();
         official_ggs(&mut cameras, &pairs, &ggs)?;
-        report.times.refinement = start.elapsed().as_secs_f64();
+        report.times.refinement += start.elapsed().as_secs_f64();
     }
     Ok(GeometricEstimate {
         cameras,
@@ -758,12 +766,7 @@ fn solve_at_focal(
                 (Some(a), Some(b)) => (a.center - b.center).norm() > 0.0,
                 _ => false,
             };
-            let lm_pairs: Vec<PairMatches> = matched
-                .iter()
-                .filter(baseline)
-                .map(|p| (*p).clone())
-                .collect();
-            let lm_set = pixel_match_set(n, &lm_pairs)?;
+            let lm_set = pixel_match_set(n, matched.iter().filter(baseline).copied())?;
             refine_report = Some(refine_cameras(
                 &lm_set,
                 layout,

@@ -180,12 +180,21 @@ pub fn load_training_data(
         let mut cameras = Vec::new();
         let mut frames = Vec::new();
         for (chunk_paths, chunk_frames) in paths.chunks(16).zip(seq.frames.chunks(16)) {
+            let Some(model) = features else {
+                // Batches are read and augmented later: only the sizes are needed now.
+                for (path, f) in chunk_paths.iter().zip(chunk_frames) {
+                    let (size, _) = read_rgb(path)?;
+                    cameras.push(f.crop_camera(size)?);
+                    frames.push((path.clone(), f.pytorch3d().to_opencv(size)?));
+                }
+                continue;
+            };
             let loaded = load_images(chunk_paths)?;
             for ((l, f), path) in loaded.iter().zip(chunk_frames).zip(chunk_paths) {
                 cameras.push(f.crop_camera(l.size)?);
                 frames.push((path.clone(), f.pytorch3d().to_opencv(l.size)?));
             }
-            if let Some(model) = features {
+            {
                 let pixels: Vec<f32> = loaded
                     .iter()
                     .flat_map(|l| l.pixels.iter().copied())
