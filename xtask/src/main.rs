@@ -10,6 +10,9 @@
 //!   (`posediff plot`), all under `out/demo/<set>/`.
 //! - `synth --out D [--sequences S --frames F --seed N --size WxH,...]`: synthetic CO3D-style
 //!   sequences (`posediff-synth`).
+//! - `bench-scale [--sizes 20,50,100,300,1000] [--paths orbit,forward] [--pairs auto] --out D`:
+//!   the mapper on synthetic sequences of growing length (per-stage time, peak RSS, accuracy,
+//!   growth exponents; JSON + Markdown).
 //! - `setup`: only the system set-up (Debian packages for the OpenCV bindings, cargo-nextest).
 //! - `deps-check`: only the dependency invariants.
 //! - `bench-matching --data ../shared/data --out report.json`: match quality and speed on the
@@ -45,9 +48,10 @@ const APT_PACKAGES: [&str; 5] = [
 const HEAVY_CRATES: [&str; 6] = ["candle-core", "candle-nn", "opencv", "faer", "rayon", "tch"];
 
 /// Per crate: the crates that must not appear in its normal dependency tree. Downstream users
-/// import the geometry and metrics crates alone; guidance may use rayon (and faer), never the
-/// tensor or image back ends.
-const FORBIDDEN: [(&str, &[&str]); 4] = [
+/// import the geometry and metrics crates alone; guidance (GGS) may use rayon, never faer or
+/// the tensor or image back ends; the mapper (sfm) is faer + rayon, never candle or OpenCV (it
+/// takes matches and a two-view solver from its caller).
+const FORBIDDEN: [(&str, &[&str]); 5] = [
     ("posediff-geometry", &HEAVY_CRATES),
     ("posediff-metrics", &HEAVY_CRATES),
     (
@@ -56,12 +60,17 @@ const FORBIDDEN: [(&str, &[&str]); 4] = [
     ),
     (
         "posediff-guidance",
+        &["candle-core", "candle-nn", "opencv", "faer", "tch"],
+    ),
+    (
+        "posediff-sfm",
         &["candle-core", "candle-nn", "opencv", "tch"],
     ),
 ];
 
 /// Per crate: the workspace crates it may depend on.
-const ALLOWED_WORKSPACE_DEPS: [(&str, &[&str]); 6] = [
+const ALLOWED_WORKSPACE_DEPS: [(&str, &[&str]); 7] = [
+    ("posediff-sfm", &["posediff-geometry"]),
     ("posediff-synth", &["posediff-geometry"]),
     ("posediff-geometry", &[]),
     ("posediff-metrics", &["posediff-geometry"]),
@@ -94,6 +103,10 @@ fn main() -> Result<()> {
         }
         "demo" => demo(),
         "synth" => cargo_run(&["-p", "posediff-synth"], &caller_args()?),
+        "bench-scale" => cargo_run(
+            &["-p", "posediff-synth", "--example", "bench_scale"],
+            &caller_args()?,
+        ),
         "convert-checkpoint" => {
             // Paths are the caller's, relative to where they ran the command.
             let cwd = std::env::current_dir()?;
@@ -113,7 +126,7 @@ fn main() -> Result<()> {
         }
         _ => {
             eprintln!(
-                "usage: cargo xtask <demo | synth ... | ci | setup | deps-check | convert-checkpoint IN OUT | bench-matching --data D --out F.json | bench-real ... | bench-co3d ...>"
+                "usage: cargo xtask <demo | synth ... | bench-scale [--sizes 20,50,100] [--paths orbit,forward] [--pairs P] --out D | ci | setup | deps-check | convert-checkpoint IN OUT | bench-matching --data D --out F.json | bench-real ... | bench-co3d ...>"
             );
             bail!("unknown task {task:?}")
         }

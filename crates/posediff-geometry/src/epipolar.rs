@@ -15,7 +15,7 @@
 //!   perfect match but wrong for everything else; the tests check the asymmetry.
 //! - The official GGS transposes `F` and evaluates `x1ᵀ Fᵀ x2`: the same Sampson value.
 
-use nalgebra::{Matrix3, Point2, Vector3};
+use nalgebra::{Matrix3, Point2, Rotation3, Vector3};
 
 use crate::camera::{Camera, Pose};
 use crate::error::{GeometryError, Result};
@@ -23,6 +23,43 @@ use crate::error::{GeometryError, Result};
 /// `[v]ₓ`, the cross-product matrix: `[v]ₓ w = v × w` (PyTorch3D `hat`).
 pub fn skew(v: &Vector3<f64>) -> Matrix3<f64> {
     Matrix3::new(0.0, -v.z, v.y, v.z, 0.0, -v.x, -v.y, v.x, 0.0)
+}
+
+/// The rotation angle of `r` in radians, stable near 0 and π (no `acos` of a rounded trace).
+pub fn rotation_angle(r: &Rotation3<f64>) -> f64 {
+    let m = r.matrix();
+    let sin2 = Vector3::new(
+        m[(2, 1)] - m[(1, 2)],
+        m[(0, 2)] - m[(2, 0)],
+        m[(1, 0)] - m[(0, 1)],
+    )
+    .norm();
+    sin2.atan2(m.trace() - 1.0)
+}
+
+/// The rotation closest to `K_b⁻¹ H K_a` (a homography of a pure rotation is `K_b R K_a⁻¹`)
+/// and the ratio of its largest to smallest singular value after scaling to unit determinant
+/// (1 for an exact rotation homography at the right intrinsics). `None` when singular.
+pub fn homography_rotation(
+    h: &Matrix3<f64>,
+    k_a: &Matrix3<f64>,
+    k_b_inverse: &Matrix3<f64>,
+) -> Option<(Matrix3<f64>, f64)> {
+    let m = k_b_inverse * h * k_a;
+    let det = m.determinant();
+    if !det.is_finite() || det.abs() < 1e-300 {
+        return None;
+    }
+    let m = m / det.cbrt();
+    let svd = m.svd(true, true);
+    let (u, v_t) = (svd.u?, svd.v_t?);
+    let s = svd.singular_values;
+    let ratio = s.max() / s.min().max(1e-300);
+    let mut r = u * v_t;
+    if r.determinant() < 0.0 {
+        r = -r;
+    }
+    Some((r, ratio))
 }
 
 /// Camera 2 from camera 1: `R₁₂ = R₂ R₁ᵀ`, `t₁₂ = t₂ − R₁₂ t₁`, for cam-from-world poses.

@@ -35,6 +35,7 @@ pub mod crop;
 pub mod encoding;
 pub mod epipolar;
 pub mod error;
+pub mod matches;
 pub mod normalize;
 pub mod pytorch3d;
 pub mod quaternion;
@@ -46,10 +47,11 @@ pub use camera::{Camera, ImageSize, Intrinsics, Pose};
 pub use crop::{CenterCrop, MODEL_INPUT_SIDE};
 pub use encoding::{POSE_ENCODING_DIM, PoseEncoding};
 pub use epipolar::{
-    essential_matrix, fundamental_from_cameras, fundamental_official, relative_pose, sampson_error,
-    symmetric_epipolar_distance_sq,
+    essential_matrix, fundamental_from_cameras, fundamental_official, homography_rotation,
+    relative_pose, rotation_angle, sampson_error, symmetric_epipolar_distance_sq,
 };
 pub use error::{GeometryError, Result};
+pub use matches::{PairMatches, TwoViewPose};
 pub use normalize::{Canonicalized, canonicalize, canonicalize_without_optical_axis};
 pub use pytorch3d::{NdcIntrinsics, Pytorch3dCamera};
 pub use quaternion::{Quaternion, QuaternionSign};

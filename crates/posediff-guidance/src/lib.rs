@@ -5,26 +5,22 @@
 //! - [`SampsonObjective`]: loss and gradient with respect to the 9-D pose encodings.
 //! - [`GgsSolver`] / [`geometry_guided_sampling`]: the official schedule ([`GgsConfig`]'s
 //!   `Default` is the official configuration).
-//! - Without a checkpoint: [`averaging`] (view graph, rotation and translation averaging),
-//!   [`selfcal`] (a shared focal from pairwise fundamental matrices) and [`refine`] (the
-//!   Sampson objective run to convergence by Levenberg–Marquardt), [`bundle`] (tracks,
-//!   triangulation and bundle adjustment).
+//! - `synthetic` (feature `synthetic`, test support): ring problems with known cameras.
+//!
+//! The checkpoint-free mapper (averaging, Sampson refinement to convergence, bundle
+//! adjustment) is `posediff-sfm`.
 #![deny(missing_docs)]
 // Unsafe only for runtime SIMD dispatch (`sampson::pair_sums`), with the check beside it.
 #![deny(unsafe_code)]
 
-pub mod averaging;
-pub mod bundle;
 pub mod error;
 pub mod ggs;
 pub mod matches;
-pub mod refine;
 pub mod sampson;
-pub mod selfcal;
+#[cfg(feature = "synthetic")]
 pub mod synthetic;
 
 pub use error::{GuidanceError, Result};
 pub use ggs::{GgsConfig, GgsReport, GgsSolver, IterationRecord, geometry_guided_sampling};
 pub use matches::{MatchSet, PairGroup};
-pub use refine::{ImageIntrinsics, RefineCamera, RefineConfig, RefineReport, refine_cameras};
 pub use sampson::{Evaluation, SampsonObjective, UpdateMask};

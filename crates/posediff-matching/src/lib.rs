@@ -15,6 +15,7 @@
 pub mod error;
 pub mod features;
 pub mod mnn;
+pub mod pairs;
 pub mod two_view;
 
 use std::path::PathBuf;
@@ -25,6 +26,7 @@ use rayon::prelude::*;
 
 pub use error::{MatchingError, Result};
 pub use features::{Descriptors, Detector, FeatureConfig, ImageFeatures, extract};
+pub use pairs::{PairRule, PairSelection, select_pairs};
 pub use two_view::{RelativePose, TwoViewConfig};
 
 /// Geometric verification of a pair's matches.
@@ -87,30 +89,7 @@ impl Default for MatchConfig {
     }
 }
 
-/// The matches of one image pair, keypoints in original-image OpenCV pixels.
-#[derive(Debug, Clone, PartialEq)]
-pub struct PairMatches {
-    /// Index of the first image.
-    pub first: usize,
-    /// Index of the second image.
-    pub second: usize,
-    /// Keypoints in the first image.
-    pub kp1: Vec<[f64; 2]>,
-    /// The matching keypoints in the second image.
-    pub kp2: Vec<[f64; 2]>,
-}
-
-impl PairMatches {
-    /// Number of matches.
-    pub fn len(&self) -> usize {
-        self.kp1.len()
-    }
-
-    /// True when the pair has no match.
-    pub fn is_empty(&self) -> bool {
-        self.kp1.is_empty()
-    }
-}
+pub use posediff_geometry::PairMatches;
 
 /// All pairs `(i, j)`, `i < j`.
 pub fn exhaustive_pairs(n: usize) -> Vec<(usize, usize)> {
@@ -171,22 +150,28 @@ pub fn match_pair(
     config: &MatchConfig,
 ) -> Result<PairMatches> {
     let idx = mnn::mutual_nearest_neighbours(&a.descriptors, &b.descriptors, config.ratio);
-    let mut kp1: Vec<[f64; 2]> = idx.iter().map(|&(i, _)| a.keypoints[i]).collect();
-    let mut kp2: Vec<[f64; 2]> = idx.iter().map(|&(_, j)| b.keypoints[j]).collect();
-    if let Some(v) = &config.verification {
-        let mut keep = verified_inliers(&kp1, &kp2, v)?;
-        if keep.len() < config.min_verified {
-            keep.clear();
-        }
-        kp1 = keep.iter().map(|&k| kp1[k]).collect();
-        kp2 = keep.iter().map(|&k| kp2[k]).collect();
-    }
-    Ok(PairMatches {
+    let raw = PairMatches {
         first,
         second,
-        kp1,
-        kp2,
-    })
+        kp1: idx.iter().map(|&(i, _)| a.keypoints[i]).collect(),
+        kp2: idx.iter().map(|&(_, j)| b.keypoints[j]).collect(),
+        idx1: idx.iter().map(|&(i, _)| keypoint_id(i)).collect(),
+        idx2: idx.iter().map(|&(_, j)| keypoint_id(j)).collect(),
+    };
+    let Some(v) = &config.verification else {
+        return Ok(raw);
+    };
+    let mut keep = verified_inliers(&raw.kp1, &raw.kp2, v)?;
+    if keep.len() < config.min_verified {
+        keep.clear();
+    }
+    Ok(raw.select(&keep))
+}
+
+/// A keypoint index as stored in [`PairMatches`] (at most `u32::MAX` keypoints per image; the
+/// extractor keeps far fewer).
+fn keypoint_id(i: usize) -> u32 {
+    u32::try_from(i).unwrap_or(u32::MAX)
 }
 
 /// Extracts features of every image once (in parallel), then matches the given pairs (all
@@ -199,29 +184,55 @@ pub fn match_images(
     pairs: Option<&[(usize, usize)]>,
     config: &MatchConfig,
 ) -> Result<(Vec<ImageFeatures>, Vec<PairMatches>)> {
-    if images.len() < 2 {
-        return Err(MatchingError::TooFewImages { got: images.len() });
-    }
     let pairs: Vec<(usize, usize)> = match pairs {
         Some(p) => p.to_vec(),
         None => exhaustive_pairs(images.len()),
     };
-    for &(first, second) in &pairs {
-        if first >= images.len() || second >= images.len() || first == second {
-            return Err(MatchingError::InvalidPair {
-                first,
-                second,
-                n_images: images.len(),
-            });
-        }
+    // The cheap check before the extraction.
+    check_pairs(images.len(), &pairs)?;
+    let features = extract_all(images, config)?;
+    let matches = match_pairs(&features, &pairs, config)?;
+    Ok((features, matches))
+}
+
+/// Features of every image (in parallel).
+///
+/// # Errors
+/// Fewer than two images, unreadable images (named), OpenCV errors.
+pub fn extract_all(images: &[PathBuf], config: &MatchConfig) -> Result<Vec<ImageFeatures>> {
+    if images.len() < 2 {
+        return Err(MatchingError::TooFewImages { got: images.len() });
     }
-    let features = images
+    images
         .par_iter()
         .map(|p| extract(p, &config.features))
-        .collect::<Result<Vec<_>>>()?;
-    let matches = pairs
+        .collect()
+}
+
+/// Matches `pairs` of extracted images in parallel.
+///
+/// # Errors
+/// Invalid pairs, OpenCV errors.
+pub fn match_pairs(
+    features: &[ImageFeatures],
+    pairs: &[(usize, usize)],
+    config: &MatchConfig,
+) -> Result<Vec<PairMatches>> {
+    check_pairs(features.len(), pairs)?;
+    pairs
         .par_iter()
         .map(|&(i, j)| match_pair(&features[i], &features[j], i, j, config))
-        .collect::<Result<Vec<_>>>()?;
-    Ok((features, matches))
+        .collect()
+}
+
+/// Every pair names two different images of `n`.
+fn check_pairs(n: usize, pairs: &[(usize, usize)]) -> Result<()> {
+    match pairs.iter().find(|&&(a, b)| a >= n || b >= n || a == b) {
+        Some(&(first, second)) => Err(MatchingError::InvalidPair {
+            first,
+            second,
+            n_images: n,
+        }),
+        None => Ok(()),
+    }
 }

@@ -40,27 +40,8 @@ impl Default for TwoViewConfig {
     }
 }
 
-/// The relative pose of a pair.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub enum RelativePose {
-    /// A baseline was measured: `x_b = rotation · x_a + translation`, unit translation.
-    General {
-        /// `R_b R_aᵀ`.
-        rotation: Matrix3<f64>,
-        /// Unit translation in camera `b`'s frame.
-        translation: Vector3<f64>,
-        /// Inliers in front of both cameras.
-        inliers: usize,
-    },
-    /// The matches fit a rotation-only homography: no baseline to measure (pure rotation,
-    /// identical or nearly identical images).
-    RotationOnly {
-        /// `R_b R_aᵀ`.
-        rotation: Matrix3<f64>,
-        /// Homography inliers.
-        inliers: usize,
-    },
-}
+/// The relative pose of a pair (`posediff_geometry::TwoViewPose`).
+pub use posediff_geometry::TwoViewPose as RelativePose;
 
 fn points(p: &[[f64; 2]]) -> Vector<Point2f> {
     p.iter()
@@ -146,29 +127,7 @@ pub fn homography_fit(
     Ok(Some((h, mask_count(&mask)? as f64 / kp1.len() as f64)))
 }
 
-/// The rotation closest to `K_b⁻¹ H K_a` (scaled to unit determinant) and the ratio of its
-/// largest to smallest singular value (1 for an exact rotation).
-pub fn homography_rotation(
-    h: &Matrix3<f64>,
-    k_a: &Matrix3<f64>,
-    k_b_inverse: &Matrix3<f64>,
-) -> Option<(Matrix3<f64>, f64)> {
-    let m = k_b_inverse * h * k_a;
-    let det = m.determinant();
-    if !det.is_finite() || det.abs() < 1e-300 {
-        return None;
-    }
-    let m = m / det.cbrt();
-    let svd = m.svd(true, true);
-    let (u, v_t) = (svd.u?, svd.v_t?);
-    let s = svd.singular_values;
-    let ratio = s.max() / s.min().max(1e-300);
-    let mut r = u * v_t;
-    if r.determinant() < 0.0 {
-        r = -r;
-    }
-    Some((r, ratio))
-}
+pub use posediff_geometry::homography_rotation;
 
 /// The relative pose of a matched pair with known intrinsics (`K_a`, `K_b`), from the
 /// essential matrix of the normalised matches (OpenCV RANSAC five-point, then the cheirality

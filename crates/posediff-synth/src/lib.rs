@@ -25,7 +25,7 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 pub use render::{Buffers, Hit, Triangle, rasterise};
-pub use scene::{Scene, look_at, trajectory};
+pub use scene::{PathKind, Scene, look_at, trajectory, trajectory_with};
 
 /// The category name of the synthetic sequences.
 pub const CATEGORY: &str = "synthetic";
@@ -165,6 +165,9 @@ pub struct DatasetSpec {
     pub sizes: Vec<ImageSize>,
     /// Every `test_every`-th sequence goes to the test split (0: all train).
     pub test_every: usize,
+    /// The camera path of every sequence (`None`: drawn per sequence, a forward approach with
+    /// probability 1/4).
+    pub path: Option<PathKind>,
 }
 
 /// A CO3D annotation frame (PyTorch3D conventions, NDC of the image's shorter half side).
@@ -235,7 +238,7 @@ pub fn sequence(spec: &DatasetSpec, k: usize) -> Sequence {
             Err(_) => unreachable!("a valid size"),
         },
     };
-    let cameras = trajectory(&scene, spec.frames.max(1), size, seed ^ 0x7A7A);
+    let cameras = trajectory_with(&scene, spec.frames.max(1), size, seed ^ 0x7A7A, spec.path);
     Sequence {
         name: format!("{CATEGORY}_{k:04}"),
         seed,

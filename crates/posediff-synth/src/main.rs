@@ -6,6 +6,7 @@ use std::time::Instant;
 
 use anyhow::Context;
 use clap::Parser;
+use posediff_synth::scene::PathKind;
 use posediff_synth::{DatasetSpec, parse_size, write_dataset};
 
 /// Render synthetic object-centric sequences with exact cameras.
@@ -30,9 +31,21 @@ struct Cli {
     /// Every N-th sequence goes to the test split (0: none).
     #[arg(long, default_value_t = 5)]
     test_every: usize,
+    /// Force the camera path of every sequence: `orbit` or `forward` (default: drawn per
+    /// sequence, forward with probability 1/4).
+    #[arg(long, value_parser = parse_path)]
+    path: Option<PathKind>,
     /// Also write a PNG grid of the first, middle and last frame of up to four sequences.
     #[arg(long)]
     contact_sheet: Option<PathBuf>,
+}
+
+fn parse_path(s: &str) -> Result<PathKind, String> {
+    match s {
+        "orbit" => Ok(PathKind::Orbit),
+        "forward" => Ok(PathKind::Forward),
+        _ => Err(format!("`{s}`: use orbit or forward")),
+    }
 }
 
 fn main() -> anyhow::Result<()> {
@@ -48,6 +61,7 @@ fn main() -> anyhow::Result<()> {
         seed: cli.seed,
         sizes,
         test_every: cli.test_every,
+        path: cli.path,
     };
     let start = Instant::now();
     let summary =

@@ -416,6 +416,27 @@ pub fn look_at(centre: Vector3<f64>, target: Vector3<f64>, roll: f64) -> Pose {
 /// random, with slow wobble) or, with probability 1/4, a forward approach; focal length from a
 /// horizontal field of view of 40–75° across the longer side; principal point at the centre.
 pub fn trajectory(scene: &Scene, frames: usize, size: ImageSize, seed: u64) -> Vec<Camera> {
+    trajectory_with(scene, frames, size, seed, None)
+}
+
+/// A camera path of a sequence.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PathKind {
+    /// A fly-around (orbit) with slow wobble.
+    Orbit,
+    /// A forward approach drifting sideways.
+    Forward,
+}
+
+/// [`trajectory`] with the path kind forced (`None`: drawn, as [`trajectory`]). The random
+/// draws are the same either way, so a forced kind equal to the drawn one gives the same path.
+pub fn trajectory_with(
+    scene: &Scene,
+    frames: usize,
+    size: ImageSize,
+    seed: u64,
+    kind: Option<PathKind>,
+) -> Vec<Camera> {
     let mut rng = StdRng::seed_from_u64(seed);
     let long = f64::from(size.width().max(size.height()));
     let fov = rng.random_range(40f64..75.0).to_radians();
@@ -436,7 +457,11 @@ pub fn trajectory(scene: &Scene, frames: usize, size: ImageSize, seed: u64) -> V
     let start = rng.random_range(0.0..TAU);
     let arc = rng.random_range(100f64..360.0).to_radians()
         * if rng.random_bool(0.5) { 1.0 } else { -1.0 };
-    let forward = rng.random_bool(0.25);
+    let drawn = rng.random_bool(0.25);
+    let forward = match kind {
+        None => drawn,
+        Some(k) => k == PathKind::Forward,
+    };
     let wobble = rng.random_range(0.0..TAU);
     let jitter = Vector3::new(
         rng.random_range(-0.1..0.1),

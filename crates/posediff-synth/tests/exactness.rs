@@ -23,6 +23,7 @@ fn spec(seed: u64) -> DatasetSpec {
             ImageSize::new(150, 200).unwrap(),
         ],
         test_every: 2,
+        path: None,
     }
 }
 
@@ -99,6 +100,7 @@ fn sift_matches_between_rendered_views_obey_the_true_epipolar_geometry() {
         seed: 11,
         sizes: vec![ImageSize::new(320, 240).unwrap()],
         test_every: 0,
+        path: None,
     };
     write_dataset(&out, &spec).unwrap();
     let dir = out.join("synthetic/synthetic_0000");
@@ -188,6 +190,7 @@ fn the_co3d_protocol_reads_the_synthetic_test_split() {
         seed: 2,
         sizes: vec![ImageSize::new(160, 120).unwrap()],
         test_every: 1,
+        path: None,
     };
     write_dataset(&out, &spec).unwrap();
     let report = posediff::bench::bench_co3d(

@@ -93,6 +93,7 @@ fn a_resumed_run_repeats_the_uninterrupted_loss_curve_and_its_checkpoint_loads()
             seed: 9,
             sizes: vec![ImageSize::new(160, 120).unwrap()],
             test_every: 0,
+            path: None,
         },
     )
     .unwrap();
@@ -158,6 +159,7 @@ fn a_fresh_unfrozen_run_trains_the_backbone_on_augmented_batches() {
             seed: 4,
             sizes: vec![ImageSize::new(160, 120).unwrap()],
             test_every: 0,
+            path: None,
         },
     )
     .unwrap();

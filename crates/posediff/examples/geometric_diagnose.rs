@@ -45,7 +45,7 @@ fn main() -> anyhow::Result<()> {
         config.matching.features.max_image_side = v as u32;
     }
     if env("NOBA").is_some() {
-        config.bundle = None;
+        config.mapper.bundle = None;
     }
     if let Some(v) = env("FOCAL") {
         config.intrinsics = posediff::geometric::KnownIntrinsics::FocalPx(v);
@@ -68,21 +68,10 @@ fn main() -> anyhow::Result<()> {
         gt_f / f64::from(size.width().max(size.height()))
     );
     {
-        use posediff_guidance::refine::robust_cost;
-        use posediff_guidance::{ImageIntrinsics, RefineCamera};
-        let set = posediff::geometric::pixel_match_set(pick.len(), &e.pairs)?;
-        let layout = ImageIntrinsics {
-            principal: e
-                .sizes
-                .iter()
-                .map(|s| posediff::geometric::image_centre(*s))
-                .collect(),
-            scale: e
-                .sizes
-                .iter()
-                .map(|s| posediff::geometric::focal_scale(*s))
-                .collect(),
-        };
+        use posediff_sfm::sampson_refine::robust_cost;
+        use posediff_sfm::{CameraPose as RefineCamera, ImageIntrinsics};
+        let set = &e.pairs;
+        let layout = ImageIntrinsics::from_sizes(&e.sizes);
         let to_refine = |c: &posediff_geometry::Camera| RefineCamera {
             rotation: nalgebra::Rotation3::from_matrix_unchecked(c.cam_from_world.rotation),
             center: c.center().coords,
@@ -99,9 +88,9 @@ fn main() -> anyhow::Result<()> {
         let gt_phi = gt[pick[0]].camera.intrinsics.fx() / layout.scale[0];
         println!(
             "robust cost: ours {:.3} (phi {:.4}), ground truth {:.3} (phi {gt_phi:.4})",
-            robust_cost(&set, &layout, &ours, e.report.focal_factor, 1.0, 10.0)?,
+            robust_cost(set, &layout, &ours, e.report.focal_factor, 1.0, 10.0)?,
             e.report.focal_factor,
-            robust_cost(&set, &layout, &truth, gt_phi, 1.0, 10.0)?,
+            robust_cost(set, &layout, &truth, gt_phi, 1.0, 10.0)?,
         );
     }
     for (a, &i) in pick.iter().enumerate() {

@@ -71,6 +71,9 @@ pub enum PosediffError {
     /// GGS failed.
     #[error(transparent)]
     Guidance(#[from] posediff_guidance::GuidanceError),
+    /// The checkpoint-free mapper failed.
+    #[error("mapper: {0}")]
+    Mapper(posediff_sfm::SfmError),
     /// A tensor operation failed.
     #[error(transparent)]
     Tensor(#[from] candle_core::Error),

@@ -479,6 +479,12 @@ struct EstimateArgs {
     /// the Sampson distances), the official GGS schedule, or none.
     #[arg(long, value_enum, default_value = "converge")]
     refine: RefineArg,
+    /// Which image pairs are matched by the checkpoint-free path: `auto` (every pair up to
+    /// 60 images, `sequential:10,retrieval:20` above), `exhaustive`, `sequential:K` (each
+    /// image with the next K), `retrieval:K` (its K most similar by a bag of visual words), or
+    /// a union such as `sequential:10,retrieval:20`.
+    #[arg(long, default_value = "auto")]
+    pairs: posediff_matching::PairSelection,
     /// Output folder (created).
     #[arg(long)]
     out: PathBuf,
@@ -557,8 +563,11 @@ fn estimate(args: EstimateArgs) -> anyhow::Result<()> {
     };
     let mut geometric = GeometricConfig {
         intrinsics: known.clone(),
+        pairs: args.pairs.clone(),
         refinement: match args.refine {
-            RefineArg::Converge => Refinement::Converge(posediff_guidance::RefineConfig::default()),
+            RefineArg::Converge => {
+                Refinement::Converge(posediff_sfm::sampson_refine::SampsonRefineOptions::default())
+            }
             RefineArg::Official => Refinement::Official(posediff_guidance::GgsConfig::default()),
             RefineArg::None => Refinement::None,
         },

@@ -8,9 +8,15 @@
 //!
 //! The cost is flat for pure rotations and for pairs whose fundamental matrix is poorly
 //! conditioned (tiny baselines); those pairs should be left out. The result is only a start:
-//! the refinement ([`crate::refine`]) adjusts the focal together with the poses.
+//! the refinement ([`crate::sampson_refine`]) adjusts the focal together with the poses.
+//!
+//! Without parallax anywhere (pure rotations), [`focal_from_homographies`] finds the `φ` at
+//! which the pairs' homographies `K_b R K_a⁻¹` are closest to rotations.
 
 use nalgebra::Matrix3;
+use posediff_geometry::homography_rotation;
+
+use crate::intrinsics::{ImageIntrinsics, k_matrix};
 
 /// One pair's fundamental matrix and the intrinsics it depends on.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -30,8 +36,7 @@ pub struct PairFundamental {
 }
 
 fn intrinsics(phi: f64, scale: f64, principal: [f64; 2]) -> Matrix3<f64> {
-    let f = phi * scale;
-    Matrix3::new(f, 0.0, principal[0], 0.0, f, principal[1], 0.0, 0.0, 1.0)
+    k_matrix(phi * scale, principal)
 }
 
 /// How far `K_bᵀ F K_a` is from essential at `phi`: `(σ₁ − σ₂)/(σ₁ + σ₂)` in `[0, 1]`.
@@ -119,6 +124,34 @@ pub fn self_calibrate(pairs: &[PairFundamental], search: &FocalSearch) -> Option
     Some(((a + b) / 2.0).exp())
 }
 
+/// `φ` from rotation-only homographies `(a, b, H_ab)`: `K_b⁻¹ H K_a` is a rotation at the right
+/// focal. A grid search over the range of `search`; `None` without pairs.
+pub fn focal_from_homographies(
+    pairs: &[(usize, usize, Matrix3<f64>)],
+    layout: &ImageIntrinsics,
+    search: &FocalSearch,
+) -> Option<f64> {
+    if pairs.is_empty() || !(search.min > 0.0 && search.max > search.min) {
+        return None;
+    }
+    let cost = |phi: f64| -> f64 {
+        pairs
+            .iter()
+            .map(|(a, b, h)| {
+                homography_rotation(h, &layout.k(phi, *a), &layout.k_inverse(phi, *b))
+                    .map_or(1.0, |(_, ratio)| ratio - 1.0)
+            })
+            .sum()
+    };
+    let steps = search.steps.max(2);
+    let (lo, hi) = (search.min.ln(), search.max.ln());
+    (0..steps)
+        .map(|k| (lo + (hi - lo) * k as f64 / (steps - 1) as f64).exp())
+        .map(|phi| (phi, cost(phi)))
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .map(|(phi, _)| phi)
+}
+
 #[cfg(test)]
 mod tests {
     #![allow(clippy::unwrap_used)]
@@ -153,5 +186,31 @@ mod tests {
         let phi = self_calibrate(&pairs, &FocalSearch::default()).unwrap();
         assert!((phi / phi_true - 1.0).abs() < 1e-6, "{phi}");
         assert!(self_calibrate(&[], &FocalSearch::default()).is_none());
+    }
+
+    #[test]
+    fn homographies_of_rotations_give_the_focal() {
+        let layout = ImageIntrinsics {
+            principal: vec![[320.0, 240.0]; 3],
+            scale: vec![640.0; 3],
+        };
+        let phi_true = 0.9;
+        let pairs: Vec<(usize, usize, Matrix3<f64>)> = (1..3)
+            .map(|b| {
+                let r = Rotation3::from_euler_angles(0.05 * b as f64, 0.2, -0.03);
+                (
+                    0,
+                    b,
+                    layout.k(phi_true, b) * r.matrix() * layout.k_inverse(phi_true, 0),
+                )
+            })
+            .collect();
+        let search = FocalSearch {
+            steps: 2000,
+            ..FocalSearch::default()
+        };
+        let phi = focal_from_homographies(&pairs, &layout, &search).unwrap();
+        assert!((phi / phi_true - 1.0).abs() < 2e-3, "{phi}");
+        assert!(focal_from_homographies(&[], &layout, &search).is_none());
     }
 }

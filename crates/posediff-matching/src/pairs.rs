@@ -1,0 +1,389 @@
+//! Which image pairs to match: exhaustive for small sets, and for large ones (video frames,
+//! hundreds of photos) sequential neighbours plus retrieval, as COLMAP's sequential and
+//! vocabulary-tree matchers and GLOMAP's pipelines do.
+//!
+//! Retrieval ranks images by a bag of visual words (Sivic & Zisserman, ICCV 2003; Nistér &
+//! Stewénius, CVPR 2006) built from the set's own descriptors: a vocabulary by k-means on a
+//! sample of the descriptors, each image a tf-idf-weighted, L2-normalised word histogram, and
+//! pairs of the highest cosine similarity. It needs nothing beyond the features already
+//! extracted (no pretrained vocabulary to download), and costs `O(D·k)` for `D` quantised
+//! descriptors plus `O(N²·k)` for the similarities — small against matching.
+
+use std::fmt;
+use std::str::FromStr;
+
+use nalgebra::DMatrix;
+
+use crate::features::{Descriptors, ImageFeatures};
+
+/// Up to this many images the default is every pair.
+pub const EXHAUSTIVE_UP_TO: usize = 60;
+
+/// One rule of a pair selection.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PairRule {
+    /// Every pair `i < j`.
+    Exhaustive,
+    /// Each image with the next `k` in input order (video frames).
+    Sequential(usize),
+    /// Each image with its `k` most similar images by the bag of words.
+    Retrieval(usize),
+}
+
+/// A pair selection: the union of its rules, or `Auto` (exhaustive up to
+/// [`EXHAUSTIVE_UP_TO`] images, `sequential:10,retrieval:20` above).
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub enum PairSelection {
+    /// Exhaustive for small sets, sequential + retrieval for large ones.
+    #[default]
+    Auto,
+    /// The union of the rules.
+    Rules(Vec<PairRule>),
+}
+
+impl PairSelection {
+    /// The rules used for `n` images.
+    pub fn rules(&self, n: usize) -> Vec<PairRule> {
+        match self {
+            Self::Auto if n <= EXHAUSTIVE_UP_TO => vec![PairRule::Exhaustive],
+            Self::Auto => vec![PairRule::Sequential(10), PairRule::Retrieval(20)],
+            Self::Rules(r) => r.clone(),
+        }
+    }
+
+    /// Whether any rule needs descriptors (retrieval).
+    pub fn needs_features(&self, n: usize) -> bool {
+        self.rules(n)
+            .iter()
+            .any(|r| matches!(r, PairRule::Retrieval(_)))
+    }
+}
+
+impl fmt::Display for PairRule {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Self::Exhaustive => write!(f, "exhaustive"),
+            Self::Sequential(k) => write!(f, "sequential:{k}"),
+            Self::Retrieval(k) => write!(f, "retrieval:{k}"),
+        }
+    }
+}
+
+impl fmt::Display for PairSelection {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Self::Auto => write!(f, "auto"),
+            Self::Rules(r) => {
+                let parts: Vec<String> = r.iter().map(ToString::to_string).collect();
+                write!(f, "{}", parts.join(","))
+            }
+        }
+    }
+}
+
+impl FromStr for PairSelection {
+    type Err = String;
+
+    /// `auto`, `exhaustive`, `sequential:K`, `retrieval:K`, or a comma-separated union
+    /// (e.g. `sequential:10,retrieval:20`); `K ≥ 1`.
+    fn from_str(s: &str) -> Result<Self, String> {
+        if s.trim() == "auto" {
+            return Ok(Self::Auto);
+        }
+        let mut rules = Vec::new();
+        for part in s.split(',').map(str::trim) {
+            let rule = match part.split_once(':') {
+                None if part == "exhaustive" => PairRule::Exhaustive,
+                Some((name, k)) => {
+                    let k: usize = k.parse().ok().filter(|k| *k >= 1).ok_or_else(|| {
+                        format!("`{part}`: the count after `:` must be a whole number ≥ 1")
+                    })?;
+                    match name {
+                        "sequential" => PairRule::Sequential(k),
+                        "retrieval" => PairRule::Retrieval(k),
+                        _ => return Err(format!("unknown pair rule `{name}` in `{part}`")),
+                    }
+                }
+                None => {
+                    return Err(format!(
+                        "unknown pair rule `{part}`: use auto, exhaustive, sequential:K or retrieval:K"
+                    ));
+                }
+            };
+            rules.push(rule);
+        }
+        Ok(Self::Rules(rules))
+    }
+}
+
+/// The pairs `i < j` of `n` images that `selection` chooses, sorted and without repeats.
+/// `features` (one per image) is needed only for retrieval.
+pub fn select_pairs(
+    n: usize,
+    selection: &PairSelection,
+    features: Option<&[ImageFeatures]>,
+) -> Vec<(usize, usize)> {
+    let mut pairs = Vec::new();
+    for rule in selection.rules(n) {
+        match rule {
+            PairRule::Exhaustive => {
+                pairs.extend((0..n).flat_map(|i| (i + 1..n).map(move |j| (i, j))));
+            }
+            PairRule::Sequential(k) => {
+                pairs.extend((0..n).flat_map(|i| (i + 1..n.min(i + 1 + k)).map(move |j| (i, j))));
+            }
+            PairRule::Retrieval(k) => {
+                if let Some(f) = features {
+                    pairs.extend(retrieval_pairs(f, k, &RetrievalOptions::default()));
+                }
+            }
+        }
+    }
+    pairs.sort_unstable();
+    pairs.dedup();
+    pairs
+}
+
+/// Settings of the bag of words.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct RetrievalOptions {
+    /// Visual words (k-means centres).
+    pub words: usize,
+    /// Descriptors per image that are quantised (the first ones: the strongest keypoints).
+    pub per_image: usize,
+    /// Descriptors sampled for the vocabulary.
+    pub training_samples: usize,
+    /// Lloyd iterations.
+    pub iterations: usize,
+}
+
+impl Default for RetrievalOptions {
+    fn default() -> Self {
+        Self {
+            words: 512,
+            per_image: 1024,
+            training_samples: 50_000,
+            iterations: 8,
+        }
+    }
+}
+
+/// Descriptors as float rows (binary ones bit by bit).
+fn float_rows(d: &Descriptors, max_rows: usize) -> (Vec<f32>, usize) {
+    match d {
+        Descriptors::Float { data, dim } => {
+            let rows = (data.len() / dim.max(&1)).min(max_rows);
+            (data[..rows * dim].to_vec(), *dim)
+        }
+        Descriptors::Binary { data, words } => {
+            let rows = (data.len() / words.max(&1)).min(max_rows);
+            let dim = 64 * words;
+            let mut out = Vec::with_capacity(rows * dim);
+            for r in 0..rows {
+                for w in &data[r * words..(r + 1) * words] {
+                    out.extend((0..64).map(|b| ((w >> b) & 1) as f32));
+                }
+            }
+            (out, dim)
+        }
+    }
+}
+
+/// Index of the nearest centre of each row (squared L2 via one matrix product).
+fn assign(rows: &DMatrix<f32>, centres: &DMatrix<f32>) -> Vec<usize> {
+    let norms: Vec<f32> = centres.row_iter().map(|c| c.norm_squared()).collect();
+    let dots = rows * centres.transpose();
+    (0..rows.nrows())
+        .map(|i| {
+            (0..centres.nrows())
+                .map(|c| (c, norms[c] - 2.0 * dots[(i, c)]))
+                .min_by(|a, b| a.1.total_cmp(&b.1))
+                .map_or(0, |(c, _)| c)
+        })
+        .collect()
+}
+
+/// For each image its `k` most similar others by tf-idf bag-of-words cosine similarity, as
+/// pairs `i < j`. Deterministic (no random state: the vocabulary is seeded from evenly spaced
+/// samples).
+pub fn retrieval_pairs(
+    features: &[ImageFeatures],
+    k: usize,
+    options: &RetrievalOptions,
+) -> Vec<(usize, usize)> {
+    let n = features.len();
+    if n < 2 || k == 0 {
+        return Vec::new();
+    }
+    let per_image: Vec<(Vec<f32>, usize)> = features
+        .iter()
+        .map(|f| float_rows(&f.descriptors, options.per_image))
+        .collect();
+    let dim = per_image.iter().map(|p| p.1).max().unwrap_or(0);
+    let total: usize = per_image.iter().map(|(d, w)| d.len() / (*w).max(1)).sum();
+    if dim == 0 || total == 0 {
+        return Vec::new();
+    }
+    // Vocabulary: evenly spaced samples, the first `words` of them as initial centres.
+    let stride = (total / options.training_samples.max(1)).max(1);
+    let mut sample = Vec::new();
+    let mut index = 0usize;
+    for (data, w) in &per_image {
+        if *w != dim {
+            continue;
+        }
+        for row in data.chunks_exact(dim) {
+            if index.is_multiple_of(stride) {
+                sample.extend_from_slice(row);
+            }
+            index += 1;
+        }
+    }
+    let samples = sample.len() / dim;
+    let words = options.words.min(samples).max(1);
+    let train = DMatrix::from_row_slice(samples, dim, &sample);
+    let step = (samples / words).max(1);
+    let mut centres = DMatrix::from_fn(words, dim, |c, d| train[((c * step) % samples, d)]);
+    for _ in 0..options.iterations {
+        let labels = assign(&train, &centres);
+        let mut sums = DMatrix::<f32>::zeros(words, dim);
+        let mut counts = vec![0usize; words];
+        for (i, &l) in labels.iter().enumerate() {
+            counts[l] += 1;
+            for d in 0..dim {
+                sums[(l, d)] += train[(i, d)];
+            }
+        }
+        for c in 0..words {
+            if counts[c] > 0 {
+                for d in 0..dim {
+                    centres[(c, d)] = sums[(c, d)] / counts[c] as f32;
+                }
+            }
+        }
+    }
+    // Histograms, idf, normalisation.
+    let mut hist = DMatrix::<f32>::zeros(n, words);
+    for (i, (data, w)) in per_image.iter().enumerate() {
+        if *w != dim || data.is_empty() {
+            continue;
+        }
+        let rows = DMatrix::from_row_slice(data.len() / dim, dim, data);
+        for l in assign(&rows, &centres) {
+            hist[(i, l)] += 1.0;
+        }
+    }
+    for c in 0..words {
+        let df = (0..n).filter(|&i| hist[(i, c)] > 0.0).count();
+        let idf = if df > 0 {
+            (n as f32 / df as f32).ln()
+        } else {
+            0.0
+        };
+        for i in 0..n {
+            hist[(i, c)] *= idf;
+        }
+    }
+    for i in 0..n {
+        let norm = hist.row(i).norm();
+        if norm > 0.0 {
+            for c in 0..words {
+                hist[(i, c)] /= norm;
+            }
+        }
+    }
+    let similarity = &hist * hist.transpose();
+    let mut pairs = Vec::new();
+    for i in 0..n {
+        let mut others: Vec<(usize, f32)> = (0..n)
+            .filter(|&j| j != i)
+            .map(|j| (j, similarity[(i, j)]))
+            .collect();
+        others.sort_by(|a, b| b.1.total_cmp(&a.1).then(a.0.cmp(&b.0)));
+        for &(j, _) in others.iter().take(k) {
+            pairs.push((i.min(j), i.max(j)));
+        }
+    }
+    pairs.sort_unstable();
+    pairs.dedup();
+    pairs
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+    use posediff_geometry::ImageSize;
+
+    #[test]
+    fn selections_parse_and_print() {
+        let s: PairSelection = "sequential:10, retrieval:20".parse().unwrap();
+        assert_eq!(
+            s,
+            PairSelection::Rules(vec![PairRule::Sequential(10), PairRule::Retrieval(20)])
+        );
+        assert_eq!(s.to_string(), "sequential:10,retrieval:20");
+        assert_eq!(
+            "auto".parse::<PairSelection>().unwrap(),
+            PairSelection::Auto
+        );
+        for bad in ["sequential", "sequential:0", "retrieval:x", "nearest:3", ""] {
+            assert!(bad.parse::<PairSelection>().is_err(), "{bad}");
+        }
+        assert_eq!(PairSelection::Auto.rules(10), vec![PairRule::Exhaustive]);
+        assert!(PairSelection::Auto.needs_features(1000));
+    }
+
+    #[test]
+    fn sequential_and_exhaustive_pairs() {
+        let seq = select_pairs(5, &"sequential:2".parse().unwrap(), None);
+        assert_eq!(
+            seq,
+            vec![(0, 1), (0, 2), (1, 2), (1, 3), (2, 3), (2, 4), (3, 4)]
+        );
+        assert_eq!(
+            select_pairs(5, &"exhaustive".parse().unwrap(), None).len(),
+            10
+        );
+        // Union without repeats.
+        let both = select_pairs(5, &"sequential:2,exhaustive".parse().unwrap(), None);
+        assert_eq!(both.len(), 10);
+    }
+
+    /// Three "scenes" of two images each (descriptors drawn around scene-specific centres):
+    /// retrieval pairs each image with its twin.
+    #[test]
+    fn retrieval_finds_the_images_of_the_same_scene() {
+        let mut seed = 7u64;
+        let mut rnd = || {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (seed >> 40) as f32 / (1u64 << 24) as f32
+        };
+        let scenes: Vec<Vec<f32>> = (0..3)
+            .map(|_| (0..20 * 8).map(|_| rnd() * 10.0).collect())
+            .collect();
+        let features: Vec<ImageFeatures> = (0..6)
+            .map(|i| {
+                let centres = &scenes[i % 3];
+                let mut data = Vec::new();
+                for r in 0..200 {
+                    let c = &centres[(r % 20) * 8..(r % 20 + 1) * 8];
+                    data.extend(c.iter().map(|v| v + 0.1 * rnd()));
+                }
+                ImageFeatures {
+                    image_size: ImageSize::new(10, 10).unwrap(),
+                    keypoints: vec![[0.0, 0.0]; 200],
+                    descriptors: Descriptors::Float { data, dim: 8 },
+                }
+            })
+            .collect();
+        let options = RetrievalOptions {
+            words: 60,
+            ..RetrievalOptions::default()
+        };
+        let pairs = retrieval_pairs(&features, 1, &options);
+        assert_eq!(pairs, vec![(0, 3), (1, 4), (2, 5)]);
+    }
+}

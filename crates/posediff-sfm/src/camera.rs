@@ -1,0 +1,130 @@
+//! The mapper's camera parametrisation and gauge, shared by every refinement.
+//!
+//! A camera is a world → camera rotation and a centre (`x_cam = R (X − C)`, OpenCV). A
+//! refinement moves it by 6 values `[ω, δC]` (`R ← exp(ω) R`, `C ← C + δC`). The gauge: one
+//! reference camera is held fixed (no parameters) and after every step the centres (and points)
+//! are rescaled about the reference's centre to unit mean distance (the scale is not observable).
+
+use nalgebra::{Rotation3, Vector3};
+
+/// One camera's extrinsics: `x_cam = R (X − C)`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CameraPose {
+    /// World → camera rotation.
+    pub rotation: Rotation3<f64>,
+    /// Camera centre in the world.
+    pub center: Vector3<f64>,
+}
+
+impl CameraPose {
+    /// Moved by `[ω, δC]` (`p[0..6]`).
+    pub fn moved(&self, p: &[f64]) -> Self {
+        Self {
+            rotation: Rotation3::from_scaled_axis(Vector3::new(p[0], p[1], p[2])) * self.rotation,
+            center: self.center + Vector3::new(p[3], p[4], p[5]),
+        }
+    }
+
+    /// The translation `t = −R C` of `x_cam = R X + t`.
+    pub fn translation(&self) -> Vector3<f64> {
+        -(self.rotation * self.center)
+    }
+}
+
+/// Where each camera's 6 parameters sit in the parameter vector (`None`: the reference or not
+/// estimated), the focal's index when refined, and the parameter count.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ParameterLayout {
+    /// Offset of each camera's 6 values.
+    pub offset: Vec<Option<usize>>,
+    /// Index of `log φ` when refined.
+    pub focal: Option<usize>,
+    /// Parameters in all.
+    pub n_params: usize,
+    /// Block index of each camera in a block system (cameras first, then the focal).
+    pub block: Vec<Option<usize>>,
+    /// Block index of the focal.
+    pub focal_block: Option<usize>,
+    /// Block sizes (6 per free camera, 1 for the focal).
+    pub block_sizes: Vec<usize>,
+}
+
+impl ParameterLayout {
+    /// The layout of `cameras` with `reference` fixed.
+    pub fn new(cameras: &[Option<CameraPose>], reference: usize, refine_focal: bool) -> Self {
+        let mut next = 0;
+        let mut blocks = 0;
+        let mut block = Vec::with_capacity(cameras.len());
+        let offset = cameras
+            .iter()
+            .enumerate()
+            .map(|(i, c)| {
+                let free = c.is_some() && i != reference;
+                block.push(free.then(|| {
+                    blocks += 1;
+                    blocks - 1
+                }));
+                free.then(|| {
+                    next += 6;
+                    next - 6
+                })
+            })
+            .collect();
+        let mut block_sizes = vec![6; blocks];
+        let focal_block = refine_focal.then(|| {
+            block_sizes.push(1);
+            blocks
+        });
+        Self {
+            offset,
+            focal: refine_focal.then_some(next),
+            n_params: next + usize::from(refine_focal),
+            block,
+            focal_block,
+            block_sizes,
+        }
+    }
+
+    /// The cameras and `φ` moved by `step` (the first `n_params` values).
+    pub fn apply(
+        &self,
+        cameras: &[Option<CameraPose>],
+        phi: f64,
+        step: &[f64],
+    ) -> (Vec<Option<CameraPose>>, f64) {
+        let moved = cameras
+            .iter()
+            .zip(&self.offset)
+            .map(|(c, o)| match (c, o) {
+                (Some(c), Some(o)) => Some(c.moved(&step[*o..*o + 6])),
+                (c, _) => *c,
+            })
+            .collect();
+        (moved, self.focal.map_or(phi, |i| phi * step[i].exp()))
+    }
+}
+
+/// The factor that rescales the centres about the reference's to unit mean distance, and the
+/// origin (the reference's centre); `None` when there is nothing to rescale.
+pub fn gauge_scale(
+    cameras: &[Option<CameraPose>],
+    reference: usize,
+) -> Option<(Vector3<f64>, f64)> {
+    let origin = cameras.get(reference).copied().flatten()?.center;
+    let (mut sum, mut count) = (0.0, 0usize);
+    for c in cameras.iter().flatten() {
+        sum += (c.center - origin).norm();
+        count += 1;
+    }
+    let mean = sum / count.max(1) as f64;
+    (mean > 0.0 && mean.is_finite()).then_some((origin, 1.0 / mean))
+}
+
+/// Rescales the centres about the reference's to unit mean distance.
+pub fn normalize_scale(cameras: &mut [Option<CameraPose>], reference: usize) {
+    if let Some((origin, s)) = gauge_scale(cameras, reference) {
+        for c in cameras.iter_mut().flatten() {
+            c.center = origin + (c.center - origin) * s;
+        }
+    }
+}

@@ -1,0 +1,47 @@
+//! The checkpoint-free global mapper of posediff: camera poses (and sparse points) from
+//! pairwise matches and two-view geometries, as a global structure-from-motion pipeline
+//! (GLOMAP's order of stages).
+//!
+//! | stage | module |
+//! |---|---|
+//! | view graph: components, union-find | [`view_graph`] |
+//! | a shared focal: self-calibration, homographies | [`focal`], [`intrinsics`] |
+//! | rotation averaging (MST + Cauchy IRLS) | [`rotation_averaging`] |
+//! | translation averaging (LUD, scales eliminated) | [`translation_averaging`] |
+//! | Sampson refinement (GGS's objective to convergence) | [`sampson_refine`] |
+//! | tracks by union-find over keypoint ids | [`tracks`] |
+//! | bundle adjustment (Schur complement) | [`bundle`] |
+//! | all of it, with one options struct per stage | [`mapper`] |
+//!
+//! Every linear solve is faer's ([`linalg`]): sparse Cholesky with the symbolic factorisation
+//! computed once per problem for every system whose size grows with the images, dense faer for
+//! the small ones. Every refinement is one Levenberg–Marquardt core ([`lm`]) with analytic
+//! Jacobians. Degeneracy is reported (an error, or an image marked not estimated with its
+//! reason), never replaced by a guess.
+//!
+//! The crate takes matches ([`posediff_geometry::PairMatches`], with keypoint ids) and a
+//! [`mapper::TwoViewSolver`] for relative poses: it never depends on OpenCV or candle.
+#![deny(missing_docs)]
+#![forbid(unsafe_code)]
+
+pub mod bundle;
+pub mod camera;
+pub mod error;
+pub mod focal;
+pub mod intrinsics;
+pub mod linalg;
+pub mod lm;
+pub mod mapper;
+pub mod report;
+pub mod rotation_averaging;
+pub mod sampson_refine;
+pub mod tracks;
+pub mod translation_averaging;
+pub mod view_graph;
+
+pub use camera::CameraPose;
+pub use error::{Result, SfmError};
+pub use intrinsics::ImageIntrinsics;
+pub use linalg::Solver;
+pub use mapper::{GlobalMapper, MapperOptions};
+pub use report::MapperReport;

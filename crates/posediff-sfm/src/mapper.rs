@@ -1,0 +1,550 @@
+//! The global mapper: matches → pair types → a shared focal → (per focal start) relative poses
+//! → rotation averaging → translation averaging → Sampson refinement → the best start → tracks
+//! → bundle adjustment.
+//!
+//! The focal is multi-started: the self-calibrated value, a log grid and the prior (fixed),
+//! because the Sampson cost is flat in the focal for narrow fields of view and
+//! self-calibration can be far off. A free focal that leaves the search range is unobservable
+//! (optical axes meeting at one point, as in object-centric captures of two or three views):
+//! such solutions are dropped. The start with the lowest robust cost over all matches wins.
+//!
+//! Only the largest connected component of the view graph is estimated; every other image is
+//! reported with its reason ([`NotEstimated`]).
+
+use std::time::Instant;
+
+use nalgebra::{Matrix3, Rotation3};
+use posediff_geometry::PairMatches;
+use rayon::prelude::*;
+
+use crate::bundle::{BundleOptions, Point, bundle_adjust};
+use crate::camera::CameraPose;
+use crate::error::{Result, SfmError};
+use crate::focal::{FocalSearch, PairFundamental, focal_from_homographies, self_calibrate};
+use crate::intrinsics::ImageIntrinsics;
+use crate::report::{FocalSource, FocalStart, MapperReport, NotEstimated};
+use crate::rotation_averaging::{
+    RelativeRotation, RotationAveragingOptions, RotationAveragingReport, average_rotations,
+    rotation_residuals_deg,
+};
+use crate::sampson_refine::{
+    SampsonRefineOptions, SampsonRefineReport, refine_sampson, robust_cost,
+};
+use crate::tracks::build_tracks;
+use crate::translation_averaging::{
+    CenterDirection, TranslationAveragingOptions, TranslationAveragingReport, average_translations,
+};
+use crate::view_graph::largest_component;
+
+pub use posediff_geometry::TwoViewPose as RelativePose;
+
+/// Two-view geometry from matches, provided by the caller (OpenCV in the umbrella crate), so
+/// this crate stays free of image libraries. Called from several threads.
+pub trait TwoViewSolver: Sync {
+    /// A homography fit and the fraction of matches it explains (within the solver's
+    /// threshold); `None` when none can be fitted.
+    ///
+    /// # Errors
+    /// The solver's own failures.
+    fn homography(&self, pair: &PairMatches) -> Result<Option<(Matrix3<f64>, f64)>>;
+
+    /// A least-squares fundamental matrix `x_bᵀ F x_a = 0` of the pair, `None` if degenerate.
+    ///
+    /// # Errors
+    /// The solver's own failures.
+    fn fundamental(&self, pair: &PairMatches) -> Result<Option<Matrix3<f64>>>;
+
+    /// The relative pose at intrinsics `k_a`, `k_b`; `None` when there is none.
+    ///
+    /// # Errors
+    /// The solver's own failures.
+    fn relative_pose(
+        &self,
+        pair: &PairMatches,
+        k_a: &Matrix3<f64>,
+        k_b: &Matrix3<f64>,
+    ) -> Result<Option<RelativePose>>;
+}
+
+/// Settings of the mapper, one struct per stage.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MapperOptions {
+    /// Self-calibration search range (`φ = f / s`).
+    pub focal_search: FocalSearch,
+    /// Focal factors tried besides the self-calibrated one.
+    pub focal_starts: Vec<f64>,
+    /// The focal factor used (fixed) when the data cannot determine it: COLMAP's `1.2`.
+    pub focal_prior: f64,
+    /// A pair whose homography explains at least this fraction of its matches has no parallax.
+    pub homography_fraction: f64,
+    /// Rotation averaging.
+    pub rotation_averaging: RotationAveragingOptions,
+    /// Pairs whose relative rotation disagrees with the averaged rotations by more than this
+    /// (degrees) are dropped before translation averaging.
+    pub max_rotation_residual_deg: f64,
+    /// Translation averaging.
+    pub translation_averaging: TranslationAveragingOptions,
+    /// The Sampson refinement (`None`: the averaged cameras).
+    pub sampson: Option<SampsonRefineOptions>,
+    /// The bundle adjustment with tracks (`None`: skipped).
+    pub bundle: Option<BundleOptions>,
+    /// When starts are compared, a match whose pair is not estimated costs as much as one this
+    /// far (px) from its epipolar line.
+    pub missing_penalty_px: f64,
+}
+
+impl Default for MapperOptions {
+    fn default() -> Self {
+        Self {
+            focal_search: FocalSearch::default(),
+            focal_starts: vec![0.4, 0.6, 0.9, 1.35, 2.0, 3.0],
+            focal_prior: 1.2,
+            homography_fraction: 0.9,
+            rotation_averaging: RotationAveragingOptions::default(),
+            max_rotation_residual_deg: 10.0,
+            translation_averaging: TranslationAveragingOptions::default(),
+            sampson: Some(SampsonRefineOptions::default()),
+            bundle: Some(BundleOptions::default()),
+            missing_penalty_px: 10.0,
+        }
+    }
+}
+
+/// The mapper's result.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Reconstruction {
+    /// One per image; `None` for images not estimated.
+    pub cameras: Vec<Option<CameraPose>>,
+    /// The shared focal factor: image `i`'s focal is `intrinsics.focal(phi, i)`.
+    pub phi: f64,
+    /// Principal points and focal scales.
+    pub intrinsics: ImageIntrinsics,
+    /// The bundle adjustment's points (empty without it).
+    pub points: Vec<Point>,
+    /// What happened.
+    pub report: MapperReport,
+}
+
+/// The checkpoint-free global mapper.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct GlobalMapper {
+    /// Its settings.
+    pub options: MapperOptions,
+}
+
+/// Cameras initialised and refined from one starting focal.
+struct Solution {
+    cameras: Vec<Option<CameraPose>>,
+    members: Vec<usize>,
+    phi: f64,
+    pairs_with_pose: usize,
+    rotation_only_pairs: usize,
+    inconsistent_pairs: usize,
+    no_parallax: bool,
+    rotations: RotationAveragingReport,
+    translations: TranslationAveragingReport,
+    sampson: Option<SampsonRefineReport>,
+    score: f64,
+    free_focal: bool,
+}
+
+impl GlobalMapper {
+    /// A mapper with `options`.
+    pub fn new(options: MapperOptions) -> Self {
+        Self { options }
+    }
+
+    /// Cameras of `intrinsics.len()` images from the matches of `pairs`. With `known_focal`
+    /// the intrinsics are exact (`φ = 1`, never refined); otherwise one focal factor is
+    /// estimated.
+    ///
+    /// # Errors
+    /// Fewer than two images, no pair with matches or a relative pose, pairs naming images
+    /// out of range, invalid options, the two-view solver's failures, degenerate normal
+    /// equations.
+    pub fn run(
+        &self,
+        pairs: &[PairMatches],
+        intrinsics: ImageIntrinsics,
+        known_focal: bool,
+        solver: &dyn TwoViewSolver,
+    ) -> Result<Reconstruction> {
+        let o = &self.options;
+        let n = intrinsics.len();
+        if n < 2 {
+            return Err(SfmError::InvalidInput(format!(
+                "need at least 2 images, got {n}"
+            )));
+        }
+        intrinsics.check(n)?;
+        if let Some(p) = pairs
+            .iter()
+            .find(|p| p.first >= n || p.second >= n || p.first == p.second || !p.is_consistent())
+        {
+            return Err(SfmError::InvalidInput(format!(
+                "pair ({}, {}) of {n} images with {} matches is malformed",
+                p.first,
+                p.second,
+                p.len()
+            )));
+        }
+        let mut report = MapperReport::default();
+        let matched: Vec<&PairMatches> = pairs.iter().filter(|p| !p.is_empty()).collect();
+        report.pairs_with_matches = matched.len();
+        if matched.is_empty() {
+            return Err(SfmError::NoUsablePairs { images: n });
+        }
+
+        // Pair types (no intrinsics needed) and, for self-calibration, least-squares F.
+        let clock = Instant::now();
+        let homography: Vec<Option<(Matrix3<f64>, f64)>> = matched
+            .par_iter()
+            .map(|p| solver.homography(p))
+            .collect::<Result<_>>()?;
+        let parallax: Vec<bool> = homography
+            .iter()
+            .map(|h| h.is_none_or(|(_, fraction)| fraction < o.homography_fraction))
+            .collect();
+        let fundamentals: Vec<Option<Matrix3<f64>>> = if known_focal {
+            Vec::new()
+        } else {
+            matched
+                .par_iter()
+                .zip(&parallax)
+                .map(|(p, par)| {
+                    if *par {
+                        solver.fundamental(p)
+                    } else {
+                        Ok(None)
+                    }
+                })
+                .collect::<Result<_>>()?
+        };
+        report.times.pair_geometry = clock.elapsed().as_secs_f64();
+
+        let clock = Instant::now();
+        let phi = if known_focal {
+            report.focal_source = FocalSource::Given;
+            1.0
+        } else {
+            let pf: Vec<PairFundamental> = matched
+                .iter()
+                .zip(&fundamentals)
+                .filter_map(|(p, f)| {
+                    f.map(|f| PairFundamental {
+                        f,
+                        principal_a: intrinsics.principal[p.first],
+                        principal_b: intrinsics.principal[p.second],
+                        scale_a: intrinsics.scale[p.first],
+                        scale_b: intrinsics.scale[p.second],
+                        weight: (p.len() as f64).sqrt(),
+                    })
+                })
+                .collect();
+            if let Some(phi) = self_calibrate(&pf, &o.focal_search) {
+                report.focal_source = FocalSource::SelfCalibration;
+                phi
+            } else {
+                let rotation_pairs: Vec<(usize, usize, Matrix3<f64>)> = matched
+                    .iter()
+                    .zip(&homography)
+                    .filter_map(|(p, h)| h.map(|(h, _)| (p.first, p.second, h)))
+                    .collect();
+                report.focal_source = FocalSource::Homographies;
+                focal_from_homographies(&rotation_pairs, &intrinsics, &o.focal_search)
+                    .ok_or(SfmError::NoUsablePairs { images: n })?
+            }
+        };
+        report.times.focal = clock.elapsed().as_secs_f64();
+
+        let any_parallax = parallax.iter().any(|p| *p);
+        let candidates: Vec<(f64, bool)> = if known_focal || !any_parallax {
+            // Without parallax the focal comes from the rotation homographies alone: any other
+            // start would treat the pairs as general and fit meaningless epipolar geometry.
+            vec![(phi, false)]
+        } else {
+            std::iter::once(phi)
+                .chain(o.focal_starts.iter().copied())
+                .map(|p| (p, true))
+                .chain(std::iter::once((o.focal_prior, false)))
+                .collect()
+        };
+        let mut best: Option<Solution> = None;
+        for &(start, free) in &candidates {
+            let s = self.solve_at_focal(
+                start,
+                &matched,
+                pairs,
+                &intrinsics,
+                free,
+                solver,
+                &mut report,
+            )?;
+            let out_of_range = free && !(o.focal_search.min..=o.focal_search.max).contains(&s.phi);
+            report.starts.push(FocalStart {
+                start,
+                phi: s.phi,
+                free,
+                images: s.members.len(),
+                score: s.score,
+                out_of_range,
+            });
+            if !out_of_range && best.as_ref().is_none_or(|b| s.score < b.score) {
+                best = Some(s);
+            }
+        }
+        let Some(best) = best else {
+            return Err(SfmError::NoUsablePairs { images: n });
+        };
+        report.focal_factor_initial = phi;
+        report.pairs_with_pose = best.pairs_with_pose;
+        report.rotation_only_pairs = best.rotation_only_pairs;
+        report.inconsistent_pairs = best.inconsistent_pairs;
+        report.no_parallax = best.no_parallax;
+        report.rotation_averaging = best.rotations;
+        report.translation_averaging = best.translations;
+        report.sampson = best.sampson;
+        let mut cameras = best.cameras;
+        let mut phi_refined = best.phi;
+        let mut points = Vec::new();
+
+        let clock = Instant::now();
+        let reference = (0..n).find(|&i| cameras[i].is_some());
+        if let (Some(options), Some(reference)) = (o.bundle, reference) {
+            let (tracks, track_report) = build_tracks(n, pairs)?;
+            report.tracks = Some(track_report);
+            let mut options = options;
+            options.refine_focal &= best.free_focal;
+            let (before, phi_before) = (cameras.clone(), phi_refined);
+            let (adjusted, r) = bundle_adjust(
+                &tracks,
+                &intrinsics,
+                &mut cameras,
+                &mut phi_refined,
+                reference,
+                &options,
+            )?;
+            if options.refine_focal
+                && !(o.focal_search.min..=o.focal_search.max).contains(&phi_refined)
+            {
+                // The points drove the focal out of range: keep the pairwise solution.
+                cameras = before;
+                phi_refined = phi_before;
+                report.bundle_undone = true;
+            } else {
+                points = adjusted;
+            }
+            report.bundle = Some(r);
+        }
+        report.times.bundle = clock.elapsed().as_secs_f64();
+        report.focal_factor = phi_refined;
+        report.estimated = (0..n).filter(|&i| cameras[i].is_some()).collect();
+        report.not_estimated = (0..n)
+            .filter(|&i| cameras[i].is_none())
+            .map(|i| {
+                let reason = if best.members.binary_search(&i).is_ok() {
+                    NotEstimated::NoCentre
+                } else {
+                    NotEstimated::OutsideLargestComponent
+                };
+                (i, reason)
+            })
+            .collect();
+        Ok(Reconstruction {
+            cameras,
+            phi: phi_refined,
+            intrinsics,
+            points,
+            report,
+        })
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn solve_at_focal(
+        &self,
+        phi: f64,
+        matched: &[&PairMatches],
+        all_pairs: &[PairMatches],
+        intrinsics: &ImageIntrinsics,
+        refine_focal: bool,
+        solver: &dyn TwoViewSolver,
+        report: &mut MapperReport,
+    ) -> Result<Solution> {
+        let o = &self.options;
+        let n = intrinsics.len();
+        let clock = Instant::now();
+        let poses: Vec<Option<RelativePose>> = matched
+            .par_iter()
+            .map(|p| {
+                solver.relative_pose(p, &intrinsics.k(phi, p.first), &intrinsics.k(phi, p.second))
+            })
+            .collect::<Result<_>>()?;
+        report.times.two_view += clock.elapsed().as_secs_f64();
+        let clock = Instant::now();
+        let mut rotation_only_pairs = 0;
+        let mut rotations = Vec::new();
+        let mut directions_local = Vec::new();
+        for (p, pose) in matched.iter().zip(poses) {
+            let Some(pose) = pose else { continue };
+            let (rotation, translation, inliers) = match pose {
+                RelativePose::General {
+                    rotation,
+                    translation,
+                    inliers,
+                } => (rotation, Some(translation), inliers),
+                RelativePose::RotationOnly { rotation, inliers } => {
+                    rotation_only_pairs += 1;
+                    (rotation, None, inliers)
+                }
+            };
+            rotations.push(RelativeRotation {
+                first: p.first,
+                second: p.second,
+                rotation: Rotation3::from_matrix(&rotation),
+                weight: inliers as f64,
+            });
+            directions_local.push(translation);
+        }
+        let pairs_with_pose = rotations.len();
+
+        // Rotation averaging on the largest component, inconsistent pairs dropped, once.
+        let mut keep = vec![true; rotations.len()];
+        let mut members = Vec::new();
+        let mut absolute = vec![None; n];
+        let mut inconsistent_pairs = 0;
+        let mut rotation_report = RotationAveragingReport::default();
+        for round in 0..2 {
+            let edges: Vec<RelativeRotation> = rotations
+                .iter()
+                .zip(&keep)
+                .filter(|(_, k)| **k)
+                .map(|(r, _)| *r)
+                .collect();
+            let graph: Vec<(usize, usize, f64)> = edges
+                .iter()
+                .map(|e| (e.first, e.second, e.weight))
+                .collect();
+            members = largest_component(n, &graph);
+            let Some(&reference) = members.first() else {
+                break;
+            };
+            (absolute, rotation_report) =
+                average_rotations(n, &edges, reference, &o.rotation_averaging)?;
+            if round == 1 {
+                break;
+            }
+            let residuals = rotation_residuals_deg(&rotations, &absolute);
+            let mut dropped = 0;
+            for (k, r) in keep.iter_mut().zip(&residuals) {
+                if r.is_some_and(|r| r > o.max_rotation_residual_deg) {
+                    *k = false;
+                    dropped += 1;
+                }
+            }
+            inconsistent_pairs = dropped;
+            if dropped == 0 {
+                break;
+            }
+        }
+        let empty = |members: Vec<usize>| Solution {
+            cameras: vec![None; n],
+            members,
+            phi,
+            pairs_with_pose,
+            rotation_only_pairs,
+            inconsistent_pairs,
+            no_parallax: false,
+            rotations: rotation_report,
+            translations: TranslationAveragingReport::default(),
+            sampson: None,
+            score: f64::INFINITY,
+            free_focal: refine_focal,
+        };
+        let Some(&reference) = members.first() else {
+            report.times.averaging += clock.elapsed().as_secs_f64();
+            return Ok(empty(members));
+        };
+        let directions: Vec<CenterDirection> = rotations
+            .iter()
+            .zip(&directions_local)
+            .zip(&keep)
+            .filter(|(_, k)| **k)
+            .filter_map(|((r, t), _)| {
+                let rb = absolute[r.second]?;
+                Some(CenterDirection {
+                    first: r.first,
+                    second: r.second,
+                    direction: t.map(|t| rb.inverse() * t),
+                    weight: r.weight,
+                })
+            })
+            .collect();
+        let no_parallax = directions.iter().all(|d| d.direction.is_none());
+        let (centres, translation_report) = average_translations(
+            n,
+            &members,
+            &directions,
+            reference,
+            &o.translation_averaging,
+        )?;
+        report.times.averaging += clock.elapsed().as_secs_f64();
+        let clock = Instant::now();
+        let mut cameras: Vec<Option<CameraPose>> = (0..n)
+            .map(|i| match (absolute[i], centres[i]) {
+                (Some(rotation), Some(center)) if members.binary_search(&i).is_ok() => {
+                    Some(CameraPose { rotation, center })
+                }
+                _ => None,
+            })
+            .collect();
+        let mut phi = phi;
+        let mut sampson = None;
+        let cauchy = match o.sampson {
+            Some(mut options) => {
+                options.refine_focal &= refine_focal;
+                // Tied pairs (zero baseline) have no epipolar geometry: left out.
+                let lm_pairs: Vec<&PairMatches> = matched
+                    .iter()
+                    .filter(|p| match (cameras[p.first], cameras[p.second]) {
+                        (Some(a), Some(b)) => (a.center - b.center).norm() > 0.0,
+                        _ => false,
+                    })
+                    .copied()
+                    .collect();
+                sampson = Some(refine_sampson(
+                    &lm_pairs,
+                    intrinsics,
+                    &mut cameras,
+                    &mut phi,
+                    reference,
+                    &options,
+                )?);
+                options.cauchy_px
+            }
+            None => SampsonRefineOptions::default().cauchy_px,
+        };
+        let score = robust_cost(
+            all_pairs,
+            intrinsics,
+            &cameras,
+            phi,
+            cauchy,
+            o.missing_penalty_px,
+        )?;
+        report.times.refinement += clock.elapsed().as_secs_f64();
+        Ok(Solution {
+            cameras,
+            members,
+            phi,
+            pairs_with_pose,
+            rotation_only_pairs,
+            inconsistent_pairs,
+            no_parallax,
+            rotations: rotation_report,
+            translations: translation_report,
+            sampson,
+            score,
+            free_focal: refine_focal,
+        })
+    }
+}

@@ -1,0 +1,126 @@
+//! What the mapper did, stage by stage (the umbrella writes it into run.json).
+
+use crate::bundle::BundleReport;
+use crate::rotation_averaging::RotationAveragingReport;
+use crate::sampson_refine::SampsonRefineReport;
+use crate::tracks::TrackReport;
+use crate::translation_averaging::TranslationAveragingReport;
+
+/// Where the focal came from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum FocalSource {
+    /// Known intrinsics were given.
+    #[default]
+    Given,
+    /// Self-calibration from pairwise fundamental matrices.
+    SelfCalibration,
+    /// Rotation homographies (no pair with parallax).
+    Homographies,
+}
+
+impl FocalSource {
+    /// The name written to run.json.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Given => "given",
+            Self::SelfCalibration => "self-calibration",
+            Self::Homographies => "homographies",
+        }
+    }
+}
+
+/// Why an image was not estimated.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum NotEstimated {
+    /// No pair of the image has a relative pose with the largest group.
+    OutsideLargestComponent,
+    /// Its rotation is known but no direction edge connects its centre to the others.
+    NoCentre,
+}
+
+impl NotEstimated {
+    /// A sentence for run.json.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::OutsideLargestComponent => {
+                "shares no usable two-view geometry with the largest group of images"
+            }
+            Self::NoCentre => "its centre is not constrained by any pair with parallax",
+        }
+    }
+}
+
+/// One focal start of the multi-start.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct FocalStart {
+    /// `φ` it started from.
+    pub start: f64,
+    /// `φ` it ended at.
+    pub phi: f64,
+    /// Whether the focal was free.
+    pub free: bool,
+    /// Images estimated.
+    pub images: usize,
+    /// Robust cost over all matches (lower wins).
+    pub score: f64,
+    /// Dropped because a free focal left the search range.
+    pub out_of_range: bool,
+}
+
+/// Seconds per stage, summed over the focal starts.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct StageTimes {
+    /// Homography tests and least-squares fundamental matrices (per pair, once).
+    pub pair_geometry: f64,
+    /// Focal initialisation (self-calibration or homographies).
+    pub focal: f64,
+    /// Relative poses at each start.
+    pub two_view: f64,
+    /// Rotation and translation averaging.
+    pub averaging: f64,
+    /// Sampson refinement and scoring.
+    pub refinement: f64,
+    /// Tracks and bundle adjustment of the chosen start.
+    pub bundle: f64,
+}
+
+/// What the mapper did.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct MapperReport {
+    /// Pairs with matches.
+    pub pairs_with_matches: usize,
+    /// Pairs with a relative pose at the chosen start.
+    pub pairs_with_pose: usize,
+    /// Of those, rotation-only pairs.
+    pub rotation_only_pairs: usize,
+    /// Pairs dropped by the rotation-consistency check.
+    pub inconsistent_pairs: usize,
+    /// No pair has parallax: all centres coincide.
+    pub no_parallax: bool,
+    /// The images estimated.
+    pub estimated: Vec<usize>,
+    /// The others, with the reason.
+    pub not_estimated: Vec<(usize, NotEstimated)>,
+    /// Where the focal came from.
+    pub focal_source: FocalSource,
+    /// `φ` before refinement.
+    pub focal_factor_initial: f64,
+    /// `φ` at the end.
+    pub focal_factor: f64,
+    /// Every focal start tried.
+    pub starts: Vec<FocalStart>,
+    /// Rotation averaging of the chosen start.
+    pub rotation_averaging: RotationAveragingReport,
+    /// Translation averaging of the chosen start.
+    pub translation_averaging: TranslationAveragingReport,
+    /// Sampson refinement of the chosen start.
+    pub sampson: Option<SampsonRefineReport>,
+    /// Tracks.
+    pub tracks: Option<TrackReport>,
+    /// Bundle adjustment.
+    pub bundle: Option<BundleReport>,
+    /// The bundle adjustment drove a free focal out of range and was undone.
+    pub bundle_undone: bool,
+    /// Stage timings.
+    pub times: StageTimes,
+}
