@@ -40,8 +40,12 @@ enum Matcher {
 /// How checkpoint-free cameras are refined.
 #[derive(Clone, Copy, ValueEnum)]
 enum RefineArg {
-    /// Levenberg–Marquardt on the Sampson distances until the cost stops falling.
+    /// Levenberg–Marquardt on the Sampson distances until the cost stops falling, then the
+    /// bundle adjustment with tracks.
     Converge,
+    /// With --weights: PoseDiffusion's cameras (after GGS) refined by the mapper's bundle
+    /// adjustment with tracks (the paper's future work). Without: as `converge`.
+    Bundle,
     /// The official five-phase GGS schedule (7000 SGD iterations) in the 224 crops.
     Official,
     /// The averaged cameras as they are.
@@ -565,7 +569,7 @@ fn estimate(args: EstimateArgs) -> anyhow::Result<()> {
         intrinsics: known.clone(),
         pairs: args.pairs.clone(),
         refinement: match args.refine {
-            RefineArg::Converge => {
+            RefineArg::Converge | RefineArg::Bundle => {
                 Refinement::Converge(posediff_sfm::sampson_refine::SampsonRefineOptions::default())
             }
             RefineArg::Official => Refinement::Official(posediff_guidance::GgsConfig::default()),
@@ -626,7 +630,7 @@ fn estimate(args: EstimateArgs) -> anyhow::Result<()> {
         seed: args.seed,
         samples: args.samples,
         ggs: !args.no_ggs,
-        intrinsics: known,
+        intrinsics: known.clone(),
         ..EstimateConfig::default()
     };
     config.matching.features.detector = detector(args.matcher);
@@ -679,7 +683,25 @@ fn estimate(args: EstimateArgs) -> anyhow::Result<()> {
         init_cameras.as_deref().map(|c| (c, args.start_step)),
         progress,
     )?;
-    let first = &estimate.samples[0];
+    let mut first = estimate.samples[0].clone();
+    let mut bundle_report = None;
+    if matches!(args.refine, RefineArg::Bundle) {
+        if estimate.pairs.iter().all(|p| p.is_empty()) {
+            bail!(
+                "--refine bundle needs verified matches (none were found, or --no-ggs was given)"
+            );
+        }
+        let mut cams: Vec<posediff_geometry::Camera> = first.iter().map(|c| c.camera).collect();
+        let report = posediff::geometric::bundle_refine_cameras(
+            &mut cams,
+            &estimate.pairs,
+            !matches!(known, KnownIntrinsics::Unknown),
+        )?;
+        for (named, c) in first.iter_mut().zip(cams) {
+            named.camera = c;
+        }
+        bundle_report = Some(report);
+    }
     let entries: Vec<ImageCamera> = first
         .iter()
         .map(|c| ImageCamera {
@@ -703,6 +725,7 @@ fn estimate(args: EstimateArgs) -> anyhow::Result<()> {
         "seed": args.seed,
         "samples": args.samples,
         "ggs": !args.no_ggs,
+        "bundle": bundle_report,
         "device": device_name,
         "seconds": {"load_weights": load_weights, "load_images": estimate.times.load, "matching": estimate.times.matching,
                     "features": estimate.times.features, "sampling": estimate.times.sampling, "ggs": estimate.times.ggs},

@@ -73,6 +73,8 @@ pub struct Estimate {
     pub crops: Vec<CenterCrop>,
     /// Per matched pair: `(first, second, matches)`.
     pub matches_per_pair: Vec<(usize, usize, usize)>,
+    /// The matches of every pair (original pixels, keypoint ids); empty without GGS.
+    pub pairs: Vec<PairMatches>,
     /// Stage timings.
     pub times: StageTimes,
     /// Things the user should know (e.g. GGS skipped).
@@ -445,6 +447,7 @@ impl Estimator {
         progress.finish();
 
         let mut matches_per_pair = Vec::new();
+        let mut all_pairs = Vec::new();
         let match_set = if self.config.ggs {
             progress.start("matching", 0);
             let start = Instant::now();
@@ -460,6 +463,7 @@ impl Estimator {
                 set.len(),
                 times.matching
             );
+            all_pairs = pairs;
             if set.is_empty() {
                 log::warn!("GGS skipped: no image pair has verified matches");
                 warnings.push("GGS skipped: no image pair has verified matches".to_owned());
@@ -527,6 +531,7 @@ impl Estimator {
             samples,
             crops: loaded.iter().map(|l| l.crop).collect(),
             matches_per_pair,
+            pairs: all_pairs,
             times,
             warnings,
         })

@@ -518,3 +518,62 @@ fn known_intrinsics_from_a_file_are_returned_exactly() {
     assert!(!bad.status.success());
     assert!(String::from_utf8_lossy(&bad.stderr).contains("11 entries for 2 images"));
 }
+
+/// The hybrid refinement (`--weights W --refine bundle`): cameras from elsewhere, here the
+/// ground truth perturbed by about a degree and 4 % in focal, are pulled back by the bundle
+/// adjustment with tracks from real matches; the scene keeps its scale.
+#[test]
+fn the_bundle_refinement_pulls_given_cameras_to_the_truth() {
+    let (images, gt) = set("strecha_fountainP11");
+    let (images, gt) = (&images[..5], &gt[..5]);
+    let config = GeometricConfig::default();
+    let (_, pairs) = posediff_matching::match_images(images, None, &config.matching).unwrap();
+    assert!(
+        pairs.iter().all(|p| p.idx1.len() == p.len()),
+        "keypoint ids travel with the matches"
+    );
+    let mut cams: Vec<Camera> = gt
+        .iter()
+        .enumerate()
+        .map(|(i, c)| {
+            let mut c = *c;
+            if i > 0 {
+                let extra = Rotation3::from_euler_angles(0.01, -0.012 * i as f64, 0.008);
+                let centre =
+                    c.center().coords + nalgebra::Vector3::new(0.02, -0.01, 0.015) * i as f64;
+                let r = extra.matrix() * c.cam_from_world.rotation;
+                c.cam_from_world = Pose::new(r, -(r * centre));
+            }
+            c.intrinsics = posediff_geometry::Intrinsics::new(
+                c.intrinsics.fx() * 1.04,
+                c.intrinsics.fy() * 1.04,
+                c.intrinsics.cx(),
+                c.intrinsics.cy(),
+            )
+            .unwrap();
+            c
+        })
+        .collect();
+    let (rot0, _) = worst_pair_errors(&cams, gt);
+    let spread = |c: &[Camera]| -> f64 {
+        c.iter()
+            .map(|x| (x.center() - c[0].center()).norm())
+            .sum::<f64>()
+            / c.len() as f64
+    };
+    let scale0 = spread(&cams);
+    let r = posediff::geometric::bundle_refine_cameras(&mut cams, &pairs, false).unwrap();
+    let (rot, trans) = worst_pair_errors(&cams, gt);
+    assert!(rot0 > 1.0, "the perturbation is visible: {rot0}°");
+    assert!(
+        rot < 0.2 && trans < 0.5,
+        "worst pair after: {rot}° / {trans}° ({r:?})"
+    );
+    assert!(r.points > 1000 && r.rms_px < 1.0, "{r:?}");
+    let f_err = cams[0].intrinsics.fx() / gt[0].intrinsics.fx() - 1.0;
+    assert!(f_err.abs() < 0.01, "focal {f_err}");
+    assert!(
+        (spread(&cams) / scale0 - 1.0).abs() < 1e-9,
+        "the scale is kept"
+    );
+}
