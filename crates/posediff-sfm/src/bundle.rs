@@ -341,14 +341,7 @@ impl LeastSquares for Problem<'_> {
             }
             inverses.push(c_inv);
         }
-        let floor = 1e-12
-            * self
-                .system
-                .diagonal()
-                .into_iter()
-                .fold(0.0, f64::max)
-                .max(1e-300);
-        let Some(delta) = self.system.solve_damped(lambda, floor)? else {
+        let Some(delta) = self.system.solve_regularised(lambda)? else {
             return Ok(None);
         };
         // Back-substitution: δp = −C⁻¹ (g_p + Σ Eᵀ δc).

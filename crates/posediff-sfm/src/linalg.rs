@@ -264,6 +264,21 @@ impl BlockSystem {
         Ok(Some(out))
     }
 
+    /// [`Self::solve_damped`] with the floor `1e-12 · max_k H_kk` that every system of the
+    /// mapper uses (a regularisation far below the data's scale).
+    ///
+    /// # Errors
+    /// As [`Self::solve_damped`].
+    pub fn solve_regularised(&self, lambda: f64) -> Result<Option<Vec<f64>>> {
+        let largest = self
+            .diagonal
+            .iter()
+            .map(|&k| self.values[k])
+            .fold(0.0, f64::max)
+            .max(1e-300);
+        self.solve_damped(lambda, 1e-12 * largest)
+    }
+
     /// [`Self::solve_damped`] for the plain system: not positive definite is an error.
     ///
     /// # Errors

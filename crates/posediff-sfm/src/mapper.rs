@@ -91,6 +91,11 @@ pub struct MapperOptions {
     /// When starts are compared, a match whose pair is not estimated costs as much as one this
     /// far (px) from its epipolar line.
     pub missing_penalty_px: f64,
+    /// With more images than this, the focal starts are compared on a connected subset of this
+    /// many images (grown breadth-first from the best-matched image along the strongest
+    /// pairs), and the whole set is solved once, from the winner's refined focal. The
+    /// multi-start then costs the same at 1000 images as at this many.
+    pub focal_selection_images: usize,
 }
 
 impl Default for MapperOptions {
@@ -106,6 +111,7 @@ impl Default for MapperOptions {
             sampson: Some(SampsonRefineOptions::default()),
             bundle: Some(BundleOptions::default()),
             missing_penalty_px: 10.0,
+            focal_selection_images: 60,
         }
     }
 }
@@ -123,6 +129,42 @@ pub struct Reconstruction {
     pub points: Vec<Point>,
     /// What happened.
     pub report: MapperReport,
+}
+
+/// `size` images connected through `matched`, grown breadth-first from the image with the most
+/// matches, each image's neighbours taken strongest pair first (deterministic).
+fn selection_subset(n: usize, matched: &[&PairMatches], size: usize) -> Vec<bool> {
+    let mut adjacency: Vec<Vec<(usize, usize)>> = vec![Vec::new(); n];
+    let mut total = vec![0usize; n];
+    for p in matched {
+        adjacency[p.first].push((p.len(), p.second));
+        adjacency[p.second].push((p.len(), p.first));
+        total[p.first] += p.len();
+        total[p.second] += p.len();
+    }
+    for a in &mut adjacency {
+        a.sort_by(|x, y| y.0.cmp(&x.0).then(x.1.cmp(&y.1)));
+    }
+    let mut keep = vec![false; n];
+    let Some(start) = (0..n).max_by(|&a, &b| total[a].cmp(&total[b]).then(b.cmp(&a))) else {
+        return keep;
+    };
+    let mut queue = std::collections::VecDeque::from([start]);
+    keep[start] = true;
+    let mut count = 1;
+    while let Some(v) = queue.pop_front() {
+        for &(_, w) in &adjacency[v] {
+            if count >= size {
+                return keep;
+            }
+            if !keep[w] {
+                keep[w] = true;
+                count += 1;
+                queue.push_back(w);
+            }
+        }
+    }
+    keep
 }
 
 /// The checkpoint-free global mapper.
@@ -269,12 +311,38 @@ impl GlobalMapper {
                 .chain(std::iter::once((o.focal_prior, false)))
                 .collect()
         };
+        let active = {
+            let mut seen = vec![false; n];
+            for p in &matched {
+                seen[p.first] = true;
+                seen[p.second] = true;
+            }
+            seen.iter().filter(|s| **s).count()
+        };
+        let subset = (candidates.len() > 1 && active > o.focal_selection_images)
+            .then(|| selection_subset(n, &matched, o.focal_selection_images));
+        let all_refs: Vec<&PairMatches> = pairs.iter().collect();
+        let (trial_matched, trial_all): (Vec<&PairMatches>, Vec<&PairMatches>) = match &subset {
+            Some(keep) => (
+                matched
+                    .iter()
+                    .copied()
+                    .filter(|p| keep[p.first] && keep[p.second])
+                    .collect(),
+                all_refs
+                    .iter()
+                    .copied()
+                    .filter(|p| keep[p.first] && keep[p.second])
+                    .collect(),
+            ),
+            None => (matched.clone(), all_refs.clone()),
+        };
         let mut best: Option<Solution> = None;
         for &(start, free) in &candidates {
             let s = self.solve_at_focal(
                 start,
-                &matched,
-                pairs,
+                &trial_matched,
+                &trial_all,
                 &intrinsics,
                 free,
                 solver,
@@ -292,6 +360,29 @@ impl GlobalMapper {
             if !out_of_range && best.as_ref().is_none_or(|b| s.score < b.score) {
                 best = Some(s);
             }
+        }
+        if let (Some(_), Some(chosen)) = (&subset, &best) {
+            // The whole set once, from the subset winner's refined focal.
+            let (start, free) = (chosen.phi, chosen.free_focal);
+            let s = self.solve_at_focal(
+                start,
+                &matched,
+                &all_refs,
+                &intrinsics,
+                free,
+                solver,
+                &mut report,
+            )?;
+            let out_of_range = free && !(o.focal_search.min..=o.focal_search.max).contains(&s.phi);
+            report.starts.push(FocalStart {
+                start,
+                phi: s.phi,
+                free,
+                images: s.members.len(),
+                score: s.score,
+                out_of_range,
+            });
+            best = (!out_of_range).then_some(s);
         }
         let Some(best) = best else {
             return Err(SfmError::NoUsablePairs { images: n });
@@ -364,7 +455,7 @@ impl GlobalMapper {
         &self,
         phi: f64,
         matched: &[&PairMatches],
-        all_pairs: &[PairMatches],
+        all_pairs: &[&PairMatches],
         intrinsics: &ImageIntrinsics,
         refine_focal: bool,
         solver: &dyn TwoViewSolver,
@@ -546,5 +637,41 @@ impl GlobalMapper {
             score,
             free_focal: refine_focal,
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn pair(first: usize, second: usize, n: usize) -> PairMatches {
+        PairMatches {
+            first,
+            second,
+            kp1: vec![[0.0; 2]; n],
+            kp2: vec![[0.0; 2]; n],
+            idx1: (0..n as u32).collect(),
+            idx2: (0..n as u32).collect(),
+        }
+    }
+
+    #[test]
+    fn the_focal_subset_grows_from_the_best_matched_image_along_strong_pairs() {
+        // A chain 0–1–2–3–4–5 and a weak shortcut 3–0; image 3 has the most matches.
+        let pairs = [
+            pair(0, 1, 50),
+            pair(1, 2, 60),
+            pair(2, 3, 90),
+            pair(3, 4, 80),
+            pair(4, 5, 70),
+            pair(3, 0, 21),
+        ];
+        let refs: Vec<&PairMatches> = pairs.iter().collect();
+        let keep = selection_subset(6, &refs, 3);
+        assert_eq!(keep, vec![false, false, true, true, true, false]);
+        let keep = selection_subset(6, &refs, 4);
+        assert_eq!(keep.iter().filter(|k| **k).count(), 4);
+        assert!(keep[0], "the weak shortcut is the next neighbour of 3");
+        assert!(selection_subset(6, &refs, 10).iter().all(|k| *k));
     }
 }

@@ -130,12 +130,7 @@ pub fn average_rotations(
                 }
             }
         }
-        let scale = system
-            .diagonal()
-            .into_iter()
-            .fold(0.0, f64::max)
-            .max(1e-300);
-        let step = system.solve_damped(0.0, 1e-12 * scale)?.ok_or_else(|| {
+        let step = system.solve_regularised(0.0)?.ok_or_else(|| {
             crate::error::SfmError::NotPositiveDefinite {
                 what: "rotation averaging",
                 detail: "disconnected or zero-weight view graph".into(),

@@ -15,7 +15,7 @@
 //! `∂K⁻¹/∂log φ = −(K⁻¹ − e₃e₃ᵀ)`. The normal equations are a sparse block system (one 6×6
 //! block per camera, one per pair, a focal row), factorised symbolically once.
 
-use nalgebra::{Matrix3, SMatrix, SVector};
+use nalgebra::{Matrix3, SMatrix, SVector, Vector3};
 use posediff_geometry::PairMatches;
 use posediff_geometry::epipolar::skew;
 use rayon::prelude::*;
@@ -87,10 +87,15 @@ pub fn pair_fundamental(
     ia: usize,
     ib: usize,
 ) -> Matrix3<f64> {
-    let r = b.rotation * a.rotation.inverse();
-    let t = b.rotation * (a.center - b.center);
-    let e = skew(&t) * r.matrix();
+    let (_, _, e) = pair_essential(a, b);
     intrinsics.k_inverse(phi, ib).transpose() * e * intrinsics.k_inverse(phi, ia)
+}
+
+/// `R = R_b R_aᵀ`, `t = R_b (C_a − C_b)` and `E = [t]ₓ R` of a pair.
+fn pair_essential(a: &CameraPose, b: &CameraPose) -> (Matrix3<f64>, Vector3<f64>, Matrix3<f64>) {
+    let r = *(b.rotation * a.rotation.inverse()).matrix();
+    let t = b.rotation * (a.center - b.center);
+    (r, t, skew(&t) * r)
 }
 
 /// `F` of the pair and its 13 analytic derivatives with respect to
@@ -103,16 +108,14 @@ pub fn pair_fundamental_jacobian(
     ia: usize,
     ib: usize,
 ) -> (Matrix3<f64>, [Matrix3<f64>; 13]) {
-    let r = *(b.rotation * a.rotation.inverse()).matrix();
-    let t = b.rotation * (a.center - b.center);
-    let e = skew(&t) * r;
+    let (r, _, e) = pair_essential(a, b);
     let (ka_inv, kb_inv) = (intrinsics.k_inverse(phi, ia), intrinsics.k_inverse(phi, ib));
     let kb_inv_t = kb_inv.transpose();
     let f = kb_inv_t * e * ka_inv;
     let rb = *b.rotation.matrix();
     let mut d = [Matrix3::zeros(); 13];
     for k in 0..3 {
-        let mut unit = nalgebra::Vector3::zeros();
+        let mut unit = Vector3::zeros();
         unit[k] = 1.0;
         let de_wa = -(e * skew(&unit));
         let de_wb = skew(&unit) * e;
@@ -308,14 +311,7 @@ impl LeastSquares for Problem<'_> {
     }
 
     fn solve(&mut self, lambda: f64) -> Result<Option<Vec<f64>>> {
-        let floor = 1e-12
-            * self
-                .system
-                .diagonal()
-                .into_iter()
-                .fold(0.0, f64::max)
-                .max(1e-300);
-        self.system.solve_damped(lambda, floor)
+        self.system.solve_regularised(lambda)
     }
 
     fn apply(&self, (cams, phi): &State, step: &[f64]) -> State {
@@ -361,7 +357,7 @@ pub(crate) fn check_inputs(
 /// # Errors
 /// Inputs of the wrong length.
 pub fn robust_cost(
-    pairs: &[PairMatches],
+    pairs: &[&PairMatches],
     intrinsics: &ImageIntrinsics,
     cameras: &[Option<CameraPose>],
     phi: f64,
@@ -373,13 +369,12 @@ pub fn robust_cost(
         cauchy: cauchy_px,
         gate: None,
     };
-    let refs: Vec<&PairMatches> = pairs.iter().collect();
     let missing: usize = pairs
         .iter()
         .filter(|p| usable(cameras, p.first, p.second).is_none())
-        .map(PairMatches::len)
+        .map(|p| p.len())
         .sum();
-    Ok(cost_of(&refs, intrinsics, cameras, phi, loss) + missing as f64 * loss.rho(missing_px))
+    Ok(cost_of(pairs, intrinsics, cameras, phi, loss) + missing as f64 * loss.rho(missing_px))
 }
 
 /// Refines `cameras` (`None`: not estimated, left alone) and `phi` in place on the matches of

@@ -282,13 +282,8 @@ fn solve_centres(
             system.add_block(p, q, |r, c| -m[(r, c)])?;
         }
     }
-    let scale = system
-        .diagonal()
-        .into_iter()
-        .fold(0.0, f64::max)
-        .max(1e-300);
     system
-        .solve_damped(0.0, 1e-12 * scale)?
+        .solve_regularised(0.0)?
         .ok_or_else(|| SfmError::NotPositiveDefinite {
             what: "translation averaging",
             detail: "the direction graph does not fix the centres".into(),

@@ -191,8 +191,8 @@ fn gross_outliers_do_not_pull_the_solution() {
     // not matter (the start is off by more than 1°).
     assert!(worst < 0.05, "{worst}° phi {phi} {report:?}");
     // The refined solution is no worse than the truth under the robust cost.
-    let at_truth = robust_cost(&s.matches, &s.intrinsics, &truth, s.phi, 1.0, 10.0).unwrap();
-    let ours = robust_cost(&s.matches, &s.intrinsics, &cams, phi, 1.0, 10.0).unwrap();
+    let at_truth = robust_cost(&refs(&s.matches), &s.intrinsics, &truth, s.phi, 1.0, 10.0).unwrap();
+    let ours = robust_cost(&refs(&s.matches), &s.intrinsics, &cams, phi, 1.0, 10.0).unwrap();
     assert!(ours <= at_truth * (1.0 + 1e-9), "{ours} vs {at_truth}");
 }
 

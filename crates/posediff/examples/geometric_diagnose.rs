@@ -70,7 +70,7 @@ fn main() -> anyhow::Result<()> {
     {
         use posediff_sfm::sampson_refine::robust_cost;
         use posediff_sfm::{CameraPose as RefineCamera, ImageIntrinsics};
-        let set = &e.pairs;
+        let set: &[&posediff_geometry::PairMatches] = &e.pairs.iter().collect::<Vec<_>>();
         let layout = ImageIntrinsics::from_sizes(&e.sizes);
         let to_refine = |c: &posediff_geometry::Camera| RefineCamera {
             rotation: nalgebra::Rotation3::from_matrix_unchecked(c.cam_from_world.rotation),
