@@ -146,10 +146,30 @@ pub fn relative_pose(
     if kp1.len() < config.min_inliers.max(5) || kp1.len() != kp2.len() {
         return Ok(None);
     }
+    let homography = homography_fit(kp1, kp2, config)?;
+    relative_pose_with_homography(kp1, kp2, homography, k_a, k_b, config)
+}
+
+/// [`relative_pose`] with the pair's [`homography_fit`] already made (it does not depend on the
+/// intrinsics, so a caller trying several focals fits it once).
+///
+/// # Errors
+/// OpenCV errors.
+pub fn relative_pose_with_homography(
+    kp1: &[[f64; 2]],
+    kp2: &[[f64; 2]],
+    homography: Option<(Matrix3<f64>, f64)>,
+    k_a: &Matrix3<f64>,
+    k_b: &Matrix3<f64>,
+    config: &TwoViewConfig,
+) -> Result<Option<RelativePose>> {
+    if kp1.len() < config.min_inliers.max(5) || kp1.len() != kp2.len() {
+        return Ok(None);
+    }
     let (Some(ka_inv), Some(kb_inv)) = (k_a.try_inverse(), k_b.try_inverse()) else {
         return Ok(None);
     };
-    if let Some((h, fraction)) = homography_fit(kp1, kp2, config)?
+    if let Some((h, fraction)) = homography
         && fraction >= config.homography_fraction
         && let Some((rotation, ratio)) = homography_rotation(&h, k_a, &kb_inv)
         && ratio <= config.rotation_tolerance

@@ -38,6 +38,9 @@ use crate::view_graph::largest_component;
 
 pub use posediff_geometry::TwoViewPose as RelativePose;
 
+/// A pair's homography and the fraction of its matches it explains.
+pub type Homography = Option<(Matrix3<f64>, f64)>;
+
 /// Two-view geometry from matches, provided by the caller (OpenCV in the umbrella crate), so
 /// this crate stays free of image libraries. Called from several threads.
 pub trait TwoViewSolver: Sync {
@@ -54,13 +57,15 @@ pub trait TwoViewSolver: Sync {
     /// The solver's own failures.
     fn fundamental(&self, pair: &PairMatches) -> Result<Option<Matrix3<f64>>>;
 
-    /// The relative pose at intrinsics `k_a`, `k_b`; `None` when there is none.
+    /// The relative pose at intrinsics `k_a`, `k_b`, given the pair's [`Self::homography`]
+    /// (computed once, whatever the focal); `None` when there is none.
     ///
     /// # Errors
     /// The solver's own failures.
     fn relative_pose(
         &self,
         pair: &PairMatches,
+        homography: Option<(Matrix3<f64>, f64)>,
         k_a: &Matrix3<f64>,
         k_b: &Matrix3<f64>,
     ) -> Result<Option<RelativePose>>;
@@ -322,26 +327,28 @@ impl GlobalMapper {
         let subset = (candidates.len() > 1 && active > o.focal_selection_images)
             .then(|| selection_subset(n, &matched, o.focal_selection_images));
         let all_refs: Vec<&PairMatches> = pairs.iter().collect();
-        let (trial_matched, trial_all): (Vec<&PairMatches>, Vec<&PairMatches>) = match &subset {
+        type Trial<'p> = (Vec<&'p PairMatches>, Vec<Homography>);
+        let ((trial_matched, trial_h), trial_all): (Trial<'_>, Vec<&PairMatches>) = match &subset {
             Some(keep) => (
                 matched
                     .iter()
-                    .copied()
-                    .filter(|p| keep[p.first] && keep[p.second])
-                    .collect(),
+                    .zip(&homography)
+                    .filter(|(p, _)| keep[p.first] && keep[p.second])
+                    .map(|(p, h)| (*p, *h))
+                    .unzip(),
                 all_refs
                     .iter()
                     .copied()
                     .filter(|p| keep[p.first] && keep[p.second])
                     .collect(),
             ),
-            None => (matched.clone(), all_refs.clone()),
+            None => ((matched.clone(), homography.clone()), all_refs.clone()),
         };
         let mut best: Option<Solution> = None;
         for &(start, free) in &candidates {
             let s = self.solve_at_focal(
                 start,
-                &trial_matched,
+                (&trial_matched, &trial_h),
                 &trial_all,
                 &intrinsics,
                 free,
@@ -366,7 +373,7 @@ impl GlobalMapper {
             let (start, free) = (chosen.phi, chosen.free_focal);
             let s = self.solve_at_focal(
                 start,
-                &matched,
+                (&matched, &homography),
                 &all_refs,
                 &intrinsics,
                 free,
@@ -454,7 +461,7 @@ impl GlobalMapper {
     fn solve_at_focal(
         &self,
         phi: f64,
-        matched: &[&PairMatches],
+        (matched, homographies): (&[&PairMatches], &[Homography]),
         all_pairs: &[&PairMatches],
         intrinsics: &ImageIntrinsics,
         refine_focal: bool,
@@ -466,8 +473,14 @@ impl GlobalMapper {
         let clock = Instant::now();
         let poses: Vec<Option<RelativePose>> = matched
             .par_iter()
-            .map(|p| {
-                solver.relative_pose(p, &intrinsics.k(phi, p.first), &intrinsics.k(phi, p.second))
+            .zip(homographies)
+            .map(|(p, h)| {
+                solver.relative_pose(
+                    p,
+                    *h,
+                    &intrinsics.k(phi, p.first),
+                    &intrinsics.k(phi, p.second),
+                )
             })
             .collect::<Result<_>>()?;
         report.times.two_view += clock.elapsed().as_secs_f64();

@@ -14,7 +14,9 @@ use posediff_geometry::{
     Camera, CenterCrop, ImageSize, Intrinsics, MODEL_INPUT_SIDE, Pose, PoseEncoding, QuaternionSign,
 };
 use posediff_guidance::{GgsConfig, GgsSolver, MatchSet};
-use posediff_matching::two_view::{fundamental_least_squares, homography_fit, relative_pose};
+use posediff_matching::two_view::{
+    fundamental_least_squares, homography_fit, relative_pose_with_homography,
+};
 use posediff_matching::{
     MatchConfig, PairMatches, PairSelection, TwoViewConfig, extract_all, match_pairs, select_pairs,
 };
@@ -324,10 +326,12 @@ impl TwoViewSolver for OpenCvTwoView<'_> {
     fn relative_pose(
         &self,
         p: &PairMatches,
+        homography: Option<(Matrix3<f64>, f64)>,
         k_a: &Matrix3<f64>,
         k_b: &Matrix3<f64>,
     ) -> posediff_sfm::Result<Option<RelativePose>> {
-        relative_pose(&p.kp1, &p.kp2, k_a, k_b, self.0).map_err(|e| two_view_error(p, e))
+        relative_pose_with_homography(&p.kp1, &p.kp2, homography, k_a, k_b, self.0)
+            .map_err(|e| two_view_error(p, e))
     }
 }
 
