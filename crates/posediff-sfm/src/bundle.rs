@@ -181,20 +181,56 @@ struct Problem<'a> {
     linear: Vec<PointLinearisation>,
     /// Point steps of the last solve.
     point_steps: Vec<Vector3<f64>>,
+    /// Per point, for its observation pairs `(k, l)`, `l < k` in order: the slot of the two
+    /// cameras' block (unused where one is fixed).
+    pair_slots: Vec<Vec<usize>>,
+    /// Per block, the slot of its diagonal block.
+    diagonal_slot: Vec<usize>,
+    /// Per camera block, the slot of the focal × camera block (unused without a focal).
+    focal_slot: Vec<usize>,
+}
+
+/// The slots [`Problem::solve`] adds to, looked up once per adjustment.
+fn slots(
+    system: &BlockSystem,
+    layout: &ParameterLayout,
+    observations: &[Vec<Observation>],
+) -> (Vec<Vec<usize>>, Vec<usize>, Vec<usize>) {
+    let pair_slots = observations
+        .iter()
+        .map(|obs| {
+            let mut s = Vec::with_capacity(obs.len() * obs.len().saturating_sub(1) / 2);
+            for k in 0..obs.len() {
+                for l in 0..k {
+                    let slot = match (layout.block[obs[k].image], layout.block[obs[l].image]) {
+                        (Some(a), Some(b)) => system.slot(a, b).unwrap_or(usize::MAX),
+                        _ => usize::MAX,
+                    };
+                    s.push(slot);
+                }
+            }
+            s
+        })
+        .collect();
+    let blocks = layout.block_sizes.len();
+    let diagonal_slot = (0..blocks)
+        .map(|b| system.slot(b, b).unwrap_or(usize::MAX))
+        .collect();
+    let focal_slot = (0..blocks)
+        .map(|b| {
+            layout
+                .focal_block
+                .and_then(|f| system.slot(f, b))
+                .unwrap_or(usize::MAX)
+        })
+        .collect();
+    (pair_slots, diagonal_slot, focal_slot)
 }
 
 impl Problem<'_> {
     fn rho(&self, e2: f64) -> f64 {
         let c2 = self.cauchy * self.cauchy;
         0.5 * c2 * (1.0 + e2 / c2).ln()
-    }
-
-    /// (block, local offset) of the 7 camera parameters' two parts: pose (6) and focal (1).
-    fn parts(&self, image: usize) -> [(Option<usize>, usize, usize); 2] {
-        [
-            (self.layout.block[image], 0, 6),
-            (self.layout.focal_block, 6, 1),
-        ]
     }
 }
 
@@ -285,8 +321,10 @@ impl LeastSquares for Problem<'_> {
     fn solve(&mut self, lambda: f64) -> Result<Option<Vec<f64>>> {
         self.system.clear();
         let mut inverses = Vec::with_capacity(self.linear.len());
-        // Camera terms, point eliminations.
-        for lin in &self.linear {
+        let focal = self.layout.focal_block;
+        // Per point: the camera terms minus the point's elimination, S = A − Σ E C⁻¹ Eᵀ and
+        // rhs = −g + Σ E C⁻¹ g_p, each block added once (lower triangle), slots precomputed.
+        for (p, lin) in self.linear.iter().enumerate() {
             let mut c = lin.c;
             for k in 0..3 {
                 c[(k, k)] = c[(k, k)] * (1.0 + lambda) + 1e-12;
@@ -300,44 +338,55 @@ impl LeastSquares for Problem<'_> {
                 .iter()
                 .map(|o| o.jc.transpose() * o.jp * o.w)
                 .collect();
+            let ecs: Vec<SMatrix<f64, 7, 3>> = es.iter().map(|e| e * c_inv).collect();
             let cg = c_inv * lin.g;
+            let blocks: Vec<Option<usize>> =
+                lin.obs.iter().map(|o| self.layout.block[o.image]).collect();
+            // Focal row per observation (focal × that camera's pose) and the focal diagonal.
+            let mut focal_rows = vec![SVector::<f64, 6>::zeros(); lin.obs.len()];
+            let mut focal_diag = 0.0;
+            let mut pair = 0;
             for (k, o) in lin.obs.iter().enumerate() {
                 let hcc = o.jc.transpose() * o.jc * o.w;
                 let gc = o.jc.transpose() * o.r * o.w;
-                // rhs = −g_c + E C⁻¹ g_p.
                 let v = es[k] * cg;
-                for (b, off, len) in self.parts(o.image) {
-                    let Some(b) = b else { continue };
-                    self.system.add_rhs(b, |i| -gc[off + i] + v[off + i]);
-                    for (b2, off2, _) in self.parts(o.image) {
-                        let Some(b2) = b2 else { continue };
-                        if b2 > b || (b2 == b && off2 != off) {
-                            continue;
-                        }
-                        let _ = len;
+                let own = hcc - ecs[k] * es[k].transpose();
+                if let Some(b) = blocks[k] {
+                    self.system.add_rhs(b, |i| -gc[i] + v[i]);
+                    self.system
+                        .add_block_at(self.diagonal_slot[b], b, b, |i, j| own[(i, j)]);
+                }
+                if let Some(f) = focal {
+                    self.system.add_rhs(f, |_| -gc[6] + v[6]);
+                    focal_diag += own[(6, 6)];
+                }
+                for i in 0..6 {
+                    focal_rows[k][i] += own[(6, i)];
+                }
+                for l in 0..k {
+                    let slot = self.pair_slots[p][pair];
+                    pair += 1;
+                    let m = ecs[k] * es[l].transpose();
+                    if let (Some(bk), Some(bl)) = (blocks[k], blocks[l]) {
+                        self.system.add_block_at(slot, bk, bl, |i, j| -m[(i, j)]);
+                    }
+                    // m_lk = m_klᵀ: its focal row is m_kl's focal column.
+                    for i in 0..6 {
+                        focal_rows[l][i] -= m[(6, i)];
+                        focal_rows[k][i] -= m[(i, 6)];
+                    }
+                    focal_diag -= 2.0 * m[(6, 6)];
+                }
+            }
+            if let Some(f) = focal {
+                for (k, row) in focal_rows.iter().enumerate() {
+                    if let Some(b) = blocks[k] {
                         self.system
-                            .add_block(b, b2, |i, j| hcc[(off + i, off2 + j)])?;
+                            .add_block_at(self.focal_slot[b], f, b, |_, j| row[j]);
                     }
                 }
-                // S −= E_k C⁻¹ E_lᵀ over ordered observation pairs (lower blocks only).
-                let ec = es[k] * c_inv;
-                for (l, o2) in lin.obs.iter().enumerate() {
-                    let m = ec * es[l].transpose();
-                    for (b, off, _) in self.parts(o.image) {
-                        let Some(b) = b else { continue };
-                        for (b2, off2, _) in self.parts(o2.image) {
-                            let Some(b2) = b2 else { continue };
-                            let diagonal_twice = b2 == b
-                                && k != l
-                                && b != self.layout.focal_block.unwrap_or(usize::MAX);
-                            if b2 > b || diagonal_twice {
-                                continue;
-                            }
-                            self.system
-                                .add_block(b, b2, |i, j| -m[(off + i, off2 + j)])?;
-                        }
-                    }
-                }
+                self.system
+                    .add_block_at(self.diagonal_slot[f], f, f, |_, _| focal_diag);
             }
             inverses.push(c_inv);
         }
@@ -448,15 +497,21 @@ fn adjust(
         block_pairs,
         options.solver,
     )?;
+    let observations: Vec<Vec<Observation>> =
+        points.iter().map(|p| p.observations.clone()).collect();
+    let (pair_slots, diagonal_slot, focal_slot) = slots(&system, &layout, &observations);
     let mut problem = Problem {
         intrinsics,
-        observations: points.iter().map(|p| p.observations.clone()).collect(),
+        observations,
         layout,
         reference,
         cauchy: options.cauchy_px,
         system,
         linear: Vec::new(),
         point_steps: Vec::new(),
+        pair_slots,
+        diagonal_slot,
+        focal_slot,
     };
     let mut state: State = (
         cameras.to_vec(),
@@ -583,6 +638,9 @@ mod tests {
             system: BlockSystem::new("t", &[6, 1], [(0, 1)], Solver::Dense).unwrap(),
             linear: Vec::new(),
             point_steps: Vec::new(),
+            pair_slots: vec![Vec::new()],
+            diagonal_slot: vec![0, 0],
+            focal_slot: vec![0],
         };
         problem.linearize(&(vec![Some(cam)], phi, vec![x])).unwrap();
         let lin = problem.linear[0].obs[0];

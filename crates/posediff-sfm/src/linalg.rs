@@ -168,16 +168,34 @@ impl BlockSystem {
         bj: usize,
         m: impl Fn(usize, usize) -> f64,
     ) -> Result<()> {
-        let (hi, lo, swap) = if bi >= bj {
-            (bi, bj, false)
-        } else {
-            (bj, bi, true)
-        };
-        let Some(&base) = self.slots.get(&(hi, lo)) else {
+        let Some(base) = self.slot(bi, bj) else {
             return Err(SfmError::InvalidInput(format!(
                 "{}: block ({bi}, {bj}) is not in the sparsity pattern",
                 self.what
             )));
+        };
+        self.add_block_at(base, bi, bj, m);
+        Ok(())
+    }
+
+    /// Where the values of block `(bi, bj)` (either order) start, `None` outside the pattern;
+    /// for [`Self::add_block_at`] in loops that add to the same blocks every iteration.
+    pub fn slot(&self, bi: usize, bj: usize) -> Option<usize> {
+        self.slots.get(&(bi.max(bj), bi.min(bj))).copied()
+    }
+
+    /// [`Self::add_block`] at a `base` from [`Self::slot`]`(bi, bj)` (no lookup).
+    pub fn add_block_at(
+        &mut self,
+        base: usize,
+        bi: usize,
+        bj: usize,
+        m: impl Fn(usize, usize) -> f64,
+    ) {
+        let (hi, lo, swap) = if bi >= bj {
+            (bi, bj, false)
+        } else {
+            (bj, bi, true)
         };
         let at = |r: usize, c: usize| if swap { m(c, r) } else { m(r, c) };
         if hi == lo {
@@ -196,7 +214,6 @@ impl BlockSystem {
                 }
             }
         }
-        Ok(())
     }
 
     /// Adds `v(k)` to the right-hand side of block `b`.

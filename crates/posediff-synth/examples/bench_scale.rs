@@ -98,6 +98,9 @@ fn run_case(images_dir: &Path, gt: &Path, out: &Path, pairs: &str) -> Result<()>
         "cc_10": cc,
         "registered": registered,
         "bundle_points": estimate.report.bundle_points,
+        "bundle_observations": estimate.report.bundle_observations,
+        "bundle_iterations": estimate.report.bundle.iterations,
+        "sampson_iterations": estimate.report.refine_iterations,
         "focal_factor": estimate.report.focal_factor,
     });
     std::fs::write(out, serde_json::to_string_pretty(&report)?)
