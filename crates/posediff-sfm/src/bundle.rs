@@ -44,6 +44,11 @@ pub struct BundleOptions {
     pub tolerance: f64,
     /// Linear solver of the reduced camera system.
     pub solver: Solver,
+    /// Observations kept per track, spread evenly over its images (in image order: the widest
+    /// baselines of a video stay). The Schur complement costs `Σ k²` per iteration, so a dense
+    /// video whose points are seen in hundreds of frames would otherwise make the adjustment
+    /// grow with the square of the frames.
+    pub max_track_length: usize,
 }
 
 impl Default for BundleOptions {
@@ -56,8 +61,20 @@ impl Default for BundleOptions {
             max_iterations: 100,
             tolerance: 1e-10,
             solver: Solver::Sparse,
+            max_track_length: 20,
         }
     }
+}
+
+/// At most `max` of `obs`, evenly spaced, the first and the last kept.
+fn spread(obs: Vec<Observation>, max: usize) -> Vec<Observation> {
+    let n = obs.len();
+    if max < 2 || n <= max {
+        return obs;
+    }
+    (0..max)
+        .map(|i| obs[(i * (n - 1) + (max - 1) / 2) / (max - 1)])
+        .collect()
 }
 
 /// What the adjustment did.
@@ -551,11 +568,13 @@ pub fn bundle_adjust(
     let points: Vec<Point> = tracks
         .par_iter()
         .filter_map(|t| {
-            let t: Vec<Observation> = t
-                .iter()
-                .filter(|o| cameras.get(o.image).copied().flatten().is_some())
-                .copied()
-                .collect();
+            let t: Vec<Observation> = spread(
+                t.iter()
+                    .filter(|o| cameras.get(o.image).copied().flatten().is_some())
+                    .copied()
+                    .collect(),
+                options.max_track_length,
+            );
             triangulate(&t, cameras, intrinsics, *phi, min_angle).map(|xyz| Point {
                 xyz,
                 observations: t,
@@ -609,6 +628,25 @@ mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
     use nalgebra::Rotation3;
+
+    #[test]
+    fn long_tracks_are_spread_evenly() {
+        let obs: Vec<Observation> = (0..100)
+            .map(|i| Observation {
+                image: i,
+                keypoint: 0,
+                xy: [0.0, 0.0],
+            })
+            .collect();
+        let kept: Vec<usize> = spread(obs.clone(), 5).iter().map(|o| o.image).collect();
+        assert_eq!(kept.len(), 5);
+        assert_eq!((kept[0], kept[4]), (0, 99));
+        assert!(
+            kept.windows(2).all(|w| w[1] > w[0] && w[1] - w[0] >= 24),
+            "{kept:?}"
+        );
+        assert_eq!(spread(obs[..4].to_vec(), 5).len(), 4);
+    }
 
     /// The analytic reprojection Jacobian against central differences.
     #[test]

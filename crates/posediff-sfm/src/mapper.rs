@@ -344,17 +344,14 @@ impl GlobalMapper {
             ),
             None => ((matched.clone(), homography.clone()), all_refs.clone()),
         };
-        let mut best: Option<Solution> = None;
-        for &(start, free) in &candidates {
-            let s = self.solve_at_focal(
-                start,
-                (&trial_matched, &trial_h),
-                &trial_all,
-                &intrinsics,
-                free,
-                solver,
-                &mut report,
-            )?;
+        // One start: solved, recorded, and kept unless a free focal left the search range.
+        let attempt = |start: f64,
+                       free: bool,
+                       set: (&[&PairMatches], &[Homography]),
+                       scored: &[&PairMatches],
+                       report: &mut MapperReport|
+         -> Result<Option<Solution>> {
+            let s = self.solve_at_focal(start, set, scored, &intrinsics, free, solver, report)?;
             let out_of_range = free && !(o.focal_search.min..=o.focal_search.max).contains(&s.phi);
             report.starts.push(FocalStart {
                 start,
@@ -364,32 +361,27 @@ impl GlobalMapper {
                 score: s.score,
                 out_of_range,
             });
-            if !out_of_range && best.as_ref().is_none_or(|b| s.score < b.score) {
+            Ok((!out_of_range).then_some(s))
+        };
+        let mut best: Option<Solution> = None;
+        for &(start, free) in &candidates {
+            let s = attempt(
+                start,
+                free,
+                (&trial_matched, &trial_h),
+                &trial_all,
+                &mut report,
+            )?;
+            if let Some(s) = s
+                && best.as_ref().is_none_or(|b| s.score < b.score)
+            {
                 best = Some(s);
             }
         }
         if let (Some(_), Some(chosen)) = (&subset, &best) {
             // The whole set once, from the subset winner's refined focal.
             let (start, free) = (chosen.phi, chosen.free_focal);
-            let s = self.solve_at_focal(
-                start,
-                (&matched, &homography),
-                &all_refs,
-                &intrinsics,
-                free,
-                solver,
-                &mut report,
-            )?;
-            let out_of_range = free && !(o.focal_search.min..=o.focal_search.max).contains(&s.phi);
-            report.starts.push(FocalStart {
-                start,
-                phi: s.phi,
-                free,
-                images: s.members.len(),
-                score: s.score,
-                out_of_range,
-            });
-            best = (!out_of_range).then_some(s);
+            best = attempt(start, free, (&matched, &homography), &all_refs, &mut report)?;
         }
         let Some(best) = best else {
             return Err(SfmError::NoUsablePairs { images: n });
