@@ -14,6 +14,7 @@ use std::str::FromStr;
 
 use nalgebra::DMatrix;
 
+use crate::error::{MatchingError, Result};
 use crate::features::{Descriptors, ImageFeatures};
 
 /// Up to this many images the default is every pair.
@@ -86,7 +87,7 @@ impl FromStr for PairSelection {
 
     /// `auto`, `exhaustive`, `sequential:K`, `retrieval:K`, or a comma-separated union
     /// (e.g. `sequential:10,retrieval:20`); `K ≥ 1`.
-    fn from_str(s: &str) -> Result<Self, String> {
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
         if s.trim() == "auto" {
             return Ok(Self::Auto);
         }
@@ -118,11 +119,14 @@ impl FromStr for PairSelection {
 
 /// The pairs `i < j` of `n` images that `selection` chooses, sorted and without repeats.
 /// `features` (one per image) is needed only for retrieval.
+///
+/// # Errors
+/// A retrieval rule without features, or features for a different number of images.
 pub fn select_pairs(
     n: usize,
     selection: &PairSelection,
     features: Option<&[ImageFeatures]>,
-) -> Vec<(usize, usize)> {
+) -> Result<Vec<(usize, usize)>> {
     let mut pairs = Vec::new();
     for rule in selection.rules(n) {
         match rule {
@@ -132,16 +136,21 @@ pub fn select_pairs(
             PairRule::Sequential(k) => {
                 pairs.extend((0..n).flat_map(|i| (i + 1..n.min(i + 1 + k)).map(move |j| (i, j))));
             }
-            PairRule::Retrieval(k) => {
-                if let Some(f) = features {
+            PairRule::Retrieval(k) => match features {
+                Some(f) if f.len() == n => {
                     pairs.extend(retrieval_pairs(f, k, &RetrievalOptions::default()));
                 }
-            }
+                _ => {
+                    return Err(MatchingError::InvalidConfig(
+                        "retrieval pair selection needs the features of every image",
+                    ));
+                }
+            },
         }
     }
     pairs.sort_unstable();
     pairs.dedup();
-    pairs
+    Ok(pairs)
 }
 
 /// Settings of the bag of words.
@@ -336,18 +345,22 @@ mod tests {
 
     #[test]
     fn sequential_and_exhaustive_pairs() {
-        let seq = select_pairs(5, &"sequential:2".parse().unwrap(), None);
+        let seq = select_pairs(5, &"sequential:2".parse().unwrap(), None).unwrap();
         assert_eq!(
             seq,
             vec![(0, 1), (0, 2), (1, 2), (1, 3), (2, 3), (2, 4), (3, 4)]
         );
         assert_eq!(
-            select_pairs(5, &"exhaustive".parse().unwrap(), None).len(),
+            select_pairs(5, &"exhaustive".parse().unwrap(), None)
+                .unwrap()
+                .len(),
             10
         );
         // Union without repeats.
-        let both = select_pairs(5, &"sequential:2,exhaustive".parse().unwrap(), None);
+        let both = select_pairs(5, &"sequential:2,exhaustive".parse().unwrap(), None).unwrap();
         assert_eq!(both.len(), 10);
+        // Retrieval needs the features: an error, never silently fewer pairs.
+        assert!(select_pairs(5, &"sequential:2,retrieval:3".parse().unwrap(), None).is_err());
     }
 
     /// Three "scenes" of two images each (descriptors drawn around scene-specific centres):

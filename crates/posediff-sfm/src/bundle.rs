@@ -190,7 +190,8 @@ type State = (Vec<Option<CameraPose>>, f64, Vec<Vector3<f64>>);
 
 struct Problem<'a> {
     intrinsics: &'a ImageIntrinsics,
-    observations: Vec<Vec<Observation>>,
+    /// Each point's observations (borrowed from the points being adjusted).
+    observations: Vec<&'a [Observation]>,
     layout: ParameterLayout,
     reference: usize,
     cauchy: f64,
@@ -211,7 +212,7 @@ struct Problem<'a> {
 fn slots(
     system: &BlockSystem,
     layout: &ParameterLayout,
-    observations: &[Vec<Observation>],
+    observations: &[&[Observation]],
 ) -> (Vec<Vec<usize>>, Vec<usize>, Vec<usize>) {
     let pair_slots = observations
         .iter()
@@ -265,7 +266,7 @@ impl LeastSquares for Problem<'_> {
             .zip(points)
             .map(|(obs, x)| {
                 let mut total = 0.0;
-                for o in obs {
+                for o in obs.iter() {
                     let Some(c) = cams[o.image] else { continue };
                     let f = self.intrinsics.focal(*phi, o.image);
                     total += match project(&c, f, self.intrinsics.principal[o.image], x) {
@@ -294,7 +295,7 @@ impl LeastSquares for Problem<'_> {
                     g: Vector3::zeros(),
                     obs: Vec::with_capacity(obs.len()),
                 };
-                for o in obs {
+                for o in obs.iter() {
                     let Some(cam) = cams[o.image] else { continue };
                     let f = intrinsics.focal(*phi, o.image);
                     let pp = intrinsics.principal[o.image];
@@ -339,6 +340,10 @@ impl LeastSquares for Problem<'_> {
         self.system.clear();
         let mut inverses = Vec::with_capacity(self.linear.len());
         let focal = self.layout.focal_block;
+        let mut es: Vec<SMatrix<f64, 7, 3>> = Vec::new();
+        let mut ecs: Vec<SMatrix<f64, 7, 3>> = Vec::new();
+        let mut blocks: Vec<Option<usize>> = Vec::new();
+        let mut focal_rows: Vec<SVector<f64, 6>> = Vec::new();
         // Per point: the camera terms minus the point's elimination, S = A − Σ E C⁻¹ Eᵀ and
         // rhs = −g + Σ E C⁻¹ g_p, each block added once (lower triangle), slots precomputed.
         for (p, lin) in self.linear.iter().enumerate() {
@@ -350,17 +355,17 @@ impl LeastSquares for Problem<'_> {
                 // Not invertible at this damping: more damping makes it so.
                 return Ok(None);
             };
-            let es: Vec<SMatrix<f64, 7, 3>> = lin
-                .obs
-                .iter()
-                .map(|o| o.jc.transpose() * o.jp * o.w)
-                .collect();
-            let ecs: Vec<SMatrix<f64, 7, 3>> = es.iter().map(|e| e * c_inv).collect();
+            // Per observation: E = J_cᵀ W J_p, E C⁻¹, its camera block, and its focal row
+            // (focal × that camera's pose); buffers reused from point to point.
+            es.clear();
+            es.extend(lin.obs.iter().map(|o| o.jc.transpose() * o.jp * o.w));
+            ecs.clear();
+            ecs.extend(es.iter().map(|e| e * c_inv));
+            blocks.clear();
+            blocks.extend(lin.obs.iter().map(|o| self.layout.block[o.image]));
+            focal_rows.clear();
+            focal_rows.resize(lin.obs.len(), SVector::zeros());
             let cg = c_inv * lin.g;
-            let blocks: Vec<Option<usize>> =
-                lin.obs.iter().map(|o| self.layout.block[o.image]).collect();
-            // Focal row per observation (focal × that camera's pose) and the focal diagonal.
-            let mut focal_rows = vec![SVector::<f64, 6>::zeros(); lin.obs.len()];
             let mut focal_diag = 0.0;
             let mut pair = 0;
             for (k, o) in lin.obs.iter().enumerate() {
@@ -514,8 +519,8 @@ fn adjust(
         block_pairs,
         options.solver,
     )?;
-    let observations: Vec<Vec<Observation>> =
-        points.iter().map(|p| p.observations.clone()).collect();
+    let observations: Vec<&[Observation]> =
+        points.iter().map(|p| p.observations.as_slice()).collect();
     let (pair_slots, diagonal_slot, focal_slot) = slots(&system, &layout, &observations);
     let mut problem = Problem {
         intrinsics,
@@ -541,6 +546,7 @@ fn adjust(
         ..LmOptions::default()
     };
     let report = minimize(&mut problem, &mut state, &lm)?;
+    drop(problem);
     cameras.copy_from_slice(&state.0);
     *phi = state.1;
     for (p, x) in points.iter_mut().zip(state.2) {
@@ -669,7 +675,7 @@ mod tests {
         let layout = ParameterLayout::new(&[Some(cam)], usize::MAX, true);
         let mut problem = Problem {
             intrinsics: &intrinsics,
-            observations: vec![obs],
+            observations: vec![&obs],
             layout,
             reference: usize::MAX,
             cauchy: 1.0,

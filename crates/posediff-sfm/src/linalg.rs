@@ -13,7 +13,7 @@ use std::collections::HashMap;
 
 use faer::linalg::solvers::Solve;
 use faer::sparse::linalg::solvers::{Llt, SymbolicLlt};
-use faer::sparse::{Argsort, Pair, SparseColMat, SymbolicSparseColMat};
+use faer::sparse::{Pair, SparseColMat, SymbolicSparseColMat};
 use faer::{Mat, Side};
 
 use crate::error::{Result, SfmError};
@@ -43,8 +43,10 @@ pub struct BlockSystem {
     diagonal: Vec<usize>,
     /// The right-hand side.
     rhs: Vec<f64>,
-    symbolic: SymbolicSparseColMat<usize>,
-    argsort: Argsort<usize>,
+    /// The matrix handed to faer (lower triangle, compressed columns), refilled in place.
+    matrix: SparseColMat<usize, f64>,
+    /// Position in `matrix`'s values of each stored value.
+    csc_position: Vec<usize>,
     llt: Option<SymbolicLlt<usize>>,
 }
 
@@ -105,20 +107,24 @@ impl BlockSystem {
                 }
             }
         }
+        let linalg = |e: &dyn std::fmt::Debug| SfmError::Linalg {
+            what,
+            detail: format!("{e:?}"),
+        };
         let (symbolic, argsort) = SymbolicSparseColMat::try_new_from_indices(dim, dim, &entries)
-            .map_err(|e| SfmError::Linalg {
-                what,
-                detail: format!("{e:?}"),
-            })?;
+            .map_err(|e| linalg(&e))?;
+        // Where each entry lands in compressed-column order (entries are unique).
+        let order: Vec<f64> = (0..entries.len()).map(|k| k as f64).collect();
+        let matrix =
+            SparseColMat::new_from_argsort(symbolic, &argsort, &order).map_err(|e| linalg(&e))?;
+        let mut csc_position = vec![0; entries.len()];
+        for (position, &k) in matrix.val().iter().enumerate() {
+            csc_position[k as usize] = position;
+        }
         let llt = match solver {
-            Solver::Sparse if dim > 0 => Some(
-                SymbolicLlt::try_new(symbolic.as_ref(), Side::Lower).map_err(|e| {
-                    SfmError::Linalg {
-                        what,
-                        detail: format!("{e:?}"),
-                    }
-                })?,
-            ),
+            Solver::Sparse if dim > 0 => {
+                Some(SymbolicLlt::try_new(matrix.symbolic(), Side::Lower).map_err(|e| linalg(&e))?)
+            }
             _ => None,
         };
         Ok(Self {
@@ -130,8 +136,8 @@ impl BlockSystem {
             values: vec![0.0; entries.len()],
             diagonal,
             rhs: vec![0.0; dim],
-            symbolic,
-            argsort,
+            matrix,
+            csc_position,
             llt,
         })
     }
@@ -139,16 +145,6 @@ impl BlockSystem {
     /// Number of unknowns.
     pub fn dim(&self) -> usize {
         self.dim
-    }
-
-    /// Stored (lower-triangle) values.
-    pub fn stored(&self) -> usize {
-        self.values.len()
-    }
-
-    /// The first unknown of block `b`.
-    pub fn offset(&self, b: usize) -> usize {
-        self.offsets[b]
     }
 
     /// Zeroes the matrix and the right-hand side (the pattern stays).
@@ -229,47 +225,40 @@ impl BlockSystem {
         &self.rhs
     }
 
-    /// The diagonal of the matrix.
-    pub fn diagonal(&self) -> Vec<f64> {
-        self.diagonal.iter().map(|&k| self.values[k]).collect()
-    }
-
     /// Solves `(H + diag(d)) x = rhs` where `d_k = lambda·H_kk + floor` (Levenberg–Marquardt
     /// damping; `lambda = 0, floor = 0` for the plain system). Returns `Ok(None)` when the
     /// damped matrix is not positive definite (the caller raises the damping or reports it).
     ///
     /// # Errors
     /// faer failing for a reason other than a non-positive pivot; a non-finite solution.
-    pub fn solve_damped(&self, lambda: f64, floor: f64) -> Result<Option<Vec<f64>>> {
+    pub fn solve_damped(&mut self, lambda: f64, floor: f64) -> Result<Option<Vec<f64>>> {
         if self.dim == 0 {
             return Ok(Some(Vec::new()));
         }
-        let mut values = self.values.clone();
+        let csc = self.matrix.val_mut();
+        for (k, &v) in self.values.iter().enumerate() {
+            csc[self.csc_position[k]] = v;
+        }
         for &k in &self.diagonal {
-            values[k] += lambda * self.values[k] + floor;
+            csc[self.csc_position[k]] += lambda * self.values[k] + floor;
         }
         let mut x = Mat::<f64>::from_fn(self.dim, 1, |i, _| self.rhs[i]);
         match &self.llt {
             Some(symbolic) => {
-                let matrix =
-                    SparseColMat::new_from_argsort(self.symbolic.clone(), &self.argsort, &values)
-                        .map_err(|e| self.linalg_error(e))?;
-                match Llt::try_new_with_symbolic(symbolic.clone(), matrix.as_ref(), Side::Lower) {
+                match Llt::try_new_with_symbolic(
+                    symbolic.clone(),
+                    self.matrix.as_ref(),
+                    Side::Lower,
+                ) {
                     Ok(llt) => llt.solve_in_place(x.as_mut()),
                     Err(faer::sparse::linalg::LltError::Numeric(_)) => return Ok(None),
                     Err(e) => return Err(self.linalg_error(e)),
                 }
             }
-            None => {
-                let matrix =
-                    SparseColMat::new_from_argsort(self.symbolic.clone(), &self.argsort, &values)
-                        .map_err(|e| self.linalg_error(e))?;
-                let dense = matrix.to_dense();
-                match dense.llt(Side::Lower) {
-                    Ok(llt) => llt.solve_in_place(x.as_mut()),
-                    Err(_) => return Ok(None),
-                }
-            }
+            None => match self.matrix.to_dense().llt(Side::Lower) {
+                Ok(llt) => llt.solve_in_place(x.as_mut()),
+                Err(_) => return Ok(None),
+            },
         }
         let out: Vec<f64> = (0..self.dim).map(|i| x[(i, 0)]).collect();
         if out.iter().any(|v| !v.is_finite()) {
@@ -286,7 +275,7 @@ impl BlockSystem {
     ///
     /// # Errors
     /// As [`Self::solve_damped`].
-    pub fn solve_regularised(&self, lambda: f64) -> Result<Option<Vec<f64>>> {
+    pub fn solve_regularised(&mut self, lambda: f64) -> Result<Option<Vec<f64>>> {
         let largest = self
             .diagonal
             .iter()
@@ -300,7 +289,7 @@ impl BlockSystem {
     ///
     /// # Errors
     /// As [`Self::solve_damped`]; a matrix that is not positive definite.
-    pub fn solve(&self) -> Result<Vec<f64>> {
+    pub fn solve(&mut self) -> Result<Vec<f64>> {
         self.solve_damped(0.0, 0.0)?
             .ok_or_else(|| SfmError::NotPositiveDefinite {
                 what: self.what,
@@ -339,16 +328,19 @@ mod tests {
                     .unwrap();
             }
             assert!(s.add_block(0, 2, |_, _| 1.0).is_err());
-            solutions.push((s.solve().unwrap(), s));
+            let x = s.solve().unwrap();
+            solutions.push((x, s));
         }
         let (x, s) = &solutions[0];
         for (a, b) in x.iter().zip(&solutions[1].0) {
             assert!((a - b).abs() < 1e-12, "{a} vs {b}");
         }
         // Residual of the full symmetric matrix.
-        let dense = SparseColMat::new_from_argsort(s.symbolic.clone(), &s.argsort, &s.values)
-            .unwrap()
-            .to_dense();
+        let mut lower = s.matrix.clone();
+        for (k, &v) in s.values.iter().enumerate() {
+            lower.val_mut()[s.csc_position[k]] = v;
+        }
+        let dense = lower.to_dense();
         for i in 0..s.dim() {
             let mut acc = 0.0;
             for j in 0..s.dim() {

@@ -287,22 +287,21 @@ impl LeastSquares for Problem<'_> {
         let layout = &self.layout;
         for (p, sums) in self.pairs.iter().zip(per_pair) {
             let Some((hp, gp)) = sums else { continue };
-            // (block, first local parameter, count) of the pair's 13 parameters.
+            // (block, first local parameter) of the pair's 13 parameters: camera a, camera b,
+            // the focal — three different blocks, so each lower block is added once.
             let parts = [
-                (layout.block[p.first], 0, 6),
-                (layout.block[p.second], 6, 6),
-                (layout.focal_block, 12, 1),
+                (layout.block[p.first], 0),
+                (layout.block[p.second], 6),
+                (layout.focal_block, 12),
             ];
-            for &(bi, oi, ni) in &parts {
+            for &(bi, oi) in &parts {
                 let Some(bi) = bi else { continue };
                 self.system.add_rhs(bi, |k| -gp[oi + k]);
-                for &(bj, oj, nj) in &parts {
+                for &(bj, oj) in &parts {
                     let Some(bj) = bj else { continue };
-                    if bj > bi || (bj == bi && oj != oi) {
+                    if bj > bi {
                         continue;
                     }
-                    let _ = nj;
-                    let _ = ni;
                     self.system.add_block(bi, bj, |r, c| hp[(oi + r, oj + c)])?;
                 }
             }

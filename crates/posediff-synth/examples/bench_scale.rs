@@ -51,7 +51,7 @@ fn run_case(images_dir: &Path, gt: &Path, out: &Path, pairs: &str) -> Result<()>
     let features = extract_all(&images, &config.matching)?;
     stages.push(("extraction", clock.elapsed().as_secs_f64(), peak_rss_mb()));
     let clock = Instant::now();
-    let pair_list = select_pairs(n, &config.pairs, Some(&features));
+    let pair_list = select_pairs(n, &config.pairs, Some(&features))?;
     stages.push((
         "pair selection",
         clock.elapsed().as_secs_f64(),

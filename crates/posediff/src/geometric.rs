@@ -380,7 +380,7 @@ fn match_all(
     let extraction = clock.elapsed().as_secs_f64();
     let clock = Instant::now();
     let n = images.len();
-    let pair_list = select_pairs(n, &config.pairs, Some(&features));
+    let pair_list = select_pairs(n, &config.pairs, Some(&features))?;
     let rules: Vec<String> = config
         .pairs
         .rules(n)
@@ -537,23 +537,6 @@ fn intrinsics_layout(
         None => (ImageIntrinsics::from_sizes(sizes), None),
         Some(k) => (ImageIntrinsics::from_known(&k), Some(1.0)),
     })
-}
-
-/// The matches of the pairs as a match set in original pixels.
-///
-/// # Errors
-/// Invalid pairs.
-pub fn pixel_match_set<'p>(
-    n_images: usize,
-    pairs: impl IntoIterator<Item = &'p PairMatches>,
-) -> Result<MatchSet> {
-    let (mut kp1, mut kp2, mut frames) = (Vec::new(), Vec::new(), Vec::new());
-    for p in pairs {
-        kp1.extend_from_slice(&p.kp1);
-        kp2.extend_from_slice(&p.kp2);
-        frames.extend(std::iter::repeat_n((p.first, p.second), p.len()));
-    }
-    Ok(MatchSet::new(n_images, &kp1, &kp2, &frames)?)
 }
 
 /// [`estimate_geometric`] from matches already made.
