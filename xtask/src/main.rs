@@ -34,15 +34,20 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 
-/// Debian packages the build needs (OpenCV bindings: BUILD_NOTES.md) and the font
-/// `posediff plot` writes its labels with.
-const APT_PACKAGES: [&str; 5] = [
+/// Debian packages the build needs (OpenCV bindings: BUILD_NOTES.md), the font `posediff
+/// plot` writes its labels with, and the browser the viewer is tested in.
+const APT_PACKAGES: [&str; 6] = [
     "libopencv-dev",
     "clang",
     "libclang-dev",
     "pkg-config",
     "fonts-dejavu-core",
+    "chromium",
 ];
+
+/// The Python environment of the output tests (pycolmap, numpy, plyfile).
+const CLIENT_VENV: &str = "target/client-venv";
+const CLIENT_REQUIREMENTS: &str = "scripts/requirements-clients.txt";
 
 /// Heavy back ends the light crates must never pull in (ARCHITECTURE.md, invariants).
 const HEAVY_CRATES: [&str; 6] = ["candle-core", "candle-nn", "opencv", "faer", "rayon", "tch"];
@@ -425,6 +430,32 @@ fn setup() -> Result<()> {
     if output("cargo", &["nextest", "--version"]).is_err() {
         run("cargo", &["install", "--locked", "cargo-nextest"], &[])?;
     }
+    client_venv()
+}
+
+/// `target/client-venv` with the pinned client packages (created or brought up to date; a
+/// stamp holding the requirements skips pip when nothing changed).
+fn client_venv() -> Result<()> {
+    let root = workspace_root();
+    let venv = root.join(CLIENT_VENV);
+    let python = venv.join("bin/python");
+    let wanted = std::fs::read_to_string(root.join(CLIENT_REQUIREMENTS))
+        .with_context(|| format!("reading {CLIENT_REQUIREMENTS}"))?;
+    let stamp = venv.join("requirements.stamp");
+    if python.is_file() && std::fs::read_to_string(&stamp).is_ok_and(|s| s == wanted) {
+        eprintln!("client venv present: {CLIENT_VENV}");
+        return Ok(());
+    }
+    if !python.is_file() {
+        run("python3", &["-m", "venv", CLIENT_VENV], &[])?;
+    }
+    let py = python.to_string_lossy();
+    run(
+        &py,
+        &["-m", "pip", "install", "-q", "-r", CLIENT_REQUIREMENTS],
+        &[("PIP_DISABLE_PIP_VERSION_CHECK", "1")],
+    )?;
+    std::fs::write(&stamp, wanted).with_context(|| format!("writing {}", stamp.display()))?;
     Ok(())
 }
 

@@ -11,6 +11,7 @@
 //! | Sampson refinement (GGS's objective to convergence) | [`sampson_refine`] |
 //! | tracks by union-find over keypoint ids | [`tracks`] |
 //! | bundle adjustment (Schur complement) | [`bundle`] |
+//! | sparse points for export (any cameras) | [`points`] |
 //! | all of it, with one options struct per stage | [`mapper`] |
 //!
 //! Every linear solve is faer's ([`linalg`]): sparse Cholesky with the symbolic factorisation
@@ -32,6 +33,7 @@ pub mod intrinsics;
 pub mod linalg;
 pub mod lm;
 pub mod mapper;
+pub mod points;
 pub mod report;
 pub mod rotation_averaging;
 pub mod sampson_refine;

@@ -3,25 +3,26 @@
 //! | file | convention |
 //! |---|---|
 //! | `cameras.json` | OpenCV: `x_cam = R x_world + t`, K in pixels of the original image, pixel centres at integers (the schema of `../shared/data/*/cameras.json`) |
-//! | COLMAP `cameras.txt` / `images.txt` / `points3D.txt` | one `PINHOLE` camera per image; `QW QX QY QZ TX TY TZ` = world-to-camera rotation (Hamilton, w first) and translation; principal point in COLMAP pixels (pixel centres at `+0.5`, so `cx + 0.5`) |
-//! | nerfstudio `transforms.json` | `transform_matrix` = camera-to-world with OpenGL camera axes (x right, y up, z backwards: the OpenCV y and z columns negated); per-frame `fl_x fl_y cx cy w h`, principal point with pixel centres at `+0.5` |
+//! | COLMAP `sparse/0/{cameras,images,points3D}.{txt,bin}` | [`crate::colmap`]: one `PINHOLE` camera per distinct intrinsics; `QW QX QY QZ TX TY TZ` world-to-camera; pixel centres at `+0.5` |
+//! | nerfstudio `transforms.json` | as nerfstudio's COLMAP converter: the world changed by `applied_transform` (`y ← z`, `z ← −y`), `transform_matrix` camera-to-world with OpenGL camera axes (x right, y up, z backwards), intrinsics at the top level when shared, pixel centres at `+0.5`, `ply_file_path` |
+//! | `sparse_pc.ply` | binary little-endian `float x y z`, `uchar red green blue`, in the world of `transforms.json` |
 //! | `pytorch3d.json` | what the official model returns: row-vector `R`, `T`, focal and principal point in NDC of the 224 crop |
 //!
 //! # Pitfalls
 //! - COLMAP and nerfstudio put the top-left pixel's centre at `(0.5, 0.5)`; OpenCV at `(0, 0)`.
-//! - nerfstudio wants camera-to-world, COLMAP world-to-camera.
+//! - nerfstudio wants camera-to-world, COLMAP world-to-camera; nerfstudio's world is COLMAP's
+//!   after `applied_transform`, and its PLY is in nerfstudio's world.
 
-use std::fmt::Write as _;
 use std::path::Path;
 
 use nalgebra::{Matrix3, Matrix4, Vector3};
 use posediff_geometry::camera_json::CameraRecord;
-use posediff_geometry::{
-    Camera, ImageSize, Intrinsics, Pose, Pytorch3dCamera, Quaternion, QuaternionSign,
-};
+use posediff_geometry::{Camera, ImageSize, Intrinsics, Pose, Pytorch3dCamera};
 use serde::{Deserialize, Serialize};
 
+use crate::colmap::{ColmapFormat, ColmapModel};
 use crate::error::{PosediffError, Result, read_text};
+use crate::reconstruction::{Reconstruction, ScenePoint};
 
 /// COLMAP's and nerfstudio's pixel centres sit half a pixel from OpenCV's.
 pub const PIXEL_CENTRE_OFFSET: f64 = 0.5;
@@ -188,154 +189,34 @@ pub fn read_cameras_json_partial(path: &Path) -> Result<Vec<ImageCamera>> {
         .collect()
 }
 
-/// Writes a COLMAP text model (`cameras.txt`, `images.txt`, empty `points3D.txt`) into `dir`.
+/// The cameras of the COLMAP model in `dir` (text or binary; PINHOLE, SIMPLE_PINHOLE,
+/// SIMPLE_RADIAL, RADIAL or OPENCV cameras, distortion dropped, so the cameras are pinhole
+/// approximations), in the model's image order.
+///
+/// # Errors
+/// I/O or format errors naming the file.
+pub fn read_colmap_cameras(dir: &Path) -> Result<Vec<NamedCamera>> {
+    ColmapModel::read(dir)?.named_cameras(dir)
+}
+
+/// Writes the COLMAP model of `r` into `dir`.
 ///
 /// # Errors
 /// I/O errors, non-finite rotations.
-pub fn write_colmap_text(dir: &Path, cameras: &[NamedCamera]) -> Result<()> {
-    let mut cams = String::from(
-        "# Camera list with one line of data per camera:\n#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n",
-    );
-    let _ = writeln!(cams, "# Number of cameras: {}", cameras.len());
-    let mut imgs = String::from(
-        "# Image list with two lines of data per image:\n#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n#   POINTS2D[] as (X, Y, POINT3D_ID)\n",
-    );
-    let _ = writeln!(
-        imgs,
-        "# Number of images: {}, mean observations per image: 0",
-        cameras.len()
-    );
-    for (k, c) in cameras.iter().enumerate() {
-        let id = k + 1;
-        let i = &c.camera.intrinsics;
-        let s = c.camera.image_size;
-        let _ = writeln!(
-            cams,
-            "{id} PINHOLE {} {} {} {} {} {}",
-            s.width(),
-            s.height(),
-            i.fx(),
-            i.fy(),
-            i.cx() + PIXEL_CENTRE_OFFSET,
-            i.cy() + PIXEL_CENTRE_OFFSET
-        );
-        let q = Quaternion::from_rotation_matrix(
-            &c.camera.cam_from_world.rotation,
-            QuaternionSign::NonNegativeReal,
-        )?;
-        let t = c.camera.cam_from_world.translation;
-        let _ = writeln!(
-            imgs,
-            "{id} {} {} {} {} {} {} {} {id} {}",
-            q.w, q.x, q.y, q.z, t.x, t.y, t.z, c.image
-        );
-        imgs.push('\n');
-    }
-    write(&dir.join("cameras.txt"), &cams)?;
-    write(&dir.join("images.txt"), &imgs)?;
-    write(
-        &dir.join("points3D.txt"),
-        "# 3D point list with one line of data per point:\n#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)\n# Number of points: 0, mean track length: 0\n",
-    )
+pub fn write_colmap(dir: &Path, r: &Reconstruction, format: ColmapFormat) -> Result<()> {
+    ColmapModel::from_reconstruction(r)?.write(dir, format)
 }
 
-fn parse_err(path: &Path, what: &str) -> PosediffError {
-    PosediffError::invalid(path, what)
-}
-
-/// Reads a COLMAP text model: the one [`write_colmap_text`] writes, or COLMAP's own (PINHOLE,
-/// SIMPLE_PINHOLE, SIMPLE_RADIAL, RADIAL or OPENCV cameras; distortion parameters are dropped,
-/// so the cameras are pinhole approximations).
-///
-/// # Errors
-/// I/O or format errors.
-pub fn read_colmap_text(dir: &Path) -> Result<Vec<NamedCamera>> {
-    let read = |name: &str| read_text(&dir.join(name));
-    let cams_path = dir.join("cameras.txt");
-    let mut intrinsics = std::collections::HashMap::new();
-    for line in read("cameras.txt")?
-        .lines()
-        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
-    {
-        let f: Vec<&str> = line.split_whitespace().collect();
-        let n = |i: usize| {
-            f.get(i)
-                .and_then(|v| v.parse::<f64>().ok())
-                .ok_or_else(|| parse_err(&cams_path, "missing or non-numeric camera parameter"))
-        };
-        // fx, fy, cx, cy and how many parameters the model has; distortion is not kept.
-        let (fx, fy, cx, cy, count) = match f.get(1).copied() {
-            Some("PINHOLE") => (n(4)?, n(5)?, n(6)?, n(7)?, 8),
-            Some("SIMPLE_PINHOLE") => (n(4)?, n(4)?, n(5)?, n(6)?, 7),
-            Some("SIMPLE_RADIAL") => (n(4)?, n(4)?, n(5)?, n(6)?, 8),
-            Some("RADIAL") => (n(4)?, n(4)?, n(5)?, n(6)?, 9),
-            Some("OPENCV") => (n(4)?, n(5)?, n(6)?, n(7)?, 12),
-            _ => {
-                return Err(parse_err(
-                    &cams_path,
-                    "expected a PINHOLE, SIMPLE_PINHOLE, SIMPLE_RADIAL, RADIAL or OPENCV camera",
-                ));
-            }
-        };
-        if f.len() != count {
-            return Err(parse_err(&cams_path, "wrong number of camera parameters"));
-        }
-        let size = ImageSize::new(f[2].parse().unwrap_or(0), f[3].parse().unwrap_or(0))?;
-        let k = Intrinsics::new(fx, fy, cx - PIXEL_CENTRE_OFFSET, cy - PIXEL_CENTRE_OFFSET)?;
-        intrinsics.insert(f[0].to_owned(), (k, size));
-    }
-    let imgs_path = dir.join("images.txt");
-    let text = read("images.txt")?;
-    // Two lines per image: the pose, then its 2-D points (possibly empty).
-    let lines: Vec<&str> = text.lines().filter(|l| !l.starts_with('#')).collect();
-    let mut out = Vec::new();
-    let mut k = 0;
-    while k < lines.len() {
-        let line = lines[k];
-        if line.trim().is_empty() {
-            k += 1;
-            continue;
-        }
-        let f: Vec<&str> = line.split_whitespace().collect();
-        if f.len() < 10 {
-            return Err(parse_err(
-                &imgs_path,
-                "expected `ID QW QX QY QZ TX TY TZ CAMERA_ID NAME`",
-            ));
-        }
-        let n = |i: usize| {
-            f[i].parse::<f64>()
-                .map_err(|_| parse_err(&imgs_path, "not a number"))
-        };
-        let r = Quaternion::new(n(1)?, n(2)?, n(3)?, n(4)?).to_rotation_matrix()?;
-        let t = Vector3::new(n(5)?, n(6)?, n(7)?);
-        let (k_cam, size) = *intrinsics
-            .get(f[8])
-            .ok_or_else(|| parse_err(&imgs_path, "unknown CAMERA_ID"))?;
-        out.push(NamedCamera {
-            image: f[9..].join(" "),
-            camera: Camera::new(k_cam, Pose::new(r, t), size),
-        });
-        // Skip the points line.
-        k += 2;
-    }
-    Ok(out)
-}
-
-/// One frame of nerfstudio's `transforms.json`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct NerfstudioFrame {
-    /// Image path relative to the input folder.
-    pub file_path: String,
-    /// Camera-to-world, OpenGL camera axes, rows.
-    pub transform_matrix: [[f64; 4]; 4],
+/// Intrinsics of nerfstudio frames (pixel centres at `+0.5`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct NerfstudioIntrinsics {
     /// Focal length x, px.
     pub fl_x: f64,
     /// Focal length y, px.
     pub fl_y: f64,
-    /// Principal point x, px (pixel centres at +0.5).
+    /// Principal point x, px.
     pub cx: f64,
-    /// Principal point y, px (pixel centres at +0.5).
+    /// Principal point y, px.
     pub cy: f64,
     /// Width, px.
     pub w: u32,
@@ -343,13 +224,82 @@ pub struct NerfstudioFrame {
     pub h: u32,
 }
 
-/// nerfstudio's `transforms.json`.
+impl NerfstudioIntrinsics {
+    fn of(c: &Camera) -> Self {
+        let i = &c.intrinsics;
+        Self {
+            fl_x: i.fx(),
+            fl_y: i.fy(),
+            cx: i.cx() + PIXEL_CENTRE_OFFSET,
+            cy: i.cy() + PIXEL_CENTRE_OFFSET,
+            w: c.image_size.width(),
+            h: c.image_size.height(),
+        }
+    }
+}
+
+/// One frame of nerfstudio's `transforms.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct NerfstudioFrame {
+    /// Image path, relative to the folder of `transforms.json` (or absolute).
+    pub file_path: String,
+    /// Camera-to-world with OpenGL camera axes, in the world after `applied_transform`, rows.
+    pub transform_matrix: [[f64; 4]; 4],
+    /// The image id in `sparse/0`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub colmap_im_id: Option<u32>,
+    /// Per-frame intrinsics, present when the frames' intrinsics differ.
+    #[serde(flatten, default, skip_serializing_if = "Option::is_none")]
+    pub intrinsics: Option<NerfstudioIntrinsics>,
+}
+
+/// nerfstudio's `transforms.json`, with the fields its own COLMAP converter writes.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct NerfstudioTransforms {
-    /// Always `"OPENCV"` (pinhole here; no distortion terms).
+    /// Always `"OPENCV"` (pinhole here: the distortion terms are 0).
     pub camera_model: String,
+    /// Shared intrinsics, when every frame has the same.
+    #[serde(flatten, default, skip_serializing_if = "Option::is_none")]
+    pub intrinsics: Option<NerfstudioIntrinsics>,
+    /// Radial distortion (0).
+    #[serde(default)]
+    pub k1: f64,
+    /// Radial distortion (0).
+    #[serde(default)]
+    pub k2: f64,
+    /// Tangential distortion (0).
+    #[serde(default)]
+    pub p1: f64,
+    /// Tangential distortion (0).
+    #[serde(default)]
+    pub p2: f64,
     /// The frames.
     pub frames: Vec<NerfstudioFrame>,
+    /// The 3×4 transform from the COLMAP world to this file's world (nerfstudio's
+    /// converter: `y ← z`, `z ← −y`).
+    #[serde(default = "identity_3x4")]
+    pub applied_transform: [[f64; 4]; 3],
+    /// The points, in this file's world, relative to this file's folder.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ply_file_path: Option<String>,
+}
+
+fn identity_3x4() -> [[f64; 4]; 3] {
+    [
+        [1.0, 0.0, 0.0, 0.0],
+        [0.0, 1.0, 0.0, 0.0],
+        [0.0, 0.0, 1.0, 0.0],
+    ]
+}
+
+/// nerfstudio's converter's world change: rows `x, z, −y` of the COLMAP world.
+pub fn nerfstudio_applied_transform() -> Matrix4<f64> {
+    Matrix4::new(
+        1.0, 0.0, 0.0, 0.0, //
+        0.0, 0.0, 1.0, 0.0, //
+        0.0, -1.0, 0.0, 0.0, //
+        0.0, 0.0, 0.0, 1.0,
+    )
 }
 
 /// `diag(1, −1, −1)`: OpenCV camera axes to OpenGL's.
@@ -357,66 +307,183 @@ fn opengl_from_opencv() -> Matrix3<f64> {
     Matrix3::from_diagonal(&Vector3::new(1.0, -1.0, -1.0))
 }
 
-/// Writes nerfstudio's `transforms.json`.
+/// One camera for [`write_nerfstudio`]: the camera, the frame's `file_path` and its COLMAP id.
+#[derive(Debug, Clone)]
+pub struct NerfstudioCamera {
+    /// The camera.
+    pub camera: Camera,
+    /// `file_path`.
+    pub file_path: String,
+    /// `colmap_im_id`.
+    pub colmap_id: Option<u32>,
+}
+
+/// Writes nerfstudio's `transforms.json` as its COLMAP converter does: the world changed by
+/// [`nerfstudio_applied_transform`] (recorded as `applied_transform`), camera-to-world with
+/// OpenGL axes, intrinsics at the top level when shared, `ply_file_path` when given.
 ///
 /// # Errors
 /// I/O errors.
-pub fn write_nerfstudio(path: &Path, cameras: &[NamedCamera]) -> Result<()> {
+pub fn write_nerfstudio(
+    path: &Path,
+    cameras: &[NerfstudioCamera],
+    ply_file_path: Option<&str>,
+) -> Result<()> {
+    let applied = nerfstudio_applied_transform();
+    let all: Vec<NerfstudioIntrinsics> = cameras
+        .iter()
+        .map(|c| NerfstudioIntrinsics::of(&c.camera))
+        .collect();
+    let shared = all
+        .first()
+        .filter(|first| all.iter().all(|i| i == *first))
+        .copied();
     let frames = cameras
         .iter()
-        .map(|c| {
+        .zip(&all)
+        .map(|(c, intrinsics)| {
             let world_from_cam = c.camera.cam_from_world.inverse();
-            let r = world_from_cam.rotation * opengl_from_opencv();
             let mut m = Matrix4::identity();
-            m.fixed_view_mut::<3, 3>(0, 0).copy_from(&r);
+            m.fixed_view_mut::<3, 3>(0, 0)
+                .copy_from(&(world_from_cam.rotation * opengl_from_opencv()));
             m.fixed_view_mut::<3, 1>(0, 3)
                 .copy_from(&world_from_cam.translation);
-            let i = &c.camera.intrinsics;
+            let m = applied * m;
             NerfstudioFrame {
-                file_path: c.image.clone(),
+                file_path: c.file_path.clone(),
                 transform_matrix: [0, 1, 2, 3].map(|row| [0, 1, 2, 3].map(|col| m[(row, col)])),
-                fl_x: i.fx(),
-                fl_y: i.fy(),
-                cx: i.cx() + PIXEL_CENTRE_OFFSET,
-                cy: i.cy() + PIXEL_CENTRE_OFFSET,
-                w: c.camera.image_size.width(),
-                h: c.camera.image_size.height(),
+                colmap_im_id: c.colmap_id,
+                intrinsics: shared.is_none().then_some(*intrinsics),
             }
         })
         .collect();
     let t = NerfstudioTransforms {
         camera_model: "OPENCV".into(),
+        intrinsics: shared,
+        k1: 0.0,
+        k2: 0.0,
+        p1: 0.0,
+        p2: 0.0,
         frames,
+        applied_transform: [0, 1, 2].map(|row| [0, 1, 2, 3].map(|col| applied[(row, col)])),
+        ply_file_path: ply_file_path.map(str::to_owned),
     };
     write(path, &serde_json::to_string_pretty(&t)?)
 }
 
-/// Reads a `transforms.json` written by [`write_nerfstudio`].
+/// Reads a `transforms.json` (with or without `applied_transform`, intrinsics shared or per
+/// frame) back into cameras in the COLMAP world, named by their `file_path`s.
 ///
 /// # Errors
-/// I/O, JSON or camera errors.
+/// I/O, JSON or camera errors; a frame without intrinsics.
 pub fn read_nerfstudio(path: &Path) -> Result<Vec<NamedCamera>> {
     let text = read_text(path)?;
     let t: NerfstudioTransforms =
         serde_json::from_str(&text).map_err(|e| PosediffError::invalid(path, e))?;
+    let mut applied = Matrix4::identity();
+    for (row, values) in t.applied_transform.iter().enumerate() {
+        for (col, v) in values.iter().enumerate() {
+            applied[(row, col)] = *v;
+        }
+    }
+    let undo = applied
+        .try_inverse()
+        .ok_or_else(|| PosediffError::invalid(path, "applied_transform is not invertible"))?;
     t.frames
         .iter()
         .map(|f| {
-            let m = Matrix4::from_fn(|r, c| f.transform_matrix[r][c]);
+            let i = f.intrinsics.or(t.intrinsics).ok_or_else(|| {
+                PosediffError::invalid(path, format!("frame {} has no intrinsics", f.file_path))
+            })?;
+            let m = undo * Matrix4::from_fn(|r, c| f.transform_matrix[r][c]);
             let r = m.fixed_view::<3, 3>(0, 0) * opengl_from_opencv();
             let world_from_cam = Pose::new(r, m.fixed_view::<3, 1>(0, 3).into());
             let k = Intrinsics::new(
-                f.fl_x,
-                f.fl_y,
-                f.cx - PIXEL_CENTRE_OFFSET,
-                f.cy - PIXEL_CENTRE_OFFSET,
+                i.fl_x,
+                i.fl_y,
+                i.cx - PIXEL_CENTRE_OFFSET,
+                i.cy - PIXEL_CENTRE_OFFSET,
             )?;
             Ok(NamedCamera {
                 image: f.file_path.clone(),
-                camera: Camera::new(k, world_from_cam.inverse(), ImageSize::new(f.w, f.h)?),
+                camera: Camera::new(k, world_from_cam.inverse(), ImageSize::new(i.w, i.h)?),
             })
         })
         .collect()
+}
+
+/// Writes the points as a binary little-endian PLY (`float x y z`, `uchar red green blue`),
+/// each position mapped by `transform` (e.g. [`nerfstudio_applied_transform`]).
+///
+/// # Errors
+/// I/O errors.
+pub fn write_ply(path: &Path, points: &[ScenePoint], transform: &Matrix4<f64>) -> Result<()> {
+    let mut b = format!(
+        "ply\nformat binary_little_endian 1.0\ncomment posediff sparse points\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\nproperty uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n",
+        points.len()
+    )
+    .into_bytes();
+    b.reserve(points.len() * 15);
+    for p in points {
+        let x = transform.transform_point(&nalgebra::Point3::from(p.xyz));
+        for v in [x.x, x.y, x.z] {
+            b.extend_from_slice(&(v as f32).to_le_bytes());
+        }
+        b.extend_from_slice(&p.rgb);
+    }
+    std::fs::write(path, b).map_err(|source| PosediffError::Write {
+        path: path.to_owned(),
+        source,
+    })
+}
+
+/// Reads a PLY written by [`write_ply`]: positions and colours.
+///
+/// # Errors
+/// I/O errors, another layout, a truncated file.
+pub fn read_ply(path: &Path) -> Result<Vec<([f32; 3], [u8; 3])>> {
+    let bytes = std::fs::read(path).map_err(|source| PosediffError::Read {
+        path: path.to_owned(),
+        source,
+    })?;
+    let marker = b"end_header\n";
+    let end = bytes
+        .windows(marker.len())
+        .position(|w| w == marker)
+        .ok_or_else(|| PosediffError::invalid(path, "no end_header"))?
+        + marker.len();
+    let header = std::str::from_utf8(&bytes[..end])
+        .map_err(|_| PosediffError::invalid(path, "header is not text"))?;
+    let expected = "property float x\nproperty float y\nproperty float z\nproperty uchar red\nproperty uchar green\nproperty uchar blue\n";
+    if !header.contains("format binary_little_endian 1.0") || !header.contains(expected) {
+        return Err(PosediffError::invalid(
+            path,
+            "expected binary little-endian float x y z, uchar red green blue",
+        ));
+    }
+    let n: usize = header
+        .lines()
+        .find_map(|l| l.strip_prefix("element vertex "))
+        .and_then(|v| v.trim().parse().ok())
+        .ok_or_else(|| PosediffError::invalid(path, "no vertex count"))?;
+    let body = &bytes[end..];
+    if body.len() != n.saturating_mul(15) {
+        return Err(PosediffError::invalid(
+            path,
+            format!(
+                "{n} vertices need {} bytes, the file has {}",
+                n.saturating_mul(15),
+                body.len()
+            ),
+        ));
+    }
+    Ok(body
+        .chunks_exact(15)
+        .map(|c| {
+            let f = |k: usize| f32::from_le_bytes([c[k], c[k + 1], c[k + 2], c[k + 3]]);
+            ([f(0), f(4), f(8)], [c[12], c[13], c[14]])
+        })
+        .collect())
 }
 
 /// One camera as the official model returns it (224 crop, NDC).
@@ -476,7 +543,7 @@ pub fn colmap_for_images(
     images: &[std::path::PathBuf],
     root: &Path,
 ) -> Result<Vec<ImageCamera>> {
-    let cams = read_colmap_text(model)?;
+    let cams = read_colmap_cameras(model)?;
     let file_name = |s: &str| {
         Path::new(s)
             .file_name()

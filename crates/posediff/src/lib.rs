@@ -5,7 +5,11 @@
 //! - [`co3d`]: CO3Dv2 annotations and the official test protocol's frame choice.
 //! - [`geometric`]: cameras without a checkpoint (two-view geometry, averaging, refinement).
 //! - [`loader`]: the official image loader (sorted files, centre crop, 224 px).
-//! - [`export`]: cameras.json, COLMAP text, nerfstudio and PyTorch3D writers and readers.
+//! - [`reconstruction`]: the result every writer reads: cameras, keypoints, coloured points.
+//! - [`export`]: cameras.json, nerfstudio (+ PLY) and PyTorch3D writers and readers.
+//! - [`colmap`]: COLMAP sparse models, text and binary, with points.
+//! - [`outputs`]: the output folder (COLMAP sparse/0, images, nerfstudio, PLY, viewer).
+//! - [`viewer`]: view.html, a self-contained three.js page.
 //! - [`pipeline`]: [`Estimator`], images to cameras.
 //! - [`train`]: training on CO3D-layout data (frozen backbone, cached features).
 //! - [`plot`]: camera frusta from above and from the side, against the ground truth.
@@ -15,13 +19,17 @@
 pub mod augment;
 pub mod bench;
 pub mod co3d;
+pub mod colmap;
 pub mod error;
 pub mod export;
 pub mod geometric;
 pub mod loader;
+pub mod outputs;
 pub mod pipeline;
 pub mod plot;
+pub mod reconstruction;
 pub mod train;
+pub mod viewer;
 
 pub use error::{PosediffError, Result};
 pub use pipeline::{Estimate, EstimateConfig, Estimator, GgsHook, Progress, Silent, StageTimes};

@@ -8,17 +8,21 @@ use std::process::ExitCode;
 use anyhow::{Context, bail};
 use candle_core::Device;
 use clap::{Parser, Subcommand, ValueEnum};
+use posediff::colmap::{ColmapFormat, ColmapModel};
 use posediff::export::{
     ImageCamera, NamedCamera, read_cameras_json_partial, write_cameras_json_partial,
-    write_colmap_text, write_nerfstudio, write_pytorch3d,
 };
 use posediff::geometric::{
     GeometricConfig, KnownIntrinsics, Refinement, estimate_geometric, refine_given_cameras,
 };
 use posediff::loader::image_files;
+use posediff::outputs::{
+    ImagesMode, InputImages, OutputOptions, prepare_output_dir, write_outputs,
+};
+use posediff::reconstruction::Reconstruction;
 use posediff::{EstimateConfig, Estimator, Progress, Silent};
-use posediff_geometry::{CenterCrop, MODEL_INPUT_SIDE};
 use posediff_matching::Detector;
+use posediff_sfm::points::PointOptions;
 
 #[derive(Parser)]
 #[command(
@@ -174,11 +178,11 @@ enum Command {
         #[arg(long)]
         quiet: bool,
     },
-    /// Convert a COLMAP text model (cameras.txt, images.txt) to cameras.json, e.g. for
+    /// Convert a COLMAP model (text or binary) to cameras.json, e.g. for
     /// `estimate --init`: with --images, one entry per image of that folder in its order
     /// (images COLMAP did not register are marked not estimated).
     ImportColmap {
-        /// Folder of the COLMAP text model.
+        /// Folder of the COLMAP model (e.g. sparse/0).
         model: PathBuf,
         /// The image folder the model belongs to.
         #[arg(long)]
@@ -197,6 +201,18 @@ enum Command {
         gt: PathBuf,
         /// Also write the scores as JSON here.
         #[arg(long)]
+        out: Option<PathBuf>,
+    },
+    /// Write view.html (cameras with thumbnails, points, the aligned ground truth) for an
+    /// output folder of `estimate`.
+    View {
+        /// The output folder (its sparse/0 and images/ are read).
+        dir: PathBuf,
+        /// Ground-truth cameras.json (matched by image name), drawn aligned, with errors.
+        #[arg(long)]
+        gt: Option<PathBuf>,
+        /// The page to write (default: <dir>/view.html).
+        #[arg(short = 'o', long = "out")]
         out: Option<PathBuf>,
     },
     /// Plot cameras (frusta from above and from the side), optionally against the ground truth.
@@ -266,6 +282,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
     let args = match cli.command {
         Command::Estimate(args) => args,
         Command::Plot { cameras, gt, out } => return plot(&cameras, gt.as_deref(), &out),
+        Command::View { dir, gt, out } => return view(&dir, gt.as_deref(), out.as_deref()),
         Command::Score { cameras, gt, out } => return score(&cameras, &gt, out.as_deref()),
         Command::Train {
             co3d_dir,
@@ -368,7 +385,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                     posediff::export::colmap_for_images(&model, &image_files(&dir)?, &dir)?
                 }
                 None => {
-                    let mut cams = posediff::export::read_colmap_text(&model)?;
+                    let mut cams = posediff::export::read_colmap_cameras(&model)?;
                     cams.sort_by(|a, b| a.image.cmp(&b.image));
                     cams.into_iter()
                         .map(|c| ImageCamera {
@@ -380,8 +397,9 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 }
             };
             write_cameras_json_partial(&out, &entries)?;
+            let points = ColmapModel::read(&model)?.points.len();
             println!(
-                "wrote {} ({} of {} images registered)",
+                "wrote {} ({} of {} images registered; the model has {points} points)",
                 out.display(),
                 entries.iter().filter(|e| e.camera.is_some()).count(),
                 entries.len()
@@ -510,6 +528,47 @@ struct EstimateArgs {
     /// Print nothing but errors.
     #[arg(long)]
     quiet: bool,
+    /// Files of the COLMAP model in out/sparse/0.
+    #[arg(long, value_enum, default_value = "text")]
+    colmap_format: ColmapFormatArg,
+    /// How the images are made reachable as out/images (for the COLMAP model and
+    /// transforms.json): a link to the folder (or one per file), copies, or nothing
+    /// (transforms.json then names the images by absolute path).
+    #[arg(long, value_enum, default_value = "link")]
+    images: ImagesArg,
+    /// Do not write view.html.
+    #[arg(long)]
+    no_view: bool,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum ColmapFormatArg {
+    Text,
+    Binary,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum ImagesArg {
+    Link,
+    Copy,
+    None,
+}
+
+impl EstimateArgs {
+    fn output_options(&self) -> OutputOptions {
+        OutputOptions {
+            colmap_format: match self.colmap_format {
+                ColmapFormatArg::Text => ColmapFormat::Text,
+                ColmapFormatArg::Binary => ColmapFormat::Binary,
+            },
+            images: match self.images {
+                ImagesArg::Link => ImagesMode::Link,
+                ImagesArg::Copy => ImagesMode::Copy,
+                ImagesArg::None => ImagesMode::None,
+            },
+            view: !self.no_view,
+        }
+    }
 }
 
 /// Where the initial cameras come from.
@@ -535,6 +594,13 @@ fn estimate(args: EstimateArgs) -> anyhow::Result<()> {
     if images.len() < 2 {
         bail!("need at least 2 images, got {}", images.len());
     }
+    let inputs = InputImages {
+        files: images.clone(),
+        folder: root.clone(),
+        folder_given: matches!(args.inputs.as_slice(), [one] if one.is_dir()),
+    };
+    let output_options = args.output_options();
+    prepare_output_dir(&args.out, &inputs, output_options.images)?;
     let names: Vec<String> = images
         .iter()
         .map(|p| posediff::pipeline::relative_name(p, root.as_deref()))
@@ -615,7 +681,15 @@ fn estimate(args: EstimateArgs) -> anyhow::Result<()> {
             "matches_per_pair": result.pairs.iter().map(|p| serde_json::json!({"first": p.first, "second": p.second, "matches": p.len()})).collect::<Vec<_>>(),
             "warnings": result.warnings,
         });
-        return write_outputs(&args.out, &entries, &run, quiet);
+        return finish(
+            &args.out,
+            entries,
+            &result.pairs,
+            &inputs,
+            run,
+            &output_options,
+            quiet,
+        );
     };
     let device_name = match args.device {
         DeviceArg::Cpu => "cpu",
@@ -735,7 +809,18 @@ fn estimate(args: EstimateArgs) -> anyhow::Result<()> {
         })).collect::<Vec<_>>(),
         "warnings": warnings,
     });
-    write_outputs(&args.out, &entries, &run, quiet)
+    if estimate.pairs.iter().all(|p| p.is_empty()) {
+        log::warn!("no verified matches (--no-ggs skips matching): the COLMAP model has no points");
+    }
+    finish(
+        &args.out,
+        entries,
+        &estimate.pairs,
+        &inputs,
+        run,
+        &output_options,
+        quiet,
+    )
 }
 
 /// A cameras.json with one entry per image.
@@ -759,44 +844,54 @@ fn detector(m: Matcher) -> Detector {
     }
 }
 
-/// Writes cameras.json (every image), the COLMAP model, transforms.json and pytorch3d.json
-/// (the estimated cameras) and run.json into `out`, and prints the cameras.
-fn write_outputs(
+/// Triangulates the points with the final cameras, writes every output (see
+/// `posediff::outputs`) and prints the cameras.
+fn finish(
     out: &Path,
-    entries: &[ImageCamera],
-    run: &serde_json::Value,
+    entries: Vec<ImageCamera>,
+    pairs: &[posediff_geometry::PairMatches],
+    inputs: &InputImages,
+    mut run: serde_json::Value,
+    options: &OutputOptions,
     quiet: bool,
 ) -> anyhow::Result<()> {
-    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
-    write_cameras_json_partial(&out.join("cameras.json"), entries)?;
-    let estimated = ImageCamera::estimated(entries);
-    write_colmap_text(out, &estimated)?;
-    write_nerfstudio(&out.join("transforms.json"), &estimated)?;
-    let with_crops: Vec<_> = estimated
-        .iter()
-        .map(|c| {
-            (
-                c.clone(),
-                CenterCrop::official(c.camera.image_size, MODEL_INPUT_SIDE),
-            )
-        })
-        .collect();
-    write_pytorch3d(&out.join("pytorch3d.json"), &with_crops)?;
-    std::fs::write(out.join("run.json"), serde_json::to_string_pretty(run)?)
-        .with_context(|| format!("writing {}", out.join("run.json").display()))?;
+    let (recon, points) = Reconstruction::triangulate(
+        entries,
+        Some(&inputs.files),
+        pairs,
+        &PointOptions::default(),
+    )?;
+    if let Some(map) = run.as_object_mut() {
+        map.insert(
+            "points".into(),
+            serde_json::json!({
+                "tracks": points.tracks.tracks,
+                "inconsistent_tracks": points.tracks.inconsistent,
+                "points": points.points,
+                "observations": points.observations,
+                "dropped_observations": points.dropped_observations,
+                "tracks_without_two_estimated_images": points.unseen,
+                "rejected_tracks": points.rejected,
+                "mean_reprojection_error_px": points.mean_error_px,
+                "max_reprojection_px": PointOptions::default().max_reprojection_px,
+                "min_triangulation_angle_deg": PointOptions::default().min_angle_deg,
+            }),
+        );
+    }
+    let written = write_outputs(out, &recon, inputs, &run, options)?;
     if !quiet {
         println!(
             "{:<32} {:>9} {:>9} {:>28}",
             "image", "fx px", "fy px", "centre (world)"
         );
-        for e in entries {
-            match &e.camera {
+        for e in &recon.images {
+            match &e.camera.camera {
                 Some(c) => {
                     let k = &c.intrinsics;
                     let p = c.center();
                     println!(
                         "{:<32} {:>9.1} {:>9.1} {:>9.3} {:>9.3} {:>9.3}",
-                        e.image,
+                        e.camera.image,
                         k.fx(),
                         k.fy(),
                         p.x,
@@ -804,14 +899,67 @@ fn write_outputs(
                         p.z
                     );
                 }
-                None => println!("{:<32} not estimated", e.image),
+                None => println!("{:<32} not estimated", e.camera.image),
             }
         }
         println!(
-            "wrote cameras.json, cameras.txt/images.txt/points3D.txt, transforms.json, pytorch3d.json, run.json to {}",
-            out.display()
+            "{} points (mean reprojection error {:.3} px, mean track length {:.1})",
+            written.points,
+            written.mean_reprojection_error_px.unwrap_or(0.0),
+            written.mean_track_length
         );
+        println!("wrote {} to {}", written.files.join(", "), out.display());
     }
+    Ok(())
+}
+
+/// `posediff view`: view.html from an output folder's COLMAP model and images.
+fn view(dir: &Path, gt: Option<&Path>, out: Option<&Path>) -> anyhow::Result<()> {
+    let model_dir = dir.join("sparse").join("0");
+    let model = ColmapModel::read(&model_dir)
+        .with_context(|| format!("{} is not a posediff output folder", dir.display()))?;
+    let recon = model.to_reconstruction(&model_dir)?;
+    let files: Vec<PathBuf> = recon
+        .images
+        .iter()
+        .map(|i| dir.join("images").join(&i.camera.image))
+        .collect();
+    let thumbs: Vec<Option<Vec<u8>>> = if files.iter().all(|f| f.is_file()) {
+        posediff::outputs::thumbnails(&recon, &files)?
+    } else {
+        log::warn!(
+            "{}/images does not hold the images: no thumbnails",
+            dir.display()
+        );
+        vec![None; recon.images.len()]
+    };
+    let truth = match gt {
+        None => None,
+        Some(path) => {
+            let given = read_cameras_json_partial(path)
+                .with_context(|| format!("reading {}", path.display()))?;
+            let by_name = |name: &str| {
+                given.iter().find(|g| g.image == name).or_else(|| {
+                    let file = Path::new(name).file_name();
+                    given
+                        .iter()
+                        .find(|g| Path::new(&g.image).file_name() == file)
+                })
+            };
+            Some(
+                recon
+                    .images
+                    .iter()
+                    .map(|i| by_name(&i.camera.image).and_then(|g| g.camera))
+                    .collect::<Vec<_>>(),
+            )
+        }
+    };
+    let title = posediff::outputs::set_title(Some(&dir.join("images")));
+    let html = posediff::viewer::render(&title, &recon, &thumbs, truth.as_deref())?;
+    let path = out.map_or_else(|| dir.join("view.html"), Path::to_path_buf);
+    std::fs::write(&path, html).with_context(|| format!("writing {}", path.display()))?;
+    println!("wrote {}", path.display());
     Ok(())
 }
 

@@ -6,12 +6,16 @@
 #![allow(clippy::unwrap_used)]
 
 use nalgebra::{Matrix3, Point3, Vector3};
+use posediff::colmap::{ColmapFormat, ColmapModel};
 use posediff::export::{
-    NamedCamera, NerfstudioTransforms, Pytorch3dRecord, read_cameras_json, read_colmap_text,
-    read_nerfstudio, write_cameras_json, write_colmap_text, write_nerfstudio, write_pytorch3d,
+    ImageCamera, NamedCamera, NerfstudioCamera, NerfstudioTransforms, Pytorch3dRecord,
+    nerfstudio_applied_transform, read_cameras_json, read_colmap_cameras, read_nerfstudio,
+    read_ply, write_cameras_json, write_colmap, write_nerfstudio, write_ply, write_pytorch3d,
 };
+use posediff::reconstruction::Reconstruction;
 use posediff_fixtures::shared_path;
 use posediff_geometry::{Camera, CenterCrop, ImageSize, Intrinsics, Pose, Quaternion};
+use posediff_sfm::points::PointOptions;
 
 fn temp_dir(tag: &str) -> std::path::PathBuf {
     let d = std::env::temp_dir().join(format!("posediff-export-{tag}-{}", std::process::id()));
@@ -24,6 +28,29 @@ fn apple() -> (Vec<NamedCamera>, serde_json::Value) {
     let raw: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
     (read_cameras_json(&path).unwrap(), raw)
+}
+
+fn reconstruction_of(cams: &[NamedCamera]) -> Reconstruction {
+    Reconstruction::from_cameras(
+        cams.iter()
+            .map(|c| ImageCamera {
+                image: c.image.clone(),
+                size: c.camera.image_size,
+                camera: Some(c.camera),
+            })
+            .collect(),
+    )
+}
+
+fn nerf_cameras(cams: &[NamedCamera]) -> Vec<NerfstudioCamera> {
+    cams.iter()
+        .enumerate()
+        .map(|(i, c)| NerfstudioCamera {
+            camera: c.camera,
+            file_path: c.image.clone(),
+            colmap_id: Some(i as u32 + 1),
+        })
+        .collect()
 }
 
 fn assert_same(a: &[NamedCamera], b: &[NamedCamera]) {
@@ -59,9 +86,11 @@ fn every_format_round_trips_real_cameras() {
         &cams,
         &read_cameras_json(&dir.join("cameras.json")).unwrap(),
     );
-    write_colmap_text(&dir, &cams).unwrap();
-    assert_same(&cams, &read_colmap_text(&dir).unwrap());
-    write_nerfstudio(&dir.join("transforms.json"), &cams).unwrap();
+    for (format, sub) in [(ColmapFormat::Text, "text"), (ColmapFormat::Binary, "bin")] {
+        write_colmap(&dir.join(sub), &reconstruction_of(&cams), format).unwrap();
+        assert_same(&cams, &read_colmap_cameras(&dir.join(sub)).unwrap());
+    }
+    write_nerfstudio(&dir.join("transforms.json"), &nerf_cameras(&cams), None).unwrap();
     assert_same(
         &cams,
         &read_nerfstudio(&dir.join("transforms.json")).unwrap(),
@@ -94,7 +123,7 @@ fn hand_checked_colmap_and_nerfstudio_values() {
         camera: cam,
     }];
     let dir = temp_dir("hand");
-    write_colmap_text(&dir, &named).unwrap();
+    write_colmap(&dir, &reconstruction_of(&named), ColmapFormat::Text).unwrap();
     let cams_txt = std::fs::read_to_string(dir.join("cameras.txt")).unwrap();
     assert!(
         cams_txt
@@ -119,28 +148,48 @@ fn hand_checked_colmap_and_nerfstudio_values() {
     assert!((Vector3::new(v[4], v[5], v[6]) - (-(r * c))).norm() < 1e-12);
     assert!(line.ends_with(" 1 images/a b.jpg"));
 
-    write_nerfstudio(&dir.join("transforms.json"), &named).unwrap();
+    write_nerfstudio(
+        &dir.join("transforms.json"),
+        &nerf_cameras(&named),
+        Some("sparse_pc.ply"),
+    )
+    .unwrap();
     let t: NerfstudioTransforms =
         serde_json::from_str(&std::fs::read_to_string(dir.join("transforms.json")).unwrap())
             .unwrap();
     let f = &t.frames[0];
     let m = f.transform_matrix;
+    // nerfstudio's world is COLMAP's with y ← z, z ← −y (its converter's applied_transform).
+    let world = |v: Vector3<f64>| Vector3::new(v.x, v.z, -v.y);
+    assert_eq!(
+        t.applied_transform,
+        [
+            [1.0, 0.0, 0.0, 0.0],
+            [0.0, 0.0, 1.0, 0.0],
+            [0.0, -1.0, 0.0, 0.0]
+        ]
+    );
     // Camera-to-world: the last column is the camera centre; OpenGL looks along −z.
-    assert!((Vector3::new(m[0][3], m[1][3], m[2][3]) - c).norm() < 1e-12);
+    assert!((Vector3::new(m[0][3], m[1][3], m[2][3]) - world(c)).norm() < 1e-12);
     let back = Vector3::new(m[0][2], m[1][2], m[2][2]);
     assert!(
-        (back + axis).norm() < 1e-12,
+        (back + world(axis)).norm() < 1e-12,
         "−z column must be the optical axis"
     );
     let up = Vector3::new(m[0][1], m[1][1], m[2][1]);
     assert!(
-        (up + r.row(1).transpose()).norm() < 1e-12,
+        (up + world(r.row(1).transpose())).norm() < 1e-12,
         "y is up: minus OpenCV's down axis"
     );
+    // One camera: its intrinsics are shared, at the top level.
+    let k = t.intrinsics.unwrap();
+    assert!(f.intrinsics.is_none());
     assert_eq!(
-        (f.cx, f.cy, f.fl_x, f.fl_y, f.w, f.h),
+        (k.cx, k.cy, k.fl_x, k.fl_y, k.w, k.h),
         (320.0, 240.0, 500.0, 510.0, 640, 480)
     );
+    assert_eq!(t.ply_file_path.as_deref(), Some("sparse_pc.ply"));
+    assert_eq!(f.colmap_im_id, Some(1));
     // A world point projects to the same pixel through the parsed nerfstudio camera.
     let x = Point3::new(4.0, 2.5, -4.5);
     let parsed = read_nerfstudio(&dir.join("transforms.json")).unwrap();
@@ -180,6 +229,197 @@ fn pytorch3d_json_matches_the_official_conventions() {
             rec.image
         );
         assert!(rec.principal_point[0].abs() < 0.01 && rec.principal_point[1].abs() < 0.01);
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// Apple's cameras and points on a sphere inside them, seen by every camera: matches between
+/// consecutive frames with keypoint ids = point ids.
+fn apple_scene() -> (
+    Vec<NamedCamera>,
+    Vec<Point3<f64>>,
+    Vec<posediff_geometry::PairMatches>,
+) {
+    let (cams, _) = apple();
+    let centre = cams
+        .iter()
+        .map(|c| c.camera.center().coords)
+        .sum::<Vector3<f64>>()
+        / cams.len() as f64;
+    let radius = cams
+        .iter()
+        .map(|c| (c.camera.center().coords - centre).norm())
+        .fold(0.0, f64::max);
+    let points: Vec<Point3<f64>> = (0..200)
+        .map(|k| {
+            let (a, b) = (k as f64 * 2.4, (k as f64 / 200.0) * 2.0 - 1.0);
+            let s = (1.0 - b * b).sqrt();
+            Point3::from(centre + 0.1 * radius * Vector3::new(s * a.cos(), s * a.sin(), b))
+        })
+        .collect();
+    let pairs = (0..cams.len() - 1)
+        .map(|i| {
+            let project = |j: usize| -> Vec<[f64; 2]> {
+                points
+                    .iter()
+                    .map(|p| {
+                        let q = cams[j].camera.project(p).unwrap();
+                        [q.x, q.y]
+                    })
+                    .collect()
+            };
+            posediff_geometry::PairMatches {
+                first: i,
+                second: i + 1,
+                kp1: project(i),
+                kp2: project(i + 1),
+                idx1: (0..points.len() as u32).collect(),
+                idx2: (0..points.len() as u32).collect(),
+            }
+        })
+        .collect();
+    (cams, points, pairs)
+}
+
+#[test]
+fn colmap_models_with_points_round_trip_in_text_and_binary() {
+    let (cams, truth, pairs) = apple_scene();
+    let images: Vec<ImageCamera> = cams
+        .iter()
+        .map(|c| ImageCamera {
+            image: c.image.clone(),
+            size: c.camera.image_size,
+            camera: Some(c.camera),
+        })
+        .collect();
+    let (recon, report) =
+        Reconstruction::triangulate(images, None, &pairs, &PointOptions::default()).unwrap();
+    assert_eq!(report.points, truth.len());
+    assert_eq!(recon.points.len(), truth.len());
+    for (p, t) in recon.points.iter().zip(&truth) {
+        assert!((p.xyz - t.coords).norm() < 1e-6 * (1.0 + t.coords.norm()));
+        assert_eq!(p.track.len(), cams.len());
+    }
+    let model = ColmapModel::from_reconstruction(&recon).unwrap();
+    // Every keypoint of every image observes its point.
+    for im in &model.images {
+        assert_eq!(im.points2d.len(), truth.len());
+        assert!(im.points2d.iter().all(|p| p.1.is_some()));
+    }
+    let distinct: std::collections::HashSet<String> = cams
+        .iter()
+        .map(|c| format!("{:?} {:?}", c.camera.intrinsics, c.camera.image_size))
+        .collect();
+    assert_eq!(model.cameras.len(), distinct.len());
+    let dir = temp_dir("points");
+    for (format, sub) in [(ColmapFormat::Text, "text"), (ColmapFormat::Binary, "bin")] {
+        model.write(&dir.join(sub), format).unwrap();
+        let back = ColmapModel::read(&dir.join(sub)).unwrap();
+        assert_eq!(back, model, "{sub}");
+        let back = back.to_reconstruction(&dir.join(sub)).unwrap();
+        assert_eq!(back.points.len(), recon.points.len());
+        for (a, b) in back.points.iter().zip(&recon.points) {
+            assert_eq!(a.xyz, b.xyz);
+            assert_eq!(a.track, b.track);
+        }
+        for (a, b) in back.images.iter().zip(&recon.images) {
+            for (x, y) in a.keypoints.iter().zip(&b.keypoints) {
+                assert!((x.xy[0] - y.xy[0]).abs() < 1e-9 && (x.xy[1] - y.xy[1]).abs() < 1e-9);
+                assert_eq!(x.point, y.point);
+            }
+        }
+    }
+    // The recorded errors are what the written cameras and 2-D points give (COLMAP pixels).
+    let recomputed = model.recomputed_mean_error(&dir).unwrap().unwrap();
+    assert!((recomputed - recon.mean_error_px().unwrap()).abs() < 1e-6);
+    assert!(recomputed < 1e-4, "exact projections: {recomputed}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn one_colmap_camera_per_distinct_intrinsics() {
+    let (cams, _) = apple();
+    let mut same: Vec<NamedCamera> = cams.clone();
+    let first = same[0].camera;
+    for c in &mut same {
+        c.camera.intrinsics = first.intrinsics;
+        c.camera.image_size = first.image_size;
+    }
+    same[3].camera.intrinsics =
+        Intrinsics::new(first.intrinsics.fx() * 1.1, first.intrinsics.fy(), 1.0, 2.0).unwrap();
+    let model = ColmapModel::from_reconstruction(&reconstruction_of(&same)).unwrap();
+    assert_eq!(model.cameras.len(), 2);
+    assert!(
+        model
+            .images
+            .iter()
+            .enumerate()
+            .all(|(k, im)| im.camera_id == if k == 3 { 2 } else { 1 })
+    );
+}
+
+#[test]
+fn broken_binary_models_are_errors_that_name_the_file() {
+    let (cams, _) = apple();
+    let dir = temp_dir("broken-bin");
+    write_colmap(&dir, &reconstruction_of(&cams), ColmapFormat::Binary).unwrap();
+    let images = dir.join("images.bin");
+    let bytes = std::fs::read(&images).unwrap();
+    // Truncated.
+    std::fs::write(&images, &bytes[..bytes.len() - 5]).unwrap();
+    let e = ColmapModel::read(&dir).unwrap_err().to_string();
+    assert!(e.contains("images.bin") && e.contains("ends early"), "{e}");
+    // A count no file could hold is refused before anything is allocated.
+    let mut huge = bytes.clone();
+    huge[..8].copy_from_slice(&u64::MAX.to_le_bytes());
+    std::fs::write(&images, &huge).unwrap();
+    let e = ColmapModel::read(&dir).unwrap_err().to_string();
+    assert!(e.contains("cannot fit"), "{e}");
+    // Trailing bytes.
+    let mut long = bytes;
+    long.extend_from_slice(&[0, 1, 2]);
+    std::fs::write(&images, &long).unwrap();
+    let e = ColmapModel::read(&dir).unwrap_err().to_string();
+    assert!(e.contains("3 bytes after"), "{e}");
+    std::fs::remove_dir_all(&dir).unwrap();
+    // No model at all.
+    let e = ColmapModel::read(&temp_dir("empty-model"))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("no COLMAP model"), "{e}");
+}
+
+#[test]
+fn ply_points_are_in_the_transformed_world_with_their_colours() {
+    let (cams, _, pairs) = apple_scene();
+    let images: Vec<ImageCamera> = cams
+        .iter()
+        .map(|c| ImageCamera {
+            image: c.image.clone(),
+            size: c.camera.image_size,
+            camera: Some(c.camera),
+        })
+        .collect();
+    let files: Vec<std::path::PathBuf> = cams
+        .iter()
+        .map(|c| shared_path("data/co3d_apple_posediffusion").join(&c.image))
+        .collect();
+    let (recon, _) =
+        Reconstruction::triangulate(images, Some(&files), &pairs, &PointOptions::default())
+            .unwrap();
+    // Colours come from the images: not all the grey placeholder.
+    assert!(recon.points.iter().any(|p| p.rgb != [128, 128, 128]));
+    let dir = temp_dir("ply");
+    let path = dir.join("sparse_pc.ply");
+    write_ply(&path, &recon.points, &nerfstudio_applied_transform()).unwrap();
+    let back = read_ply(&path).unwrap();
+    assert_eq!(back.len(), recon.points.len());
+    for ((xyz, rgb), p) in back.iter().zip(&recon.points) {
+        let expected = [p.xyz.x, p.xyz.z, -p.xyz.y];
+        for k in 0..3 {
+            assert!((f64::from(xyz[k]) - expected[k]).abs() < 1e-5 * (1.0 + expected[k].abs()));
+        }
+        assert_eq!(*rgb, p.rgb);
     }
     std::fs::remove_dir_all(&dir).unwrap();
 }

@@ -229,7 +229,7 @@ fn a_second_group_is_reported_not_estimated() {
     let raw = std::fs::read_to_string(out.join("cameras.json")).unwrap();
     assert_eq!(raw.matches("\"estimated\": false").count(), 2);
     assert!(read_cameras_json(&out.join("cameras.json")).is_err());
-    let images_txt = std::fs::read_to_string(out.join("images.txt")).unwrap();
+    let images_txt = std::fs::read_to_string(out.join("sparse/0/images.txt")).unwrap();
     assert_eq!(
         images_txt.lines().filter(|l| l.ends_with(".png")).count(),
         0

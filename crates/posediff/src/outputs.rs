@@ -1,0 +1,369 @@
+//! Everything `posediff estimate` writes into its output folder, in the layout Gaussian
+//! splatting and NeRF tools load as it is:
+//!
+//! ```text
+//! out/
+//!   cameras.json          every image (OpenCV), "estimated": false where none
+//!   sparse/0/             COLMAP model with points (text or binary)
+//!   images/               the input images (a link to the folder, per-file links, or copies)
+//!   transforms.json       nerfstudio (file paths relative to out/, ply_file_path)
+//!   sparse_pc.ply         the points in transforms.json's world
+//!   pytorch3d.json        the official model's convention
+//!   view.html             the 3-D viewer
+//!   run.json              options, stage times, reports, warnings
+//! ```
+
+use std::path::{Path, PathBuf};
+
+use posediff_geometry::{CenterCrop, MODEL_INPUT_SIDE};
+use rayon::prelude::*;
+
+use crate::colmap::{ColmapFormat, ColmapModel};
+use crate::error::{PosediffError, Result};
+use crate::export::{
+    NerfstudioCamera, nerfstudio_applied_transform, write_cameras_json_partial, write_nerfstudio,
+    write_ply, write_pytorch3d,
+};
+use crate::reconstruction::{Reconstruction, read_colour, thumbnail_jpeg};
+
+/// How the images are made reachable as `out/images/`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum ImagesMode {
+    /// A symbolic link to the input folder (or one per image when files were given).
+    #[default]
+    Link,
+    /// Copies.
+    Copy,
+    /// Nothing: `transforms.json` names the images by absolute path.
+    None,
+}
+
+/// What [`write_outputs`] writes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct OutputOptions {
+    /// The COLMAP model's files.
+    pub colmap_format: ColmapFormat,
+    /// `out/images/`.
+    pub images: ImagesMode,
+    /// `view.html`.
+    pub view: bool,
+}
+
+impl Default for OutputOptions {
+    fn default() -> Self {
+        Self {
+            colmap_format: ColmapFormat::Text,
+            images: ImagesMode::Link,
+            view: true,
+        }
+    }
+}
+
+/// The input images: one file per image and the folder their names are relative to.
+#[derive(Debug, Clone)]
+pub struct InputImages {
+    /// One per image, in input order.
+    pub files: Vec<PathBuf>,
+    /// The folder the names are relative to (the folder given, or the first file's).
+    pub folder: Option<PathBuf>,
+    /// Whether a folder was given (then `out/images` can link to it).
+    pub folder_given: bool,
+}
+
+/// Longer side of the viewer's thumbnails, px (smaller for long sequences).
+fn thumbnail_side(n: usize) -> u32 {
+    if n > 300 {
+        64
+    } else if n > 100 {
+        96
+    } else {
+        160
+    }
+}
+
+/// Checks, before any computation, that `out` can be created and written and that
+/// `out/images` can be made in `mode`.
+///
+/// # Errors
+/// `out` is a file or cannot be created or written; `out/images` is in the way.
+pub fn prepare_output_dir(out: &Path, inputs: &InputImages, mode: ImagesMode) -> Result<()> {
+    if out.exists() && !out.is_dir() {
+        return Err(PosediffError::InvalidArgument(format!(
+            "--out {} is an existing file, not a folder: choose a folder",
+            out.display()
+        )));
+    }
+    std::fs::create_dir_all(out).map_err(|source| PosediffError::Write {
+        path: out.to_owned(),
+        source,
+    })?;
+    let probe = out.join(".posediff-write-test");
+    std::fs::write(&probe, b"").map_err(|source| PosediffError::Write {
+        path: probe.clone(),
+        source,
+    })?;
+    let _ = std::fs::remove_file(&probe);
+    if mode != ImagesMode::None {
+        images_plan(out, inputs, mode)?;
+    }
+    Ok(())
+}
+
+/// What `out/images` becomes.
+enum ImagesPlan {
+    /// `out/images` already is the input folder (or links to it).
+    AlreadyThere,
+    /// `out/images` → the input folder.
+    LinkFolder(PathBuf),
+    /// One entry per image inside the real folder `out/images`.
+    PerFile,
+}
+
+fn images_plan(out: &Path, inputs: &InputImages, mode: ImagesMode) -> Result<ImagesPlan> {
+    let dest = out.join("images");
+    if let (Some(folder), true) = (&inputs.folder, inputs.folder_given) {
+        let canonical = folder
+            .canonicalize()
+            .map_err(|source| PosediffError::Read {
+                path: folder.clone(),
+                source,
+            })?;
+        if dest.canonicalize().is_ok_and(|d| d == canonical) {
+            return Ok(ImagesPlan::AlreadyThere);
+        }
+        if mode == ImagesMode::Link && !dest.is_dir() {
+            if dest.exists() && !dest.is_symlink() {
+                return Err(PosediffError::InvalidArgument(format!(
+                    "{} exists and is not a folder or a link: remove it or give --images none",
+                    dest.display()
+                )));
+            }
+            return Ok(ImagesPlan::LinkFolder(canonical));
+        }
+    }
+    // Per-file entries: an existing regular file of another image in the way is an error
+    // (never overwritten in link mode).
+    if dest.is_symlink() && !dest.is_dir() {
+        return Err(PosediffError::InvalidArgument(format!(
+            "{} is a broken link: remove it",
+            dest.display()
+        )));
+    }
+    if mode == ImagesMode::Link && dest.is_dir() {
+        for (file, name) in inputs.files.iter().zip(names(inputs)) {
+            let entry = dest.join(&name);
+            if entry.exists() && !entry.is_symlink() {
+                let same = entry.canonicalize().ok() == file.canonicalize().ok();
+                if !same {
+                    return Err(PosediffError::InvalidArgument(format!(
+                        "{} exists and is not a link to {}: remove it or give --images copy|none",
+                        entry.display(),
+                        file.display()
+                    )));
+                }
+            }
+        }
+    }
+    Ok(ImagesPlan::PerFile)
+}
+
+/// Image names as the outputs record them.
+fn names(inputs: &InputImages) -> Vec<String> {
+    inputs
+        .files
+        .iter()
+        .map(|p| crate::pipeline::relative_name(p, inputs.folder.as_deref()))
+        .collect()
+}
+
+fn make_images(out: &Path, inputs: &InputImages, mode: ImagesMode) -> Result<()> {
+    let dest = out.join("images");
+    let io = |path: &Path| {
+        let path = path.to_owned();
+        move |source| PosediffError::Write { path, source }
+    };
+    match images_plan(out, inputs, mode)? {
+        ImagesPlan::AlreadyThere => Ok(()),
+        ImagesPlan::LinkFolder(target) => {
+            if dest.is_symlink() {
+                std::fs::remove_file(&dest).map_err(io(&dest))?;
+            }
+            symlink(&target, &dest).map_err(io(&dest))
+        }
+        ImagesPlan::PerFile => {
+            for (file, name) in inputs.files.iter().zip(names(inputs)) {
+                let entry = dest.join(&name);
+                if let Some(parent) = entry.parent() {
+                    std::fs::create_dir_all(parent).map_err(io(parent))?;
+                }
+                if entry.is_symlink() {
+                    std::fs::remove_file(&entry).map_err(io(&entry))?;
+                }
+                match mode {
+                    ImagesMode::Copy => {
+                        if entry.canonicalize().ok() != file.canonicalize().ok() {
+                            std::fs::copy(file, &entry).map_err(io(&entry))?;
+                        }
+                    }
+                    _ => {
+                        if !entry.exists() {
+                            let target =
+                                file.canonicalize().map_err(|source| PosediffError::Read {
+                                    path: file.clone(),
+                                    source,
+                                })?;
+                            symlink(&target, &entry).map_err(io(&entry))?;
+                        }
+                    }
+                }
+            }
+            Ok(())
+        }
+    }
+}
+
+#[cfg(unix)]
+fn symlink(target: &Path, link: &Path) -> std::io::Result<()> {
+    std::os::unix::fs::symlink(target, link)
+}
+
+#[cfg(not(unix))]
+fn symlink(target: &Path, link: &Path) -> std::io::Result<()> {
+    // Without symbolic links (or the right to make them), copy.
+    std::fs::copy(target, link).map(|_| ())
+}
+
+/// What was written, for the summary line and run.json.
+#[derive(Debug, Clone, Default, serde::Serialize)]
+pub struct Written {
+    /// Files and folders written, relative to the output folder.
+    pub files: Vec<String>,
+    /// Points in the model.
+    pub points: usize,
+    /// Their mean reprojection error, px.
+    pub mean_reprojection_error_px: Option<f64>,
+    /// Mean track length.
+    pub mean_track_length: f64,
+}
+
+/// Writes every output of `r` into `out` (see the module's layout), `run` as run.json with a
+/// `"outputs"` entry added.
+///
+/// # Errors
+/// I/O errors naming the file; images that cannot be read for the thumbnails.
+pub fn write_outputs(
+    out: &Path,
+    r: &Reconstruction,
+    inputs: &InputImages,
+    run: &serde_json::Value,
+    options: &OutputOptions,
+) -> Result<Written> {
+    std::fs::create_dir_all(out).map_err(|source| PosediffError::Write {
+        path: out.to_owned(),
+        source,
+    })?;
+    let mut files = vec!["cameras.json".to_owned()];
+    let entries: Vec<_> = r.images.iter().map(|i| i.camera.clone()).collect();
+    write_cameras_json_partial(&out.join("cameras.json"), &entries)?;
+    let model = ColmapModel::from_reconstruction(r)?;
+    model.write(&out.join("sparse").join("0"), options.colmap_format)?;
+    files.push("sparse/0".into());
+    if options.images != ImagesMode::None {
+        make_images(out, inputs, options.images)?;
+        files.push("images".into());
+    }
+    write_ply(
+        &out.join("sparse_pc.ply"),
+        &r.points,
+        &nerfstudio_applied_transform(),
+    )?;
+    files.push("sparse_pc.ply".into());
+    let nerf: Vec<NerfstudioCamera> = r
+        .images
+        .iter()
+        .zip(&inputs.files)
+        .enumerate()
+        .filter_map(|(i, (record, file))| {
+            record.camera.camera.map(|camera| NerfstudioCamera {
+                camera,
+                file_path: match options.images {
+                    ImagesMode::None => file
+                        .canonicalize()
+                        .unwrap_or_else(|_| file.clone())
+                        .to_string_lossy()
+                        .into_owned(),
+                    _ => format!("images/{}", record.camera.image),
+                },
+                colmap_id: Some(i as u32 + 1),
+            })
+        })
+        .collect();
+    write_nerfstudio(&out.join("transforms.json"), &nerf, Some("sparse_pc.ply"))?;
+    files.push("transforms.json".into());
+    let with_crops: Vec<_> = crate::export::ImageCamera::estimated(&entries)
+        .into_iter()
+        .map(|c| {
+            let crop = CenterCrop::official(c.camera.image_size, MODEL_INPUT_SIDE);
+            (c, crop)
+        })
+        .collect();
+    write_pytorch3d(&out.join("pytorch3d.json"), &with_crops)?;
+    files.push("pytorch3d.json".into());
+    if options.view {
+        let thumbs = thumbnails(r, &inputs.files)?;
+        let title = set_title(inputs.folder.as_deref());
+        let html = crate::viewer::render(&title, r, &thumbs, None)?;
+        let path = out.join("view.html");
+        std::fs::write(&path, html).map_err(|source| PosediffError::Write { path, source })?;
+        files.push("view.html".into());
+    }
+    files.push("run.json".into());
+    let written = Written {
+        files,
+        points: model.points.len(),
+        mean_reprojection_error_px: r.mean_error_px(),
+        mean_track_length: r.mean_track_length(),
+    };
+    let mut run = run.clone();
+    if let Some(map) = run.as_object_mut() {
+        map.insert("outputs".into(), serde_json::to_value(&written)?);
+    }
+    let path = out.join("run.json");
+    std::fs::write(&path, serde_json::to_string_pretty(&run)?)
+        .map_err(|source| PosediffError::Write { path, source })?;
+    Ok(written)
+}
+
+/// The set's name for the viewer: the folder's name, or its parent's when the folder is
+/// called `images`.
+pub fn set_title(folder: Option<&Path>) -> String {
+    let Some(folder) = folder else {
+        return "posediff".into();
+    };
+    let canonical = folder.canonicalize().unwrap_or_else(|_| folder.to_owned());
+    let name = |p: &Path| p.file_name().map(|f| f.to_string_lossy().into_owned());
+    match name(&canonical) {
+        Some(n) if n == "images" => canonical.parent().and_then(name).unwrap_or(n),
+        Some(n) => n,
+        None => "posediff".into(),
+    }
+}
+
+/// JPEG thumbnails of the estimated images (`None` for the others).
+///
+/// # Errors
+/// An image that cannot be read.
+pub fn thumbnails(r: &Reconstruction, files: &[PathBuf]) -> Result<Vec<Option<Vec<u8>>>> {
+    let side = thumbnail_side(r.images.len());
+    r.images
+        .par_iter()
+        .zip(files)
+        .map(|(record, file)| {
+            if record.camera.camera.is_none() {
+                return Ok(None);
+            }
+            let img = read_colour(file)?;
+            thumbnail_jpeg(&img, side).map(Some)
+        })
+        .collect()
+}

@@ -1,0 +1,274 @@
+//! The result every writer reads: the images with their cameras and keypoints, and the sparse
+//! points with their colours, errors and tracks (COLMAP's data model: a track element names an
+//! image and the index of one of its keypoints).
+
+use std::path::{Path, PathBuf};
+
+use nalgebra::Vector3;
+use opencv::core::{Mat, Size, Vector};
+use opencv::prelude::*;
+use posediff_geometry::{Camera, ImageSize, PairMatches};
+use posediff_sfm::points::{PointOptions, PointsReport, triangulate_points};
+use rayon::prelude::*;
+
+use crate::error::{PosediffError, Result};
+use crate::export::ImageCamera;
+
+/// One keypoint of an image that occurs in a verified match (OpenCV pixels), and the point it
+/// observes.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Keypoint {
+    /// Pixel coordinates, pixel centres at integers.
+    pub xy: [f64; 2],
+    /// Index into [`Reconstruction::points`].
+    pub point: Option<usize>,
+}
+
+/// One image: its name relative to the input folder, its camera and its keypoints.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ImageRecord {
+    /// The camera and the image's name and size.
+    pub camera: ImageCamera,
+    /// The keypoints that occur in the matches, in keypoint-id order.
+    pub keypoints: Vec<Keypoint>,
+}
+
+/// One element of a track: the image and the index into its [`ImageRecord::keypoints`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct TrackElement {
+    /// Image index.
+    pub image: usize,
+    /// Keypoint index within the image's record.
+    pub keypoint: usize,
+}
+
+/// One scene point.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ScenePoint {
+    /// World position, the cameras' frame.
+    pub xyz: Vector3<f64>,
+    /// Mean colour of its observations, sRGB.
+    pub rgb: [u8; 3],
+    /// Mean reprojection error, px.
+    pub error_px: f64,
+    /// Its observations.
+    pub track: Vec<TrackElement>,
+}
+
+/// Cameras and points.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Reconstruction {
+    /// Every image, in input order.
+    pub images: Vec<ImageRecord>,
+    /// The points.
+    pub points: Vec<ScenePoint>,
+}
+
+impl Reconstruction {
+    /// Cameras without points.
+    pub fn from_cameras(images: Vec<ImageCamera>) -> Self {
+        Self {
+            images: images
+                .into_iter()
+                .map(|camera| ImageRecord {
+                    camera,
+                    keypoints: Vec::new(),
+                })
+                .collect(),
+            points: Vec::new(),
+        }
+    }
+
+    /// The tracks of `pairs` triangulated with the cameras (robustly, reprojection-filtered:
+    /// [`posediff_sfm::points`]), coloured from the image files `paths` (grey without).
+    ///
+    /// # Errors
+    /// Pairs naming images out of range; an image that cannot be read for its colours.
+    pub fn triangulate(
+        images: Vec<ImageCamera>,
+        paths: Option<&[PathBuf]>,
+        pairs: &[PairMatches],
+        options: &PointOptions,
+    ) -> Result<(Self, PointsReport)> {
+        let cameras: Vec<Option<Camera>> = images.iter().map(|e| e.camera).collect();
+        let (points, report) = triangulate_points(&cameras, pairs, options)?;
+        // Keypoint ids per image that occur in any match, sorted; then each id's slot.
+        let mut ids: Vec<Vec<(u32, [f64; 2])>> = vec![Vec::new(); images.len()];
+        for p in pairs {
+            for k in 0..p.len() {
+                ids[p.first].push((p.idx1[k], p.kp1[k]));
+                ids[p.second].push((p.idx2[k], p.kp2[k]));
+            }
+        }
+        for list in &mut ids {
+            list.sort_by_key(|(id, _)| *id);
+            list.dedup_by_key(|(id, _)| *id);
+        }
+        let mut records: Vec<ImageRecord> = images
+            .into_iter()
+            .zip(&ids)
+            .map(|(camera, list)| ImageRecord {
+                camera,
+                keypoints: list
+                    .iter()
+                    .map(|(_, xy)| Keypoint {
+                        xy: *xy,
+                        point: None,
+                    })
+                    .collect(),
+            })
+            .collect();
+        let mut scene = Vec::with_capacity(points.len());
+        for (index, p) in points.iter().enumerate() {
+            let mut track = Vec::with_capacity(p.observations.len());
+            for o in &p.observations {
+                let slot = ids[o.image]
+                    .binary_search_by_key(&o.keypoint, |(id, _)| *id)
+                    .map_err(|_| {
+                        PosediffError::InvalidArgument(format!(
+                            "a track names keypoint {} of image {} that no match has",
+                            o.keypoint, o.image
+                        ))
+                    })?;
+                records[o.image].keypoints[slot].point = Some(index);
+                track.push(TrackElement {
+                    image: o.image,
+                    keypoint: slot,
+                });
+            }
+            scene.push(ScenePoint {
+                xyz: p.xyz,
+                rgb: [128; 3],
+                error_px: p.error_px,
+                track,
+            });
+        }
+        let mut out = Self {
+            images: records,
+            points: scene,
+        };
+        if let Some(paths) = paths {
+            out.colour_from(paths)?;
+        }
+        Ok((out, report))
+    }
+
+    /// The estimated images' indices.
+    pub fn estimated(&self) -> impl Iterator<Item = usize> + '_ {
+        (0..self.images.len()).filter(|&i| self.images[i].camera.camera.is_some())
+    }
+
+    /// Sets each point's colour to the mean of its observations' pixels in `paths` (one file
+    /// per image; images without observations are not read).
+    ///
+    /// # Errors
+    /// A count that does not match the images; an image that cannot be read.
+    pub fn colour_from(&mut self, paths: &[PathBuf]) -> Result<()> {
+        if paths.len() != self.images.len() {
+            return Err(PosediffError::InvalidArgument(format!(
+                "{} image files for {} images",
+                paths.len(),
+                self.images.len()
+            )));
+        }
+        // Per image, the (point, keypoint) observations to sample.
+        let mut wanted: Vec<Vec<(usize, [f64; 2])>> = vec![Vec::new(); self.images.len()];
+        for (index, p) in self.points.iter().enumerate() {
+            for e in &p.track {
+                wanted[e.image].push((index, self.images[e.image].keypoints[e.keypoint].xy));
+            }
+        }
+        let samples: Vec<Vec<(usize, [u8; 3])>> = wanted
+            .par_iter()
+            .zip(paths)
+            .map(|(w, path)| {
+                if w.is_empty() {
+                    return Ok(Vec::new());
+                }
+                let img = read_colour(path)?;
+                Ok(w.iter()
+                    .map(|(index, xy)| (*index, sample(&img, *xy)))
+                    .collect())
+            })
+            .collect::<Result<_>>()?;
+        let mut sums = vec![[0u64; 4]; self.points.len()];
+        for (index, rgb) in samples.into_iter().flatten() {
+            let s = &mut sums[index];
+            for c in 0..3 {
+                s[c] += u64::from(rgb[c]);
+            }
+            s[3] += 1;
+        }
+        for (p, s) in self.points.iter_mut().zip(sums) {
+            if s[3] > 0 {
+                p.rgb = [0, 1, 2].map(|c| ((s[c] + s[3] / 2) / s[3]) as u8);
+            }
+        }
+        Ok(())
+    }
+
+    /// Mean over points of their recorded errors, px (`None` without points).
+    pub fn mean_error_px(&self) -> Option<f64> {
+        (!self.points.is_empty())
+            .then(|| self.points.iter().map(|p| p.error_px).sum::<f64>() / self.points.len() as f64)
+    }
+
+    /// Mean track length (0 without points).
+    pub fn mean_track_length(&self) -> f64 {
+        if self.points.is_empty() {
+            return 0.0;
+        }
+        self.points.iter().map(|p| p.track.len()).sum::<usize>() as f64 / self.points.len() as f64
+    }
+}
+
+/// An image as 8-bit BGR, the file named on failure.
+///
+/// # Errors
+/// [`PosediffError::UnreadableImage`].
+pub fn read_colour(path: &Path) -> Result<Mat> {
+    let img = opencv::imgcodecs::imread(path.as_os_str(), opencv::imgcodecs::IMREAD_COLOR)?;
+    if img.empty() {
+        return Err(PosediffError::UnreadableImage(path.to_owned()));
+    }
+    Ok(img)
+}
+
+/// The RGB of the pixel nearest `xy` (clamped into the image).
+fn sample(img: &Mat, xy: [f64; 2]) -> [u8; 3] {
+    let clamp = |v: f64, n: i32| (v.round() as i32).clamp(0, n - 1);
+    let (x, y) = (clamp(xy[0], img.cols()), clamp(xy[1], img.rows()));
+    img.at_2d::<opencv::core::Vec3b>(y, x)
+        .map_or([128; 3], |bgr| [bgr[2], bgr[1], bgr[0]])
+}
+
+/// A JPEG thumbnail whose longer side is at most `side` pixels.
+///
+/// # Errors
+/// OpenCV errors.
+pub fn thumbnail_jpeg(img: &Mat, side: u32) -> Result<Vec<u8>> {
+    let longer = img.cols().max(img.rows()).max(1) as f64;
+    let scale = (f64::from(side) / longer).min(1.0);
+    let size = Size::new(
+        ((img.cols() as f64 * scale).round() as i32).max(1),
+        ((img.rows() as f64 * scale).round() as i32).max(1),
+    );
+    let mut small = Mat::default();
+    opencv::imgproc::resize(img, &mut small, size, 0.0, 0.0, opencv::imgproc::INTER_AREA)?;
+    let mut buf = Vector::<u8>::new();
+    let params = Vector::<i32>::from_slice(&[opencv::imgcodecs::IMWRITE_JPEG_QUALITY, 80]);
+    opencv::imgcodecs::imencode(".jpg", &small, &mut buf, &params)?;
+    Ok(buf.to_vec())
+}
+
+/// The size of `img`.
+///
+/// # Errors
+/// An empty image.
+pub fn mat_size(img: &Mat, path: &Path) -> Result<ImageSize> {
+    ImageSize::new(
+        u32::try_from(img.cols()).unwrap_or(0),
+        u32::try_from(img.rows()).unwrap_or(0),
+    )
+    .map_err(|_| PosediffError::UnreadableImage(path.to_owned()))
+}

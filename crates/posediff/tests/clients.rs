@@ -1,0 +1,302 @@
+//! The outputs read by the real clients users feed them to: pycolmap (the COLMAP model, text
+//! and binary, with the reprojection error recomputed), plyfile (sparse_pc.ply), nerfstudio's
+//! path rules (transforms.json), headless Chromium (view.html renders without console errors
+//! and draws something), and our own `import-colmap` (the round trip, points included).
+//!
+//! Needs what `cargo xtask setup` installs: the Python environment `target/client-venv`
+//! (scripts/requirements-clients.txt) and Debian's `chromium`. Without them these tests fail
+//! and say so.
+
+// Test helpers outside #[test] functions unwrap too: a failure is the test failing.
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use posediff::colmap::{ColmapFormat, ColmapModel};
+use posediff::export::read_cameras_json_partial;
+use posediff_fixtures::shared_path;
+
+fn workspace() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
+
+fn python() -> PathBuf {
+    let p = workspace().join("target/client-venv/bin/python");
+    assert!(
+        p.is_file(),
+        "{} is missing: run `cargo xtask setup` (it creates the client venv)",
+        p.display()
+    );
+    p
+}
+
+fn chromium() -> PathBuf {
+    let p = PathBuf::from("/usr/bin/chromium");
+    assert!(
+        p.is_file(),
+        "/usr/bin/chromium is missing: run `cargo xtask setup` (Debian package chromium)"
+    );
+    p
+}
+
+fn temp_dir(tag: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("posediff-clients-{tag}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+fn posediff(args: &[&std::ffi::OsStr]) -> std::process::Output {
+    let out = Command::new(env!("CARGO_BIN_EXE_posediff"))
+        .args(args)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "posediff {:?}: {}",
+        args,
+        String::from_utf8_lossy(&out.stderr)
+    );
+    out
+}
+
+/// pycolmap and plyfile on an output folder: the script's JSON summary.
+fn check_with_python(out: &Path, min_points: usize) -> serde_json::Value {
+    let r = Command::new(python())
+        .arg(workspace().join("scripts/check_outputs.py"))
+        .arg(out)
+        .args([
+            "--max-error",
+            "1.0",
+            "--min-points",
+            &min_points.to_string(),
+        ])
+        .output()
+        .unwrap();
+    assert!(
+        r.status.success(),
+        "check_outputs.py {}: {}",
+        out.display(),
+        String::from_utf8_lossy(&r.stderr)
+    );
+    serde_json::from_slice(&r.stdout).unwrap()
+}
+
+/// Loads `page` in headless Chromium: the DOM after the page settled, the console lines, and
+/// a screenshot.
+fn load_in_chromium(page: &Path, shot: &Path, profile: &Path) -> (String, Vec<String>) {
+    let url = format!("file://{}", page.canonicalize().unwrap().display());
+    let common = [
+        "--headless",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--disable-quic",
+        "--no-first-run",
+        "--disable-background-networking",
+        "--disable-component-update",
+        "--disable-sync",
+        "--enable-unsafe-swiftshader",
+        "--use-angle=swiftshader",
+        "--window-size=1000,700",
+        "--virtual-time-budget=20000",
+        "--enable-logging=stderr",
+        "--v=0",
+    ];
+    let dom = Command::new(chromium())
+        .args(common)
+        .arg(format!("--user-data-dir={}", profile.display()))
+        .arg("--dump-dom")
+        .arg(&url)
+        .output()
+        .unwrap();
+    assert!(
+        dom.status.success(),
+        "{}",
+        String::from_utf8_lossy(&dom.stderr)
+    );
+    let console: Vec<String> = String::from_utf8_lossy(&dom.stderr)
+        .lines()
+        .filter(|l| l.contains(":CONSOLE"))
+        // SwiftShader's own performance notes about reading pixels back, not the page's.
+        .filter(|l| !l.contains("GL Driver Message"))
+        .map(str::to_owned)
+        .collect();
+    let s = Command::new(chromium())
+        .args(common)
+        .arg(format!("--user-data-dir={}", profile.display()))
+        .arg(format!("--screenshot={}", shot.display()))
+        .arg(&url)
+        .output()
+        .unwrap();
+    assert!(s.status.success(), "{}", String::from_utf8_lossy(&s.stderr));
+    (String::from_utf8_lossy(&dom.stdout).into_owned(), console)
+}
+
+/// Fraction of the screenshot's pixels right of the panel (x ≥ 450) away from the page's
+/// background colour (30, 31, 36).
+fn drawn_fraction(shot: &Path) -> f64 {
+    use opencv::prelude::*;
+    let img =
+        opencv::imgcodecs::imread(shot.to_str().unwrap(), opencv::imgcodecs::IMREAD_COLOR).unwrap();
+    assert!(!img.empty(), "no screenshot at {}", shot.display());
+    let mut drawn = 0usize;
+    let total = (img.rows() * (img.cols() - 450)) as usize;
+    for y in 0..img.rows() {
+        for x in 450..img.cols() {
+            let p = img.at_2d::<opencv::core::Vec3b>(y, x).unwrap();
+            let d = (i32::from(p[0]) - 36).abs()
+                + (i32::from(p[1]) - 31).abs()
+                + (i32::from(p[2]) - 30).abs();
+            if d > 40 {
+                drawn += 1;
+            }
+        }
+    }
+    drawn as f64 / total as f64
+}
+
+#[test]
+fn fountain_outputs_load_in_pycolmap_plyfile_chromium_and_import_colmap() {
+    let images = shared_path("data/strecha_fountainP11/images");
+    let dir = temp_dir("fountain");
+    let out = dir.join("out");
+    posediff(&[
+        "estimate".as_ref(),
+        images.as_os_str(),
+        "--out".as_ref(),
+        out.as_os_str(),
+        "--quiet".as_ref(),
+    ]);
+    for f in [
+        "cameras.json",
+        "sparse/0/cameras.txt",
+        "sparse/0/images.txt",
+        "sparse/0/points3D.txt",
+        "sparse_pc.ply",
+        "transforms.json",
+        "pytorch3d.json",
+        "view.html",
+        "run.json",
+    ] {
+        assert!(out.join(f).is_file(), "{f} missing");
+    }
+    // out/images is a link to the input folder.
+    assert_eq!(
+        out.join("images").canonicalize().unwrap(),
+        images.canonicalize().unwrap()
+    );
+    let summary = check_with_python(&out, 1000);
+    assert_eq!(summary["images"], 11);
+    assert_eq!(
+        summary["cameras"], 1,
+        "the shared focal is one COLMAP camera"
+    );
+    assert!(summary["points"].as_u64().unwrap() > 1000, "{summary}");
+
+    // The binary model reads the same in pycolmap.
+    let bin = dir.join("bin");
+    std::fs::create_dir_all(&bin).unwrap();
+    for f in [
+        "cameras.json",
+        "run.json",
+        "transforms.json",
+        "sparse_pc.ply",
+    ] {
+        std::fs::copy(out.join(f), bin.join(f)).unwrap();
+    }
+    std::os::unix::fs::symlink(&images, bin.join("images")).unwrap();
+    let model = ColmapModel::read(&out.join("sparse/0")).unwrap();
+    model
+        .write(&bin.join("sparse/0"), ColmapFormat::Binary)
+        .unwrap();
+    assert_eq!(ColmapModel::read(&bin.join("sparse/0")).unwrap(), model);
+    let summary_bin = check_with_python(&bin, 1000);
+    assert_eq!(summary_bin["points"], summary["points"]);
+    assert_eq!(
+        summary_bin["mean_reprojection_error_px"],
+        summary["mean_reprojection_error_px"]
+    );
+
+    // import-colmap reads back what estimate wrote, points included.
+    let back = dir.join("back.json");
+    let printed = posediff(&[
+        "import-colmap".as_ref(),
+        out.join("sparse/0").as_os_str(),
+        "--images".as_ref(),
+        images.as_os_str(),
+        "--out".as_ref(),
+        back.as_os_str(),
+    ]);
+    let printed = String::from_utf8_lossy(&printed.stdout);
+    assert!(
+        printed.contains(&format!("the model has {} points", summary["points"])),
+        "{printed}"
+    );
+    let a = read_cameras_json_partial(&out.join("cameras.json")).unwrap();
+    let b = read_cameras_json_partial(&back).unwrap();
+    assert_eq!(a.len(), b.len());
+    for (x, y) in a.iter().zip(&b) {
+        assert_eq!(x.image, y.image);
+        let (x, y) = (x.camera.unwrap(), y.camera.unwrap());
+        assert!((x.intrinsics.matrix() - y.intrinsics.matrix()).norm() < 1e-9);
+        assert!((x.cam_from_world.rotation - y.cam_from_world.rotation).norm() < 1e-9);
+        assert!((x.cam_from_world.translation - y.cam_from_world.translation).norm() < 1e-9);
+    }
+
+    // The viewer, written by estimate and by `view --gt`, renders in Chromium.
+    let gt_page = dir.join("view_gt.html");
+    posediff(&[
+        "view".as_ref(),
+        out.as_os_str(),
+        "--gt".as_ref(),
+        shared_path("data/strecha_fountainP11/cameras.json").as_os_str(),
+        "-o".as_ref(),
+        gt_page.as_os_str(),
+    ]);
+    let html = std::fs::read_to_string(&gt_page).unwrap();
+    assert!(
+        html.contains("\"ground_truth\":[{"),
+        "the ground truth is in the page"
+    );
+    assert!(html.contains("rotation_error_deg"));
+    for (k, page) in [out.join("view.html"), gt_page].iter().enumerate() {
+        let shot = dir.join(format!("shot{k}.png"));
+        let (dom, console) = load_in_chromium(page, &shot, &dir.join(format!("profile{k}")));
+        assert!(
+            dom.contains("data-status=\"rendered\""),
+            "{}: not rendered: {}",
+            page.display(),
+            dom.lines().find(|l| l.contains("<body")).unwrap_or("")
+        );
+        assert!(console.is_empty(), "console output: {console:?}");
+        let drawn = drawn_fraction(&shot);
+        assert!(
+            drawn > 0.01,
+            "{}: only {drawn} of the pixels drawn",
+            page.display()
+        );
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn an_empty_page_draws_nothing_so_the_screenshot_check_can_fail() {
+    let dir = temp_dir("blank");
+    let page = dir.join("view.html");
+    let html = posediff::viewer::render(
+        "blank",
+        &posediff::reconstruction::Reconstruction::default(),
+        &[],
+        None,
+    )
+    .unwrap();
+    std::fs::write(&page, html).unwrap();
+    let shot = dir.join("shot.png");
+    let (dom, console) = load_in_chromium(&page, &shot, &dir.join("profile"));
+    assert!(dom.contains("data-status=\"rendered\""));
+    assert!(console.is_empty(), "{console:?}");
+    let drawn = drawn_fraction(&shot);
+    assert!(drawn < 0.001, "{drawn}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
