@@ -13,7 +13,10 @@
 //! - `bench-scale [--sizes 20,50,100,300,1000] [--paths orbit,forward] [--pairs auto] --out D`:
 //!   the mapper on synthetic sequences of growing length (per-stage time, peak RSS, accuracy,
 //!   growth exponents; JSON + Markdown).
-//! - `setup`: only the system set-up (Debian packages for the OpenCV bindings, cargo-nextest).
+//! - `setup`: only the system set-up (Debian packages for the OpenCV bindings and the browser
+//!   tests, cargo-nextest, the Python venv of the output tests in `target/client-venv`).
+//! - `vendor-three`: fetch three.js again from the npm registry (pinned version and digest)
+//!   into `crates/posediff/assets/three/` (the viewer inlines it).
 //! - `deps-check`: only the dependency invariants.
 //! - `bench-matching --data ../shared/data --out report.json`: match quality and speed on the
 //!   real sets (JSON + Markdown), with the OpenCV-python baseline when python3 has cv2.
@@ -96,6 +99,7 @@ fn main() -> Result<()> {
     match task.as_str() {
         "ci" => ci(),
         "setup" => setup(),
+        "vendor-three" => vendor_three(),
         "deps-check" => deps_check(),
         "bench-matching" => cargo_run(
             &["-p", "posediff-matching", "--example", "bench_matching"],
@@ -315,9 +319,13 @@ fn demo() -> Result<()> {
         ) {
             eprintln!("plot of {set} skipped: {e}");
         }
+        // The viewer again, with the ground truth aligned and per-camera errors.
+        if let Err(e) = run(&bin, &["view", &arg(&out), "--gt", &arg(&gt)], &[]) {
+            eprintln!("view of {set} with its ground truth skipped: {e}");
+        }
     }
     eprintln!(
-        "\ncameras.json, COLMAP text model, transforms.json, pytorch3d.json, run.json, scores.json and cameras.png per set in {} (the rendered scene in out/demo/scenes)",
+        "\ncameras.json, sparse/0 (COLMAP with points), images/, transforms.json + sparse_pc.ply, pytorch3d.json, view.html, run.json, scores.json and cameras.png per set in {} (the rendered scene in out/demo/scenes)",
         root.join("out/demo").display()
     );
     Ok(())
@@ -431,6 +439,55 @@ fn setup() -> Result<()> {
         run("cargo", &["install", "--locked", "cargo-nextest"], &[])?;
     }
     client_venv()
+}
+
+/// The three.js the viewer inlines: npm package, file and its SHA-256.
+const THREE_PACKAGE: &str = "three@0.170.0";
+const THREE_FILE: &str = "package/build/three.module.min.js";
+const THREE_SHA256: &str = "08fd7545d13d2c7fb65ab691530a802dafefd638596501854f267d0fb13c39e7";
+
+/// Fetches [`THREE_PACKAGE`] with `npm pack`, checks the file's digest and copies it and the
+/// licence into the viewer's assets.
+fn vendor_three() -> Result<()> {
+    let root = workspace_root();
+    let work = root.join("target/vendor-three");
+    let _ = std::fs::remove_dir_all(&work);
+    std::fs::create_dir_all(&work)?;
+    let status = Command::new("npm")
+        .args(["pack", THREE_PACKAGE, "--silent"])
+        .current_dir(&work)
+        .status()
+        .context("cannot start npm (Debian package npm)")?;
+    if !status.success() {
+        bail!("npm pack {THREE_PACKAGE} failed");
+    }
+    let tarball = std::fs::read_dir(&work)?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .find(|p| p.extension().is_some_and(|x| x == "tgz"))
+        .context("npm pack wrote no tarball")?;
+    let status = Command::new("tar")
+        .arg("xzf")
+        .arg(&tarball)
+        .current_dir(&work)
+        .status()?;
+    if !status.success() {
+        bail!("cannot unpack {}", tarball.display());
+    }
+    let file = work.join(THREE_FILE);
+    let digest = output("sha256sum", &[&file.to_string_lossy()])?;
+    let digest = digest.split_whitespace().next().unwrap_or_default();
+    if digest != THREE_SHA256 {
+        bail!("{THREE_FILE} of {THREE_PACKAGE} has SHA-256 {digest}, expected {THREE_SHA256}");
+    }
+    let assets = root.join("crates/posediff/assets/three");
+    std::fs::create_dir_all(&assets)?;
+    std::fs::copy(&file, assets.join("three.module.min.js"))?;
+    std::fs::copy(work.join("package/LICENSE"), assets.join("LICENSE"))?;
+    eprintln!(
+        "{THREE_PACKAGE} ({digest}) copied into {}",
+        assets.display()
+    );
+    Ok(())
 }
 
 /// `target/client-venv` with the pinned client packages (created or brought up to date; a

@@ -40,7 +40,7 @@ struct ViewCamera {
     h: u32,
     #[serde(skip_serializing_if = "Option::is_none")]
     thumbnail: Option<String>,
-    /// Rotation error against the ground truth, degrees.
+    /// Rotation error against the ground truth, degrees (after the rotation alignment).
     #[serde(skip_serializing_if = "Option::is_none")]
     rotation_error_deg: Option<f64>,
     /// Centre error after alignment, in units of the ground truth's scene size.
@@ -146,6 +146,25 @@ pub fn render(
             .map(|p| (p.coords - gt_centroid).norm())
             .fold(0.0, f64::max)
             .max(1e-12);
+        // The rotation errors use the world rotation that best aligns the camera rotations
+        // (chordal mean of R_estᵀ R_gt), not the centres' (which an arc of centres fixes
+        // poorly): R_est Q = R_gt for a perfect estimate.
+        let mut sum = Matrix3::zeros();
+        for (_, _, est, g) in &both {
+            sum += est.cam_from_world.rotation.transpose() * g.cam_from_world.rotation;
+        }
+        let svd = sum.svd(true, true);
+        let (Some(u), Some(v_t)) = (svd.u, svd.v_t) else {
+            return Err(PosediffError::InvalidArgument(
+                "aligning the ground truth's rotations failed".into(),
+            ));
+        };
+        let mut q = u * v_t;
+        if q.determinant() < 0.0 {
+            let mut u = u;
+            u.column_mut(2).neg_mut();
+            q = u * v_t;
+        }
         for (slot, i, est, g) in both {
             // The ground-truth camera moved into the estimate's world: centre s R c + t,
             // world-to-camera rotation R_gt Rᵀ.
@@ -156,7 +175,7 @@ pub fn render(
                 posediff_geometry::Pose::new(rotation, -(rotation * centre)),
                 g.image_size,
             );
-            let rel = est.cam_from_world.rotation * rotation.transpose();
+            let rel = est.cam_from_world.rotation * q * g.cam_from_world.rotation.transpose();
             let angle = ((rel.trace() - 1.0) / 2.0)
                 .clamp(-1.0, 1.0)
                 .acos()
@@ -248,6 +267,91 @@ window.addEventListener('unhandledrejection', (e) => {
 mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
+
+    use crate::export::ImageCamera;
+    use nalgebra::Rotation3;
+    use posediff_geometry::{ImageSize, Intrinsics, Pose};
+
+    fn data_of(page: &str) -> serde_json::Value {
+        let start = page.find("id=\"posediff-data\">").unwrap() + "id=\"posediff-data\">".len();
+        let end = start + page[start..].find("</script>").unwrap();
+        serde_json::from_str(&page[start..end].replace("<\\/", "</")).unwrap()
+    }
+
+    fn ring() -> Vec<Camera> {
+        (0..6)
+            .map(|i| {
+                let a = f64::from(i) * 0.5;
+                let r = *Rotation3::from_euler_angles(0.1 * a, a, 0.0).matrix();
+                let centre = Vector3::new(3.0 * a.sin(), 0.3 * a, -3.0 * a.cos());
+                Camera::new(
+                    Intrinsics::new(400.0, 400.0, 159.5, 119.5).unwrap(),
+                    Pose::new(r, -(r * centre)),
+                    ImageSize::new(320, 240).unwrap(),
+                )
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_ground_truth_off_by_a_similarity_has_zero_errors_and_a_moved_one_does_not() {
+        let cams = ring();
+        let r = Reconstruction::from_cameras(
+            cams.iter()
+                .enumerate()
+                .map(|(i, c)| ImageCamera {
+                    image: format!("{i}.jpg"),
+                    size: c.image_size,
+                    camera: Some(*c),
+                })
+                .collect(),
+        );
+        // x_gt = s Q x + t: the same cameras in another world.
+        let (s, q, t) = (
+            2.5,
+            *Rotation3::from_euler_angles(0.3, -0.2, 1.0).matrix(),
+            Vector3::new(1.0, -2.0, 0.5),
+        );
+        let moved = |c: &Camera| {
+            let centre = s * (q * c.center().coords) + t;
+            let rot = c.cam_from_world.rotation * q.transpose();
+            Camera::new(c.intrinsics, Pose::new(rot, -(rot * centre)), c.image_size)
+        };
+        let mut gt: Vec<Option<Camera>> = cams.iter().map(|c| Some(moved(c))).collect();
+        let page = render("t", &r, &vec![None; cams.len()], Some(&gt)).unwrap();
+        let data = data_of(&page);
+        assert_eq!(data["ground_truth"].as_array().unwrap().len(), cams.len());
+        for c in data["cameras"].as_array().unwrap() {
+            assert!(c["rotation_error_deg"].as_f64().unwrap() < 1e-5, "{c}");
+            assert!(c["centre_error"].as_f64().unwrap() < 1e-9, "{c}");
+        }
+        // One ground-truth camera turned by 10° about its centre: that one shows it.
+        let g = gt[2].unwrap();
+        let turn = *Rotation3::from_euler_angles(0.0, 10f64.to_radians(), 0.0).matrix();
+        let rot = turn * g.cam_from_world.rotation;
+        gt[2] = Some(Camera::new(
+            g.intrinsics,
+            Pose::new(rot, -(rot * g.center().coords)),
+            g.image_size,
+        ));
+        gt[4] = None;
+        let data = data_of(&render("t", &r, &vec![None; cams.len()], Some(&gt)).unwrap());
+        let errors: Vec<f64> = data["cameras"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|c| c["rotation_error_deg"].as_f64().unwrap_or(-1.0))
+            .collect();
+        assert!(errors[2] > 7.0, "{errors:?}");
+        assert!(errors[4] < 0.0, "no ground truth, no error: {errors:?}");
+        assert!(
+            errors.iter().enumerate().all(|(k, e)| k == 2 || *e < 3.0),
+            "{errors:?}"
+        );
+        // Too few cameras in common.
+        let few: Vec<Option<Camera>> = gt.iter().take(2).copied().chain(vec![None; 4]).collect();
+        assert!(render("t", &r, &vec![None; cams.len()], Some(&few)).is_err());
+    }
 
     #[test]
     fn the_vendored_library_cannot_close_its_script_element() {
