@@ -290,6 +290,20 @@ impl Checkpoint {
         if !problems.is_empty() {
             return Err(DiffusionError::CheckpointLayout { problems });
         }
+        let mut bad: Vec<String> = Vec::new();
+        let mut sorted: Vec<&String> = tensors.keys().collect();
+        sorted.sort();
+        for key in sorted {
+            let t = &tensors[key];
+            if !crate::sampler::all_finite(t)? {
+                let values: Vec<f64> = t.flatten_all()?.to_dtype(DType::F64)?.to_vec1()?;
+                let n = values.iter().filter(|v| !v.is_finite()).count();
+                bad.push(format!("{key} ({n} of {})", values.len()));
+            }
+        }
+        if !bad.is_empty() {
+            return Err(DiffusionError::NonFiniteWeights { keys: bad });
+        }
         Ok(Self { tensors, depths })
     }
 

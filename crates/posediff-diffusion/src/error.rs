@@ -26,6 +26,30 @@ pub enum DiffusionError {
         /// Every missing, unexpected or mis-shaped key, one per line.
         problems: Vec<String>,
     },
+    /// Tensors of the checkpoint that hold NaN or infinite values.
+    #[error("checkpoint has NaN or infinite values in: {}", .keys.join(", "))]
+    NonFiniteWeights {
+        /// The keys, with how many values are not finite.
+        keys: Vec<String>,
+    },
+    /// A network output that is NaN or infinite (the weights or the inputs are broken).
+    #[error("non-finite values in the {what} at diffusion step {step}")]
+    NonFinite {
+        /// Which output.
+        what: &'static str,
+        /// The step (0–99; the features are computed before step 99).
+        step: usize,
+    },
+    /// The mean hook (GGS) failed.
+    #[error("{what} at diffusion step {step}: {detail}")]
+    Hook {
+        /// Which hook.
+        what: &'static str,
+        /// The step.
+        step: usize,
+        /// The cause.
+        detail: String,
+    },
     /// Inputs with the wrong shape.
     #[error("{what}: expected shape {expected}, got {got:?}")]
     Shape {

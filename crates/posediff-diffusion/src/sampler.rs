@@ -193,6 +193,19 @@ pub fn sample_from(
     )
 }
 
+/// Whether every value of `t` is finite (one reduction, no copy of the values).
+///
+/// # Errors
+/// Tensor errors.
+pub fn all_finite(t: &Tensor) -> Result<bool> {
+    // NaN and ±inf survive `x − x` as NaN; finite values give 0.
+    let d = (t - t)?
+        .to_dtype(candle_core::DType::F64)?
+        .abs()?
+        .sum_all()?;
+    Ok(d.to_scalar::<f64>()? == 0.0)
+}
+
 fn reverse_diffusion(
     denoiser: &Denoiser,
     schedule: &Schedule,
@@ -230,6 +243,12 @@ fn reverse_diffusion(
     }
     for t in (0..=first).rev() {
         let step = denoise_step(denoiser, schedule, &x, t, z)?;
+        if !all_finite(&step.model_mean)? {
+            return Err(DiffusionError::NonFinite {
+                what: "denoiser's posterior mean",
+                step: t,
+            });
+        }
         x = match hook.as_mut() {
             Some((h, start)) if t < *start => h.replace_mean(&step.model_mean, t)?,
             _ if t > 0 => {

@@ -520,16 +520,21 @@ impl ColmapModel {
     /// # Errors
     /// Missing or malformed files, with the file and what is wrong.
     pub fn read(dir: &Path) -> Result<Self> {
-        if dir.join("cameras.bin").is_file() {
-            Self::read_binary(dir)
+        let (model, cameras) = if dir.join("cameras.bin").is_file() {
+            (Self::read_binary(dir)?, dir.join("cameras.bin"))
         } else if dir.join("cameras.txt").is_file() {
-            Self::read_text(dir)
+            (Self::read_text(dir)?, dir.join("cameras.txt"))
         } else {
-            Err(PosediffError::invalid(
+            return Err(PosediffError::invalid(
                 dir,
                 "no COLMAP model here: expected cameras.txt, images.txt (and points3D.txt) or the .bin files",
-            ))
+            ));
+        };
+        for c in &model.cameras {
+            c.intrinsics()
+                .map_err(|e| PosediffError::invalid(&cameras, e))?;
         }
+        Ok(model)
     }
 
     /// Reads `cameras.txt`, `images.txt` and (if present) `points3D.txt`.

@@ -532,57 +532,61 @@ pub fn write_pytorch3d(
     write(path, &serde_json::to_string_pretty(&records)?)
 }
 
-/// The cameras of a COLMAP text model for the images of a folder, in the folder's order: an
-/// image COLMAP did not register is not estimated. Names match the model's image names, or their
-/// file names.
+/// The cameras of a COLMAP model for the images of a folder, in the folder's order, matched
+/// by name ([`crate::records`]): an image COLMAP did not register is not estimated.
 ///
 /// # Errors
-/// An unreadable model, an image in the folder that cannot be read for its size.
+/// An unreadable model; a model none of whose images is in the folder, or whose images name
+/// the folder's only ambiguously; an image of the folder that cannot be read for its size.
 pub fn colmap_for_images(
     model: &Path,
     images: &[std::path::PathBuf],
     root: &Path,
 ) -> Result<Vec<ImageCamera>> {
     let cams = read_colmap_cameras(model)?;
-    let file_name = |s: &str| {
-        Path::new(s)
-            .file_name()
-            .map(|f| f.to_string_lossy().into_owned())
-    };
+    let names: Vec<String> = images
+        .iter()
+        .map(|p| crate::pipeline::relative_name(p, Some(root)))
+        .collect();
+    let matched = crate::records::match_by_name(
+        &names,
+        cams.into_iter()
+            .map(|c| (c.image.clone(), c.camera))
+            .collect(),
+    )
+    .map_err(|e| PosediffError::invalid(model, e))?;
+    if matched.matched() == 0 && !names.is_empty() {
+        return Err(PosediffError::invalid(
+            model,
+            matched.mismatch("the COLMAP model", model),
+        ));
+    }
+    if !matched.records_without_image.is_empty() {
+        log::warn!(
+            "{}: {} registered image(s) are not in {}: {}",
+            model.display(),
+            matched.records_without_image.len(),
+            root.display(),
+            matched.records_without_image.join(", ")
+        );
+    }
     images
         .iter()
-        .map(|path| {
-            let name = path
-                .strip_prefix(root)
-                .unwrap_or(path)
-                .to_string_lossy()
-                .into_owned();
-            let found = cams.iter().find(|c| c.image == name).or_else(|| {
-                cams.iter()
-                    .find(|c| file_name(&c.image) == file_name(&name))
-            });
-            match found {
-                Some(c) => Ok(ImageCamera {
+        .zip(names)
+        .zip(matched.per_image)
+        .map(|((path, name), camera)| match camera {
+            Some(c) => Ok(ImageCamera {
+                image: name,
+                size: c.image_size,
+                camera: Some(c),
+            }),
+            None => {
+                let img = crate::reconstruction::read_colour(path)?;
+                Ok(ImageCamera {
                     image: name,
-                    size: c.camera.image_size,
-                    camera: Some(c.camera),
-                }),
-                None => {
-                    let img = opencv::imgcodecs::imread(
-                        path.as_os_str(),
-                        opencv::imgcodecs::IMREAD_UNCHANGED,
-                    )?;
-                    let size = posediff_geometry::ImageSize::new(
-                        u32::try_from(opencv::prelude::MatTraitConst::cols(&img)).unwrap_or(0),
-                        u32::try_from(opencv::prelude::MatTraitConst::rows(&img)).unwrap_or(0),
-                    )
-                    .map_err(|_| PosediffError::UnreadableImage(path.clone()))?;
-                    Ok(ImageCamera {
-                        image: name,
-                        size,
-                        camera: None,
-                    })
-                }
+                    size: crate::reconstruction::mat_size(&img, path)?,
+                    camera: None,
+                })
             }
         })
         .collect()

@@ -8,6 +8,7 @@
 //! - [`reconstruction`]: the result every writer reads: cameras, keypoints, coloured points.
 //! - [`export`]: cameras.json, nerfstudio (+ PLY) and PyTorch3D writers and readers.
 //! - [`colmap`]: COLMAP sparse models, text and binary, with points.
+//! - [`records`]: per-image records matched to the images by name, never by position.
 //! - [`outputs`]: the output folder (COLMAP sparse/0, images, nerfstudio, PLY, viewer).
 //! - [`viewer`]: view.html, a self-contained three.js page.
 //! - [`pipeline`]: [`Estimator`], images to cameras.
@@ -28,6 +29,7 @@ pub mod outputs;
 pub mod pipeline;
 pub mod plot;
 pub mod reconstruction;
+pub mod records;
 pub mod train;
 pub mod viewer;
 

@@ -196,7 +196,7 @@ enum Command {
     Score {
         /// A cameras.json (images not estimated allowed).
         cameras: PathBuf,
-        /// Ground-truth cameras.json (same images, same order).
+        /// Ground-truth cameras.json (matched by image name, any order).
         #[arg(long)]
         gt: PathBuf,
         /// Also write the scores as JSON here.
@@ -219,7 +219,7 @@ enum Command {
     Plot {
         /// A cameras.json.
         cameras: PathBuf,
-        /// Ground-truth cameras.json (same images, same order).
+        /// Ground-truth cameras.json (matched by image name, any order).
         #[arg(long)]
         gt: Option<PathBuf>,
         /// Output PNG.
@@ -539,6 +539,10 @@ struct EstimateArgs {
     /// Do not write view.html.
     #[arg(long)]
     no_view: bool,
+    /// Go on without images that are corrupt, truncated or unreadable (listed in run.json)
+    /// instead of stopping.
+    #[arg(long)]
+    skip_bad_images: bool,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -574,41 +578,118 @@ impl EstimateArgs {
 /// Where the initial cameras come from.
 enum InitSource {
     Geometric,
-    File(PathBuf),
+    /// Per image, matched by name (`None`: no camera given).
+    File(Vec<Option<posediff_geometry::Camera>>),
 }
 
 fn estimate(args: EstimateArgs) -> anyhow::Result<()> {
+    // Every cheap check first: options, paths, files that name the images, the output folder,
+    // the images' headers, the checkpoint's keys and shapes; only then features and matching.
     if args.samples == 0 {
         bail!("--samples must be at least 1");
     }
-    let (images, root) = match args.inputs.as_slice() {
-        [one] if one.is_dir() => (image_files(one)?, Some(one.clone())),
-        files => (
-            files.to_vec(),
-            files
-                .first()
-                .and_then(|f| f.parent())
-                .map(Path::to_path_buf),
-        ),
-    };
-    if images.len() < 2 {
-        bail!("need at least 2 images, got {}", images.len());
+    if let Some(f) = args.focal_px
+        && !(f.is_finite() && f > 0.0)
+    {
+        bail!("--focal-px must be a positive, finite number of pixels, got {f}");
     }
+    if args.start_step > 99 {
+        bail!(
+            "--start-step must be 0-99 (a step of the 100-step schedule), got {}",
+            args.start_step
+        );
+    }
+    if args.start_step != 30 && args.init.is_none() {
+        bail!(
+            "--start-step needs --init (it is where the diffusion starts from the initial cameras)"
+        );
+    }
+    for path in &args.inputs {
+        if !path.exists() {
+            bail!("no such file or directory: {}", path.display());
+        }
+    }
+    if let Some(w) = &args.weights
+        && !w.is_file()
+    {
+        bail!("--weights: no such file: {}", w.display());
+    }
+    let folder_given = matches!(args.inputs.as_slice(), [one] if one.is_dir());
+    let (listed, root) = match args.inputs.as_slice() {
+        [one] if one.is_dir() => (image_files(one)?, Some(one.clone())),
+        files => {
+            if let Some(dir) = files.iter().find(|f| f.is_dir()) {
+                bail!(
+                    "{} is a folder: give one folder, or image files",
+                    dir.display()
+                );
+            }
+            (
+                files.to_vec(),
+                files
+                    .first()
+                    .and_then(|f| f.parent())
+                    .map(Path::to_path_buf),
+            )
+        }
+    };
+    let (images, bad_images) = posediff::loader::check_images(&listed);
+    if !bad_images.is_empty() {
+        let list: Vec<String> = bad_images
+            .iter()
+            .map(|(p, why)| format!("{}: {why}", p.display()))
+            .collect();
+        if !args.skip_bad_images {
+            bail!(
+                "{} unusable image(s) (give --skip-bad-images to go on without them):\n  {}",
+                list.len(),
+                list.join("\n  ")
+            );
+        }
+        for l in &list {
+            log::warn!("skipped {l}");
+        }
+    }
+    if images.len() < 2 {
+        bail!(
+            "need at least 2 images, got {}{}",
+            images.len(),
+            if bad_images.is_empty() {
+                String::new()
+            } else {
+                format!(" after skipping {} unusable", bad_images.len())
+            }
+        );
+    }
+    let skipped: Vec<serde_json::Value> = bad_images
+        .iter()
+        .map(|(p, why)| serde_json::json!({"image": p, "reason": why}))
+        .collect();
     let inputs = InputImages {
         files: images.clone(),
         folder: root.clone(),
-        folder_given: matches!(args.inputs.as_slice(), [one] if one.is_dir()),
+        folder_given,
     };
-    let output_options = args.output_options();
-    prepare_output_dir(&args.out, &inputs, output_options.images)?;
     let names: Vec<String> = images
         .iter()
         .map(|p| posediff::pipeline::relative_name(p, root.as_deref()))
         .collect();
+    let mut seen = std::collections::HashMap::new();
+    for (k, n) in names.iter().enumerate() {
+        if let Some(first) = seen.insert(n.as_str(), k) {
+            bail!(
+                "{} and {} have the same name {n:?}: the outputs name images by it; give each image once, with distinct file names",
+                images[first].display(),
+                images[k].display()
+            );
+        }
+    }
     let known = match (args.focal_px, &args.intrinsics) {
         (Some(f), _) => KnownIntrinsics::FocalPx(f),
         (None, Some(path)) => {
-            let given = read_per_image(path, images.len(), "intrinsics")?;
+            let given = read_per_image(path, &names, "--intrinsics")?
+                .complete("--intrinsics", path)
+                .map_err(anyhow::Error::msg)?;
             KnownIntrinsics::PerImage(
                 given
                     .iter()
@@ -622,15 +703,50 @@ fn estimate(args: EstimateArgs) -> anyhow::Result<()> {
         }
         (None, None) => KnownIntrinsics::Unknown,
     };
+    let mut init_warnings = Vec::new();
     let init = match args.init.as_deref() {
         None => None,
         Some("geometric") => Some(InitSource::Geometric),
-        Some(path) => Some(InitSource::File(PathBuf::from(path))),
+        Some(path) => {
+            let path = PathBuf::from(path);
+            let matched = read_per_image(&path, &names, "--init")?;
+            if matched.matched() == 0 {
+                bail!("{}", matched.mismatch("--init", &path));
+            }
+            if !matched.images_without_record.is_empty()
+                || !matched.records_without_image.is_empty()
+            {
+                init_warnings.push(format!(
+                    "{} (images without an initial camera start uninitialised)",
+                    matched.mismatch("--init", &path)
+                ));
+            }
+            let cams: Vec<Option<posediff_geometry::Camera>> = matched
+                .per_image
+                .into_iter()
+                .map(|r| r.and_then(|r| r.camera))
+                .collect();
+            if cams.iter().all(Option::is_none) {
+                bail!(
+                    "--init {}: none of its cameras is estimated",
+                    path.display()
+                );
+            }
+            Some(InitSource::File(cams))
+        }
     };
-    let read_init = |path: &Path| -> anyhow::Result<Vec<Option<posediff_geometry::Camera>>> {
-        let given = read_per_image(path, images.len(), "initial cameras")?;
-        Ok(given.into_iter().map(|g| g.camera).collect())
+    let device_name = match args.device {
+        DeviceArg::Cpu => "cpu",
+        DeviceArg::Cuda => "cuda",
     };
+    let device = match (args.device, &args.weights) {
+        (DeviceArg::Cuda, Some(_)) => Device::new_cuda(0)
+            .context("--device cuda needs a CUDA build (feature `cuda`) and a GPU")?,
+        (DeviceArg::Cuda, None) => bail!("--device cuda runs the network: it needs --weights"),
+        (DeviceArg::Cpu, _) => Device::Cpu,
+    };
+    let output_options = args.output_options();
+    prepare_output_dir(&args.out, &inputs, output_options.images)?;
     let mut geometric = GeometricConfig {
         intrinsics: known.clone(),
         pairs: args.pairs.clone(),
@@ -651,14 +767,14 @@ fn estimate(args: EstimateArgs) -> anyhow::Result<()> {
         // Checkpoint-free.
         progress.start("geometry", 0);
         let result = match &init {
-            Some(InitSource::File(path)) => {
-                refine_given_cameras(&images, &read_init(path)?, &geometric)
-            }
+            Some(InitSource::File(cams)) => refine_given_cameras(&images, cams, &geometric),
             _ => estimate_geometric(&images, &geometric),
         };
         progress.finish();
         let result = result?;
-        for w in &result.warnings {
+        let mut warnings = init_warnings;
+        warnings.extend(result.warnings.iter().cloned());
+        for w in &warnings {
             log::warn!("{w}");
         }
         let entries: Vec<ImageCamera> = names
@@ -679,7 +795,8 @@ fn estimate(args: EstimateArgs) -> anyhow::Result<()> {
             "refine": format!("{:?}", geometric.refinement),
             "report": result.report,
             "matches_per_pair": result.pairs.iter().map(|p| serde_json::json!({"first": p.first, "second": p.second, "matches": p.len()})).collect::<Vec<_>>(),
-            "warnings": result.warnings,
+            "skipped_images": skipped,
+            "warnings": warnings,
         });
         return finish(
             &args.out,
@@ -690,15 +807,6 @@ fn estimate(args: EstimateArgs) -> anyhow::Result<()> {
             &output_options,
             quiet,
         );
-    };
-    let device_name = match args.device {
-        DeviceArg::Cpu => "cpu",
-        DeviceArg::Cuda => "cuda",
-    };
-    let device = match args.device {
-        DeviceArg::Cpu => Device::Cpu,
-        DeviceArg::Cuda => Device::new_cuda(0)
-            .context("--device cuda needs a CUDA build (feature `cuda`) and a GPU")?,
     };
     let mut config = EstimateConfig {
         seed: args.seed,
@@ -712,7 +820,6 @@ fn estimate(args: EstimateArgs) -> anyhow::Result<()> {
     let estimator = Estimator::load(&weights, device, config.clone())
         .with_context(|| format!("loading weights {}", weights.display()))?;
     let load_weights = load_start.elapsed().as_secs_f64();
-    let mut init_warnings = Vec::new();
     let init_cameras: Option<Vec<posediff_geometry::Camera>> = match &init {
         None => None,
         Some(source) => {
@@ -725,7 +832,7 @@ fn estimate(args: EstimateArgs) -> anyhow::Result<()> {
                     init_warnings.extend(g.warnings);
                     g.cameras
                 }
-                InitSource::File(path) => read_init(path)?,
+                InitSource::File(cams) => cams.clone(),
             };
             let Some(fallback) = given.iter().flatten().next().copied() else {
                 bail!("the initial estimate has no camera");
@@ -804,6 +911,7 @@ fn estimate(args: EstimateArgs) -> anyhow::Result<()> {
         "seconds": {"load_weights": load_weights, "load_images": estimate.times.load, "matching": estimate.times.matching,
                     "features": estimate.times.features, "sampling": estimate.times.sampling, "ggs": estimate.times.ggs},
         "matches_per_pair": estimate.matches_per_pair.iter().map(|(a, b, n)| serde_json::json!({"first": a, "second": b, "matches": n})).collect::<Vec<_>>(),
+        "skipped_images": skipped,
         "sample_spread": first.iter().zip(estimate.spread()?).map(|(c, s)| serde_json::json!({
             "image": c.image, "rotation_deg_max": s.rotation_deg_max, "center_distance_max": s.center_distance_max,
         })).collect::<Vec<_>>(),
@@ -823,18 +931,19 @@ fn estimate(args: EstimateArgs) -> anyhow::Result<()> {
     )
 }
 
-/// A cameras.json with one entry per image.
-fn read_per_image(path: &Path, n: usize, what: &str) -> anyhow::Result<Vec<ImageCamera>> {
+/// A cameras.json's entries matched to the images by name.
+fn read_per_image(
+    path: &Path,
+    names: &[String],
+    what: &str,
+) -> anyhow::Result<posediff::records::Matched<ImageCamera>> {
     let given = read_cameras_json_partial(path)
         .with_context(|| format!("reading {what} {}", path.display()))?;
-    if given.len() != n {
-        bail!(
-            "{} has {} entries for {n} images",
-            path.display(),
-            given.len()
-        );
-    }
-    Ok(given)
+    posediff::records::match_by_name(
+        names,
+        given.into_iter().map(|g| (g.image.clone(), g)).collect(),
+    )
+    .map_err(|e| anyhow::anyhow!("{what} {}: {e}", path.display()))
 }
 
 fn detector(m: Matcher) -> Detector {
@@ -963,20 +1072,32 @@ fn view(dir: &Path, gt: Option<&Path>, out: Option<&Path>) -> anyhow::Result<()>
     Ok(())
 }
 
+/// The ground truth's cameras for the entries of `cameras`, matched by name: every entry
+/// must have one and every ground-truth camera an entry.
+fn truth_for(
+    cameras: &Path,
+    est: &[ImageCamera],
+    gt: &Path,
+) -> anyhow::Result<Vec<posediff_geometry::Camera>> {
+    let truth = posediff::export::read_cameras_json(gt)
+        .with_context(|| format!("reading {}", gt.display()))?;
+    let names: Vec<String> = est.iter().map(|e| e.image.clone()).collect();
+    posediff::records::match_by_name(
+        &names,
+        truth
+            .into_iter()
+            .map(|c| (c.image.clone(), c.camera))
+            .collect(),
+    )
+    .map_err(|e| anyhow::anyhow!("--gt {}: {e}", gt.display()))?
+    .complete(&format!("--gt (for {})", cameras.display()), gt)
+    .map_err(anyhow::Error::msg)
+}
+
 fn score(cameras: &Path, gt: &Path, out: Option<&Path>) -> anyhow::Result<()> {
     let est = read_cameras_json_partial(cameras)
         .with_context(|| format!("reading {}", cameras.display()))?;
-    let truth = posediff::export::read_cameras_json(gt)
-        .with_context(|| format!("reading {}", gt.display()))?;
-    if truth.len() != est.len() {
-        bail!(
-            "{} has {} cameras, the ground truth {}",
-            cameras.display(),
-            est.len(),
-            truth.len()
-        );
-    }
-    let gt_cams: Vec<_> = truth.iter().map(|c| c.camera).collect();
+    let gt_cams = truth_for(cameras, &est, gt)?;
     let pred: Vec<_> = est
         .iter()
         .map(|e| e.camera.map(|c| c.cam_from_world))
@@ -1020,20 +1141,7 @@ fn plot_inputs(
 ) -> anyhow::Result<(Vec<NamedCamera>, Option<Vec<NamedCamera>>)> {
     let est = read_cameras_json_partial(cameras)
         .with_context(|| format!("reading {}", cameras.display()))?;
-    let truth = gt
-        .map(|g| {
-            posediff::export::read_cameras_json(g)
-                .with_context(|| format!("reading {}", g.display()))
-        })
-        .transpose()?;
-    if let Some(t) = truth.as_ref().filter(|t| t.len() != est.len()) {
-        bail!(
-            "{} has {} cameras, the ground truth {}",
-            cameras.display(),
-            est.len(),
-            t.len()
-        );
-    }
+    let truth = gt.map(|g| truth_for(cameras, &est, g)).transpose()?;
     let keep: Vec<bool> = est.iter().map(|e| e.camera.is_some()).collect();
     if keep.iter().filter(|k| **k).count() < 2 {
         bail!("{} has fewer than two estimated cameras", cameras.display());
@@ -1041,9 +1149,12 @@ fn plot_inputs(
     let est_named = ImageCamera::estimated(&est);
     let truth = truth.map(|t| {
         t.into_iter()
-            .zip(&keep)
-            .filter(|(_, k)| **k)
-            .map(|(c, _)| c)
+            .zip(&est)
+            .filter(|(_, e)| e.camera.is_some())
+            .map(|(camera, e)| NamedCamera {
+                image: e.image.clone(),
+                camera,
+            })
             .collect()
     });
     Ok((est_named, truth))

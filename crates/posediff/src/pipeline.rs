@@ -203,7 +203,7 @@ impl<'m> GgsHook<'m> {
 }
 
 impl MeanHook for GgsHook<'_> {
-    fn replace_mean(&mut self, mean: &Tensor, _t: usize) -> posediff_diffusion::Result<Tensor> {
+    fn replace_mean(&mut self, mean: &Tensor, t: usize) -> posediff_diffusion::Result<Tensor> {
         let start = Instant::now();
         let (b, n, d) = mean.dims3()?;
         let flat: Vec<f64> = mean.flatten_all()?.to_dtype(DType::F64)?.to_vec1()?;
@@ -223,8 +223,12 @@ impl MeanHook for GgsHook<'_> {
                     e.0[8] = f[1];
                 }
             }
-            self.solver.run(&mut enc, None).map_err(|_| {
-                posediff_diffusion::DiffusionError::Invalid("GGS failed on the posterior mean")
+            self.solver.run(&mut enc, None).map_err(|e| {
+                posediff_diffusion::DiffusionError::Hook {
+                    what: "GGS on the posterior mean",
+                    step: t,
+                    detail: e.to_string(),
+                }
             })?;
             out.extend(enc.iter().flat_map(|e| e.0));
         }
@@ -315,6 +319,13 @@ impl Estimator {
         let start = Instant::now();
         let n = images.dim(0)?;
         let z = self.model.image_features(&images.unsqueeze(0)?)?;
+        if !posediff_diffusion::sampler::all_finite(&z)? {
+            return Err(posediff_diffusion::DiffusionError::NonFinite {
+                what: "DINO features",
+                step: posediff_diffusion::checkpoint::TIMESTEPS - 1,
+            }
+            .into());
+        }
         let z = z
             .broadcast_as((self.config.samples, n, z.dim(2)?))?
             .contiguous()?;
