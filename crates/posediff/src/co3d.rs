@@ -193,10 +193,20 @@ fn bad_file(path: &Path, why: String) -> PosediffError {
 /// the file, the sequence and the field).
 pub fn load_annotations(path: &Path) -> Result<Vec<Co3dSequence>> {
     let file = std::fs::File::open(path).map_err(|e| PosediffError::read(path, e))?;
+    let compressed = file.metadata().map(|m| m.len()).unwrap_or(0);
+    // JSON compresses about 10x; more than 200x (or 1 GiB) is a bomb, not annotations.
+    let limit = compressed.saturating_mul(200).clamp(1 << 20, 1 << 30);
     let mut text = String::new();
-    flate2::read::GzDecoder::new(file)
+    let read = flate2::read::GzDecoder::new(file)
+        .take(limit + 1)
         .read_to_string(&mut text)
         .map_err(|e| bad_file(path, format!("not a gzip JSON file: {e}")))?;
+    if read as u64 > limit {
+        return Err(bad_file(
+            path,
+            format!("decompresses to more than {limit} bytes: not annotations"),
+        ));
+    }
     let raw: serde_json::Map<String, serde_json::Value> = serde_json::from_str(&text)
         .map_err(|e| bad_file(path, format!("not a JSON object of sequences: {e}")))?;
     raw.into_iter()

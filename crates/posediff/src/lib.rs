@@ -8,6 +8,7 @@
 //! - [`reconstruction`]: the result every writer reads: cameras, keypoints, coloured points.
 //! - [`export`]: cameras.json, nerfstudio (+ PLY) and PyTorch3D writers and readers.
 //! - [`colmap`]: COLMAP sparse models, text and binary, with points.
+//! - [`fuzzing`]: the harnesses of the fuzz targets (`fuzz/`) and of the corpus replay test.
 //! - [`records`]: per-image records matched to the images by name, never by position.
 //! - [`outputs`]: the output folder (COLMAP sparse/0, images, nerfstudio, PLY, viewer).
 //! - [`viewer`]: view.html, a self-contained three.js page.
@@ -23,6 +24,7 @@ pub mod co3d;
 pub mod colmap;
 pub mod error;
 pub mod export;
+pub mod fuzzing;
 pub mod geometric;
 pub mod loader;
 pub mod outputs;
