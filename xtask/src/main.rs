@@ -15,6 +15,10 @@
 //!   growth exponents; JSON + Markdown).
 //! - `setup`: only the system set-up (Debian packages for the OpenCV bindings and the browser
 //!   tests, cargo-nextest, the Python venv of the output tests in `target/client-venv`).
+//! - `fuzz [--seconds 600] [--targets a,b]`: the coverage-guided fuzz targets of `fuzz/`
+//!   (cargo-fuzz and libFuzzer on the stable toolchain, `RUSTC_BOOTSTRAP=1` for its `-Z`
+//!   flags), each on its corpus for that long; `fuzz/reports/<target>.json` and
+//!   `fuzz/REPORT.md`.
 //! - `vendor-three`: fetch three.js again from the npm registry (pinned version and digest)
 //!   into `crates/posediff/assets/three/` (the viewer inlines it).
 //! - `deps-check`: only the dependency invariants.
@@ -100,6 +104,7 @@ fn main() -> Result<()> {
         "ci" => ci(),
         "setup" => setup(),
         "vendor-three" => vendor_three(),
+        "fuzz" => fuzz(&std::env::args().skip(2).collect::<Vec<_>>()),
         "deps-check" => deps_check(),
         "bench-matching" => cargo_run(
             &["-p", "posediff-matching", "--example", "bench_matching"],
@@ -439,6 +444,172 @@ fn setup() -> Result<()> {
         run("cargo", &["install", "--locked", "cargo-nextest"], &[])?;
     }
     client_venv()
+}
+
+/// The fuzz targets (`fuzz/Cargo.toml`; the same names as `posediff::fuzzing::TARGETS`).
+const FUZZ_TARGETS: [&str; 6] = [
+    "checkpoint",
+    "cameras_json",
+    "colmap_text",
+    "colmap_binary",
+    "co3d_annotations",
+    "image",
+];
+
+/// Runs each fuzz target for `--seconds` on its corpus (new inputs are added to it) and
+/// writes what libFuzzer reported: executions, coverage, corpus size, crashes.
+fn fuzz(args: &[String]) -> Result<()> {
+    let mut seconds = 600u64;
+    let mut targets: Vec<String> = FUZZ_TARGETS.iter().map(|t| (*t).to_owned()).collect();
+    let mut it = args.iter();
+    while let Some(a) = it.next() {
+        match a.as_str() {
+            "--seconds" => seconds = it.next().context("--seconds N")?.parse()?,
+            "--targets" => {
+                targets = it
+                    .next()
+                    .context("--targets a,b")?
+                    .split(',')
+                    .map(str::to_owned)
+                    .collect();
+            }
+            other => bail!("unknown option {other}"),
+        }
+    }
+    if output("cargo", &["fuzz", "--version"]).is_err() {
+        run("cargo", &["install", "--locked", "cargo-fuzz"], &[])?;
+    }
+    let root = workspace_root();
+    let dir = root.join("fuzz");
+    let mut rows = Vec::new();
+    for t in &targets {
+        let corpus = dir.join("corpus").join(t);
+        std::fs::create_dir_all(&corpus)?;
+        let before = std::fs::read_dir(&corpus)?.count();
+        let max_time = format!("-max_total_time={seconds}");
+        eprintln!("\n==> fuzz {t} for {seconds} s");
+        let out = Command::new("cargo")
+            .args(["fuzz", "run", "-s", "none", "-O", t])
+            .arg(&corpus)
+            .args([
+                "--",
+                &max_time,
+                "-rss_limit_mb=2048",
+                "-malloc_limit_mb=1024",
+                "-timeout=20",
+            ])
+            .env("RUSTC_BOOTSTRAP", "1")
+            .current_dir(&dir)
+            .output()
+            .context("cannot start cargo fuzz")?;
+        let log = String::from_utf8_lossy(&out.stderr).into_owned();
+        std::fs::write(dir.join(format!("{t}.log")), &log)?;
+        let last = |key: &str| -> Option<u64> {
+            log.lines()
+                .rev()
+                .find_map(|l| l.split(&format!("{key}: ")).nth(1))
+                .and_then(|v| v.split_whitespace().next())
+                .and_then(|v| {
+                    v.trim_end_matches(|c: char| !c.is_ascii_digit())
+                        .parse()
+                        .ok()
+                })
+        };
+        let runs = log
+            .lines()
+            .rev()
+            .find_map(|l| {
+                l.strip_prefix("Done ")
+                    .and_then(|r| r.split_whitespace().next())
+            })
+            .and_then(|v| v.parse::<u64>().ok());
+        let crashed = !out.status.success();
+        if !crashed {
+            // Keep the corpus small enough to commit and replay: the inputs that cover what
+            // the whole set covers.
+            let min = Command::new("cargo")
+                .args(["fuzz", "cmin", "-s", "none", "-O", t])
+                .arg(&corpus)
+                .env("RUSTC_BOOTSTRAP", "1")
+                .current_dir(&dir)
+                .output()
+                .context("cannot start cargo fuzz cmin")?;
+            if !min.status.success() {
+                bail!(
+                    "cargo fuzz cmin {t}: {}",
+                    String::from_utf8_lossy(&min.stderr)
+                );
+            }
+        }
+        let after = std::fs::read_dir(&corpus)?.count();
+        eprintln!(
+            "<== {t}: {} runs, cov {}, ft {}, corpus {before} -> {after}{}",
+            runs.unwrap_or(0),
+            last("cov").unwrap_or(0),
+            last("ft").unwrap_or(0),
+            if crashed {
+                ", FAILED (see fuzz/artifacts)"
+            } else {
+                ""
+            }
+        );
+        rows.push((
+            t.clone(),
+            runs,
+            last("cov"),
+            last("ft"),
+            before,
+            after,
+            crashed,
+        ));
+    }
+    // One JSON per target (runs of different targets may go on in parallel), then the
+    // Markdown table of all of them.
+    let reports = dir.join("reports");
+    std::fs::create_dir_all(&reports)?;
+    for (t, runs, cov, ft, before, after, crashed) in &rows {
+        let json = format!(
+            "{{\"target\":\"{t}\",\"seconds\":{seconds},\"executions\":{},\"coverage\":{},\"features\":{},\"corpus_before\":{before},\"corpus_after\":{after},\"crashed\":{crashed}}}\n",
+            runs.map_or("null".into(), |r| r.to_string()),
+            cov.map_or("null".into(), |c| c.to_string()),
+            ft.map_or("null".into(), |c| c.to_string()),
+        );
+        std::fs::write(reports.join(format!("{t}.json")), json)?;
+    }
+    let mut md = String::from(
+        "# Fuzzing report\n\n`cargo xtask fuzz` (libFuzzer via cargo-fuzz, no sanitizer, `-rss_limit_mb=2048 -malloc_limit_mb=1024`); one row per target, from `fuzz/reports/<target>.json`.\n\n| target | seconds | executions | coverage (edges) | features | corpus before → after | crashed |\n|---|---|---|---|---|---|---|\n",
+    );
+    let mut names: Vec<_> = std::fs::read_dir(&reports)?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .collect();
+    names.sort();
+    for p in names {
+        let text = std::fs::read_to_string(&p)?;
+        let field = |k: &str| {
+            text.split(&format!("\"{k}\":"))
+                .nth(1)
+                .and_then(|v| v.split([',', '}']).next())
+                .unwrap_or("?")
+                .trim_matches('"')
+                .to_owned()
+        };
+        md.push_str(&format!(
+            "| {} | {} | {} | {} | {} | {} → {} | {} |\n",
+            field("target"),
+            field("seconds"),
+            field("executions"),
+            field("coverage"),
+            field("features"),
+            field("corpus_before"),
+            field("corpus_after"),
+            field("crashed")
+        ));
+    }
+    std::fs::write(dir.join("REPORT.md"), md)?;
+    if rows.iter().any(|r| r.6) {
+        bail!("a fuzz target crashed: see fuzz/artifacts and fuzz/<target>.log");
+    }
+    Ok(())
 }
 
 /// The three.js the viewer inlines: npm package, file and its SHA-256.

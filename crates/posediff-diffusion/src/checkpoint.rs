@@ -173,7 +173,16 @@ pub fn read_tensors(path: &Path) -> Result<Vec<(String, Tensor)>> {
     }
     // PyTorch ≥ 1.6 writes a zip archive ("PK"); anything else must parse as safetensors.
     if &magic == b"PK" {
-        candle_core::pickle::read_all(path).map_err(read_err)
+        // candle's pickle reader panics on some malformed pickles (found by the `checkpoint`
+        // fuzz target: an index out of bounds in its stack handling); a broken file is an
+        // error, not a crash.
+        let p = path.to_owned();
+        match std::panic::catch_unwind(move || candle_core::pickle::read_all(&p)) {
+            Ok(r) => r.map_err(read_err),
+            Err(_) => Err(DiffusionError::MalformedCheckpoint {
+                path: path.to_owned(),
+            }),
+        }
     } else {
         Ok(candle_core::safetensors::load(path, &Device::Cpu)
             .map_err(|_| DiffusionError::UnknownFormat {

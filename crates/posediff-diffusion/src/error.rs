@@ -20,6 +20,12 @@ pub enum DiffusionError {
         /// The file.
         path: PathBuf,
     },
+    /// A zip checkpoint whose pickle cannot be interpreted.
+    #[error("{path}: malformed PyTorch checkpoint (its pickle cannot be read)")]
+    MalformedCheckpoint {
+        /// The file.
+        path: PathBuf,
+    },
     /// The checkpoint's keys do not describe a PoseDiffusion model.
     #[error("checkpoint does not match the PoseDiffusion layout:\n{}", .problems.join("\n"))]
     CheckpointLayout {

@@ -520,21 +520,16 @@ impl ColmapModel {
     /// # Errors
     /// Missing or malformed files, with the file and what is wrong.
     pub fn read(dir: &Path) -> Result<Self> {
-        let (model, cameras) = if dir.join("cameras.bin").is_file() {
-            (Self::read_binary(dir)?, dir.join("cameras.bin"))
+        if dir.join("cameras.bin").is_file() {
+            Self::read_binary(dir)
         } else if dir.join("cameras.txt").is_file() {
-            (Self::read_text(dir)?, dir.join("cameras.txt"))
+            Self::read_text(dir)
         } else {
-            return Err(PosediffError::invalid(
+            Err(PosediffError::invalid(
                 dir,
                 "no COLMAP model here: expected cameras.txt, images.txt (and points3D.txt) or the .bin files",
-            ));
-        };
-        for c in &model.cameras {
-            c.intrinsics()
-                .map_err(|e| PosediffError::invalid(&cameras, e))?;
+            ))
         }
-        Ok(model)
     }
 
     /// Reads `cameras.txt`, `images.txt` and (if present) `points3D.txt`.
@@ -550,7 +545,7 @@ impl ColmapModel {
             if f.len() < 4 {
                 return Err(bad("expected `CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]`"));
             }
-            model.cameras.push(ColmapCamera {
+            let camera = ColmapCamera {
                 id: f[0].parse().map_err(|_| bad("CAMERA_ID is not a number"))?,
                 model: f[1].to_owned(),
                 width: f[2].parse().map_err(|_| bad("WIDTH is not a number"))?,
@@ -561,7 +556,10 @@ impl ColmapModel {
                         parse_finite(v).ok_or_else(|| bad("a parameter is not a finite number"))
                     })
                     .collect::<Result<_>>()?,
-            });
+            };
+            // Every camera must convert, used or not (a model that reads also writes back).
+            camera.intrinsics().map_err(|e| bad(&e))?;
+            model.cameras.push(camera);
         }
         let path = dir.join("images.txt");
         let text = read_text(&path)?;
@@ -686,13 +684,15 @@ impl ColmapModel {
             let width = r.u64()?;
             let height = r.u64()?;
             let params = (0..count).map(|_| r.f64()).collect::<Result<_>>()?;
-            model.cameras.push(ColmapCamera {
+            let camera = ColmapCamera {
                 id,
                 model: name.into(),
                 width,
                 height,
                 params,
-            });
+            };
+            camera.intrinsics().map_err(|e| r.error(&e))?;
+            model.cameras.push(camera);
         }
         r.finish()?;
         let (path, bytes) = read("images.bin")?;

@@ -98,7 +98,7 @@ pub fn preprocess_rgb(rgb: &[u8], size: ImageSize, target: u32) -> (CenterCrop, 
 /// [`PosediffError::UnreadableImage`] naming the file.
 pub fn read_rgb(path: &Path) -> Result<(ImageSize, Vec<u8>)> {
     let unreadable = || PosediffError::UnreadableImage(path.to_owned());
-    if !path.is_file() {
+    if !path.is_file() || !posediff_matching::features::is_jpeg_or_png(path) {
         return Err(unreadable());
     }
     let bgr = opencv::imgcodecs::imread(path.as_os_str(), opencv::imgcodecs::IMREAD_COLOR)
@@ -138,7 +138,8 @@ pub fn load_images(paths: &[PathBuf]) -> Result<Vec<LoadedImage>> {
 }
 
 /// Why an image file cannot be used, found from its bytes alone (no decoding): empty, not a
-/// JPEG or PNG, or a JPEG/PNG whose structure is broken (truncated, a segment or chunk that
+/// JPEG or PNG (other formats never reach OpenCV, some of whose readers abort on malformed
+/// files), or a JPEG/PNG whose structure is broken (truncated, a segment or chunk that
 /// runs past the end, a PNG chunk whose CRC does not match). OpenCV decodes such files
 /// partially and fills the rest without an error, so this runs first.
 pub fn image_problem(bytes: &[u8]) -> Option<String> {
@@ -152,7 +153,7 @@ pub fn image_problem(bytes: &[u8]) -> Option<String> {
     if bytes.starts_with(PNG) {
         return png_problem(&bytes[PNG.len()..], PNG.len());
     }
-    None
+    Some("not a JPEG or PNG image (posediff reads JPEG and PNG files)".into())
 }
 
 fn jpeg_problem(b: &[u8]) -> Option<String> {
@@ -267,9 +268,9 @@ fn png_problem(b: &[u8], offset: usize) -> Option<String> {
     }
 }
 
-/// The files that can be used and, for the others, why not (missing, unreadable, empty,
-/// corrupt or truncated: [`image_problem`]; formats other than JPEG and PNG are checked by
-/// OpenCV reading their header). Files are read in parallel; no image is decoded.
+/// The files that can be used and, for the others, why not (missing, unreadable, empty, not
+/// a JPEG or PNG, corrupt or truncated: [`image_problem`]). Files are read in parallel; no
+/// image is decoded.
 pub fn check_images(files: &[PathBuf]) -> (Vec<PathBuf>, Vec<(PathBuf, String)>) {
     use rayon::prelude::*;
     let verdicts: Vec<Option<String>> = files

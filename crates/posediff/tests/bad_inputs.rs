@@ -188,7 +188,7 @@ fn bad_images_are_named_before_any_work() {
         case(
             "text named .jpg",
             &[&"estimate", &text, &"--out", &out],
-            "not an image OpenCV can read",
+            "not a JPEG or PNG image",
         ),
         case(
             "bad image hint",
