@@ -12,6 +12,15 @@ pub enum MatchingError {
         /// The file.
         path: PathBuf,
     },
+    /// An image file whose structure is broken (truncated, corrupt) or that is not a JPEG or
+    /// PNG.
+    #[error("{path}: {reason}")]
+    CorruptImage {
+        /// The file.
+        path: std::path::PathBuf,
+        /// What is wrong with it.
+        reason: String,
+    },
     /// Matching needs at least two images.
     #[error("need at least 2 images to match, got {got}")]
     TooFewImages {

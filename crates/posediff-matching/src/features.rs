@@ -123,35 +123,13 @@ pub fn to_original_pixels(kp: [f64; 2], scale: [f64; 2]) -> [f64; 2] {
     ]
 }
 
-/// Whether the file starts like a JPEG or a PNG. Only those reach OpenCV's decoders: OpenCV
-/// picks a decoder by content, and some of its other readers abort the process on malformed
-/// input (its DICOM reader asserts).
-pub fn is_jpeg_or_png(path: &Path) -> bool {
-    use std::io::Read;
-    let mut head = [0u8; 8];
-    std::fs::File::open(path)
-        .and_then(|mut f| f.read_exact(&mut head))
-        .is_ok()
-        && (head.starts_with(&[0xFF, 0xD8, 0xFF]) || head == *b"\x89PNG\r\n\x1a\n")
-}
-
 /// Reads an image as grey, once.
 ///
 /// # Errors
-/// [`MatchingError::UnreadableImage`] for missing, unreadable or corrupt files.
+/// [`MatchingError::UnreadableImage`] for missing or unreadable files,
+/// [`MatchingError::CorruptImage`] for broken ones ([`crate::image_check`]).
 pub fn read_grey(path: &Path) -> Result<Mat> {
-    let unreadable = || MatchingError::UnreadableImage {
-        path: path.to_owned(),
-    };
-    if !path.is_file() || !is_jpeg_or_png(path) {
-        return Err(unreadable());
-    }
-    let img = opencv::imgcodecs::imread(path.as_os_str(), opencv::imgcodecs::IMREAD_GRAYSCALE)
-        .map_err(|_| unreadable())?;
-    if img.empty() || img.cols() <= 0 || img.rows() <= 0 {
-        return Err(unreadable());
-    }
-    Ok(img)
+    crate::image_check::decode(path, opencv::imgcodecs::IMREAD_GRAYSCALE)
 }
 
 /// Detects and describes keypoints of a grey image.

@@ -14,6 +14,7 @@
 
 pub mod error;
 pub mod features;
+pub mod image_check;
 pub mod mnn;
 pub mod pairs;
 pub mod two_view;

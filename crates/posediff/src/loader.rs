@@ -92,20 +92,12 @@ pub fn preprocess_rgb(rgb: &[u8], size: ImageSize, target: u32) -> (CenterCrop, 
     (crop, out)
 }
 
-/// Reads an image as interleaved RGB bytes.
+/// Reads an image as interleaved RGB bytes (JPEG or PNG, structurally checked first).
 ///
 /// # Errors
-/// [`PosediffError::UnreadableImage`] naming the file.
+/// A missing, unreadable, corrupt or truncated file, named.
 pub fn read_rgb(path: &Path) -> Result<(ImageSize, Vec<u8>)> {
-    let unreadable = || PosediffError::UnreadableImage(path.to_owned());
-    if !path.is_file() || !posediff_matching::features::is_jpeg_or_png(path) {
-        return Err(unreadable());
-    }
-    let bgr = opencv::imgcodecs::imread(path.as_os_str(), opencv::imgcodecs::IMREAD_COLOR)
-        .map_err(|_| unreadable())?;
-    if bgr.empty() {
-        return Err(unreadable());
-    }
+    let bgr = posediff_matching::image_check::decode(path, opencv::imgcodecs::IMREAD_COLOR)?;
     let mut rgb = Mat::default();
     opencv::imgproc::cvt_color_def(&bgr, &mut rgb, opencv::imgproc::COLOR_BGR2RGB)?;
     let rgb = if rgb.is_continuous() {
@@ -113,7 +105,8 @@ pub fn read_rgb(path: &Path) -> Result<(ImageSize, Vec<u8>)> {
     } else {
         rgb.try_clone()?
     };
-    let size = ImageSize::new(rgb.cols() as u32, rgb.rows() as u32).map_err(|_| unreadable())?;
+    let size = ImageSize::new(rgb.cols() as u32, rgb.rows() as u32)
+        .map_err(|_| PosediffError::UnreadableImage(path.to_owned()))?;
     Ok((size, rgb.data_bytes()?.to_vec()))
 }
 
@@ -137,139 +130,8 @@ pub fn load_images(paths: &[PathBuf]) -> Result<Vec<LoadedImage>> {
         .collect()
 }
 
-/// Why an image file cannot be used, found from its bytes alone (no decoding): empty, not a
-/// JPEG or PNG (other formats never reach OpenCV, some of whose readers abort on malformed
-/// files), or a JPEG/PNG whose structure is broken (truncated, a segment or chunk that
-/// runs past the end, a PNG chunk whose CRC does not match). OpenCV decodes such files
-/// partially and fills the rest without an error, so this runs first.
-pub fn image_problem(bytes: &[u8]) -> Option<String> {
-    const PNG: &[u8] = b"\x89PNG\r\n\x1a\n";
-    if bytes.is_empty() {
-        return Some("empty file".into());
-    }
-    if bytes.starts_with(&[0xFF, 0xD8, 0xFF]) {
-        return jpeg_problem(bytes);
-    }
-    if bytes.starts_with(PNG) {
-        return png_problem(&bytes[PNG.len()..], PNG.len());
-    }
-    Some("not a JPEG or PNG image (posediff reads JPEG and PNG files)".into())
-}
-
-fn jpeg_problem(b: &[u8]) -> Option<String> {
-    let mut at = 2;
-    let mut frame = false;
-    loop {
-        // A marker: 0xFF (fill bytes allowed), then its code.
-        if at >= b.len() {
-            return Some(format!(
-                "truncated JPEG: ends at byte {at} without an end-of-image marker"
-            ));
-        }
-        if b[at] != 0xFF {
-            return Some(format!("corrupt JPEG: no marker at byte {at}"));
-        }
-        while at < b.len() && b[at] == 0xFF {
-            at += 1;
-        }
-        let Some(&code) = b.get(at) else {
-            return Some("truncated JPEG: ends inside a marker".into());
-        };
-        at += 1;
-        match code {
-            0xD9 => {
-                return (!frame)
-                    .then(|| "corrupt JPEG: no frame header (SOF) before the end".into());
-            }
-            0x01 | 0xD0..=0xD7 => continue,
-            _ => {}
-        }
-        let Some(len) = b
-            .get(at..at + 2)
-            .map(|l| usize::from(u16::from_be_bytes([l[0], l[1]])))
-        else {
-            return Some(format!(
-                "truncated JPEG: segment 0x{code:02X} header at byte {at}"
-            ));
-        };
-        if len < 2 || at + len > b.len() {
-            return Some(format!(
-                "truncated JPEG: segment 0x{code:02X} at byte {at} runs past the end of the file"
-            ));
-        }
-        if matches!(code, 0xC0..=0xCF) && !matches!(code, 0xC4 | 0xC8 | 0xCC) {
-            frame = true;
-        }
-        at += len;
-        if code == 0xDA {
-            // Entropy-coded data: up to the next marker that is not a stuffed 0xFF00 or a
-            // restart marker.
-            loop {
-                match b.get(at) {
-                    None => {
-                        return Some(
-                            "truncated JPEG: the image data ends without an end-of-image marker"
-                                .into(),
-                        );
-                    }
-                    Some(0xFF) => match b.get(at + 1) {
-                        Some(0x00 | 0xD0..=0xD7 | 0xFF) => at += 1,
-                        Some(_) => break,
-                        None => {
-                            return Some(
-                                "truncated JPEG: the image data ends without an end-of-image marker"
-                                    .into(),
-                            );
-                        }
-                    },
-                    Some(_) => at += 1,
-                }
-            }
-        }
-    }
-}
-
-fn png_problem(b: &[u8], offset: usize) -> Option<String> {
-    let mut at = 0;
-    let mut first = true;
-    loop {
-        let Some(head) = b.get(at..at + 8) else {
-            return Some(format!(
-                "truncated PNG: ends at byte {} without an IEND chunk",
-                offset + at
-            ));
-        };
-        let len = u32::from_be_bytes([head[0], head[1], head[2], head[3]]) as usize;
-        let kind = &head[4..8];
-        let name = String::from_utf8_lossy(kind).into_owned();
-        if first && kind != b"IHDR" {
-            return Some("corrupt PNG: the first chunk is not IHDR".into());
-        }
-        first = false;
-        let Some(end) = (at + 8).checked_add(len).filter(|e| e + 4 <= b.len()) else {
-            return Some(format!(
-                "truncated PNG: chunk {name} at byte {} runs past the end of the file",
-                offset + at
-            ));
-        };
-        let stored = u32::from_be_bytes([b[end], b[end + 1], b[end + 2], b[end + 3]]);
-        let mut crc = crc32fast::Hasher::new();
-        crc.update(&b[at + 4..end]);
-        if crc.finalize() != stored {
-            return Some(format!(
-                "corrupt PNG: chunk {name} at byte {} fails its CRC",
-                offset + at
-            ));
-        }
-        if kind == b"IEND" {
-            return None;
-        }
-        at = end + 4;
-    }
-}
-
 /// The files that can be used and, for the others, why not (missing, unreadable, empty, not
-/// a JPEG or PNG, corrupt or truncated: [`image_problem`]). Files are read in parallel; no
+/// a JPEG or PNG, corrupt or truncated: [`posediff_matching::image_check::image_problem`]). Files are read in parallel; no
 /// image is decoded.
 pub fn check_images(files: &[PathBuf]) -> (Vec<PathBuf>, Vec<(PathBuf, String)>) {
     use rayon::prelude::*;
@@ -280,12 +142,7 @@ pub fn check_images(files: &[PathBuf]) -> (Vec<PathBuf>, Vec<(PathBuf, String)>)
                 Some("no such file or directory".into())
             }
             Err(e) => Some(format!("cannot read: {e}")),
-            Ok(bytes) => image_problem(&bytes).or_else(|| {
-                let known = bytes.starts_with(&[0xFF, 0xD8, 0xFF]) || bytes.starts_with(b"\x89PNG");
-                (!known && read_rgb(f).is_err()).then(|| {
-                    "not an image OpenCV can read (JPEG and PNG are checked strictly)".into()
-                })
-            }),
+            Ok(bytes) => posediff_matching::image_check::image_problem(&bytes),
         })
         .collect();
     let mut good = Vec::new();

@@ -227,14 +227,10 @@ impl Reconstruction {
 /// # Errors
 /// [`PosediffError::UnreadableImage`].
 pub fn read_colour(path: &Path) -> Result<Mat> {
-    if !posediff_matching::features::is_jpeg_or_png(path) {
-        return Err(PosediffError::UnreadableImage(path.to_owned()));
-    }
-    let img = opencv::imgcodecs::imread(path.as_os_str(), opencv::imgcodecs::IMREAD_COLOR)?;
-    if img.empty() {
-        return Err(PosediffError::UnreadableImage(path.to_owned()));
-    }
-    Ok(img)
+    Ok(posediff_matching::image_check::decode(
+        path,
+        opencv::imgcodecs::IMREAD_COLOR,
+    )?)
 }
 
 /// The RGB of the pixel nearest `xy` (clamped into the image).
