@@ -15,7 +15,6 @@
 //! Jacobians are analytic: `x_c = exp(ω) R (X − C)` gives `∂x_c/∂ω = −[x_c]ₓ`,
 //! `∂x_c/∂C = −R`, `∂x_c/∂X = R`, and `∂uv/∂log φ = uv − pp`.
 
-use faer::Mat;
 use nalgebra::{Matrix3, SMatrix, SVector, Vector3};
 use rayon::prelude::*;
 
@@ -133,27 +132,14 @@ pub fn triangulate(
     if used.len() < 2 {
         return None;
     }
-    let mut a = Mat::<f64>::zeros(2 * used.len(), 4);
     let mut rays = Vec::with_capacity(used.len());
-    for (k, (o, c)) in used.iter().enumerate() {
+    let mut rows = Vec::with_capacity(used.len());
+    for (o, c) in &used {
         let x = intrinsics.k_inverse(phi, o.image) * Vector3::new(o.xy[0], o.xy[1], 1.0);
-        let r = c.rotation.matrix();
-        let t = c.translation();
-        for (row, (coord, axis)) in [(x.x, 0usize), (x.y, 1usize)].into_iter().enumerate() {
-            for j in 0..3 {
-                a[(2 * k + row, j)] = coord * r[(2, j)] - r[(axis, j)];
-            }
-            a[(2 * k + row, 3)] = coord * t.z - t[axis];
-        }
+        rows.push(([x.x, x.y], *c.rotation.matrix(), c.translation()));
         rays.push(c.rotation.inverse() * x.normalize());
     }
-    let svd = a.thin_svd().ok()?;
-    let v = svd.V();
-    let h = [v[(0, 3)], v[(1, 3)], v[(2, 3)], v[(3, 3)]];
-    if h[3].abs() < 1e-12 {
-        return None;
-    }
-    let point = Vector3::new(h[0] / h[3], h[1] / h[3], h[2] / h[3]);
+    let point = crate::points::dlt(&rows)?;
     let mut widest: f64 = 0.0;
     for (i, ri) in rays.iter().enumerate() {
         for rj in &rays[i + 1..] {

@@ -170,15 +170,13 @@ fn triangulate_track(
     }
 }
 
-/// Linear triangulation in normalised coordinates: the null vector of the stacked
-/// `x (r₃·X + t_z) − (r_i·X + t_i)` rows.
-fn linear(obs: &[(Observation, Camera)]) -> Option<Vector3<f64>> {
-    let mut a = Mat::<f64>::zeros(2 * obs.len(), 4);
-    for (k, (o, c)) in obs.iter().enumerate() {
-        let x = c.intrinsics.inverse_matrix() * Vector3::new(o.xy[0], o.xy[1], 1.0);
-        let r = &c.cam_from_world.rotation;
-        let t = &c.cam_from_world.translation;
-        for (row, (coord, axis)) in [(x.x, 0usize), (x.y, 1usize)].into_iter().enumerate() {
+/// Linear triangulation in normalised coordinates (`K⁻¹x`) from world-to-camera `(R, t)`:
+/// the null vector of the stacked `x (r₃·X + t_z) − (r_i·X + t_i)` rows (faer SVD); `None`
+/// at infinity or non-finite.
+pub fn dlt(rows: &[([f64; 2], Matrix3<f64>, Vector3<f64>)]) -> Option<Vector3<f64>> {
+    let mut a = Mat::<f64>::zeros(2 * rows.len(), 4);
+    for (k, (x, r, t)) in rows.iter().enumerate() {
+        for (row, (coord, axis)) in [(x[0], 0usize), (x[1], 1usize)].into_iter().enumerate() {
             for j in 0..3 {
                 a[(2 * k + row, j)] = coord * r[(2, j)] - r[(axis, j)];
             }
@@ -193,6 +191,21 @@ fn linear(obs: &[(Observation, Camera)]) -> Option<Vector3<f64>> {
     }
     let x = Vector3::new(h[0] / h[3], h[1] / h[3], h[2] / h[3]);
     x.iter().all(|v| v.is_finite()).then_some(x)
+}
+
+fn linear(obs: &[(Observation, Camera)]) -> Option<Vector3<f64>> {
+    let rows: Vec<_> = obs
+        .iter()
+        .map(|(o, c)| {
+            let x = c.intrinsics.inverse_matrix() * Vector3::new(o.xy[0], o.xy[1], 1.0);
+            (
+                [x.x, x.y],
+                c.cam_from_world.rotation,
+                c.cam_from_world.translation,
+            )
+        })
+        .collect();
+    dlt(&rows)
 }
 
 /// Pixel distance between an observation and the projection of `x`; `None` behind the camera.

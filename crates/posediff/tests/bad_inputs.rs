@@ -433,6 +433,15 @@ fn broken_checkpoints_are_reported_at_load() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
+/// The apple frames' file names, and 20 names of images that are not there.
+fn apple_and_other_names() -> (Vec<String>, Vec<String>) {
+    let names = apple_files()
+        .iter()
+        .map(|p| p.file_name().unwrap().to_string_lossy().into_owned())
+        .collect();
+    (names, (0..20).map(|k| format!("other{k:03}.jpg")).collect())
+}
+
 /// cameras.json entries for `names` (the apple ground truth's cameras, renamed).
 fn cameras_json(path: &Path, names: &[&str], estimated: bool) -> PathBuf {
     let truth: Vec<serde_json::Value> = serde_json::from_str(
@@ -466,11 +475,7 @@ fn per_image_files_must_name_the_images() {
     let dir = temp_dir("records");
     let out = dir.join("out");
     let a = apple();
-    let names: Vec<String> = apple_files()
-        .iter()
-        .map(|p| p.file_name().unwrap().to_string_lossy().into_owned())
-        .collect();
-    let other: Vec<String> = (0..20).map(|k| format!("other{k:03}.jpg")).collect();
+    let (names, other) = apple_and_other_names();
     let other_refs: Vec<&str> = other.iter().map(String::as_str).collect();
     let name_refs: Vec<&str> = names.iter().map(String::as_str).collect();
     let foreign = cameras_json(&dir.join("foreign.json"), &other_refs, true);
@@ -539,11 +544,7 @@ fn per_image_files_must_name_the_images() {
 fn other_commands_name_what_is_wrong() {
     let dir = temp_dir("commands");
     let gt = shared_path("data/co3d_apple_posediffusion/cameras.json");
-    let names: Vec<String> = apple_files()
-        .iter()
-        .map(|p| p.file_name().unwrap().to_string_lossy().into_owned())
-        .collect();
-    let other: Vec<String> = (0..20).map(|k| format!("other{k:03}.jpg")).collect();
+    let (names, other) = apple_and_other_names();
     let other_refs: Vec<&str> = other.iter().map(String::as_str).collect();
     let name_refs: Vec<&str> = names.iter().map(String::as_str).collect();
     let foreign = cameras_json(&dir.join("foreign.json"), &other_refs, true);

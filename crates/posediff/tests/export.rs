@@ -30,16 +30,18 @@ fn apple() -> (Vec<NamedCamera>, serde_json::Value) {
     (read_cameras_json(&path).unwrap(), raw)
 }
 
+fn image_cameras(cams: &[NamedCamera]) -> Vec<ImageCamera> {
+    cams.iter()
+        .map(|c| ImageCamera {
+            image: c.image.clone(),
+            size: c.camera.image_size,
+            camera: Some(c.camera),
+        })
+        .collect()
+}
+
 fn reconstruction_of(cams: &[NamedCamera]) -> Reconstruction {
-    Reconstruction::from_cameras(
-        cams.iter()
-            .map(|c| ImageCamera {
-                image: c.image.clone(),
-                size: c.camera.image_size,
-                camera: Some(c.camera),
-            })
-            .collect(),
-    )
+    Reconstruction::from_cameras(image_cameras(cams))
 }
 
 fn nerf_cameras(cams: &[NamedCamera]) -> Vec<NerfstudioCamera> {
@@ -284,14 +286,7 @@ fn apple_scene() -> (
 #[test]
 fn colmap_models_with_points_round_trip_in_text_and_binary() {
     let (cams, truth, pairs) = apple_scene();
-    let images: Vec<ImageCamera> = cams
-        .iter()
-        .map(|c| ImageCamera {
-            image: c.image.clone(),
-            size: c.camera.image_size,
-            camera: Some(c.camera),
-        })
-        .collect();
+    let images = image_cameras(&cams);
     let (recon, report) =
         Reconstruction::triangulate(images, None, &pairs, &PointOptions::default()).unwrap();
     assert_eq!(report.points, truth.len());
@@ -392,14 +387,7 @@ fn broken_binary_models_are_errors_that_name_the_file() {
 #[test]
 fn ply_points_are_in_the_transformed_world_with_their_colours() {
     let (cams, _, pairs) = apple_scene();
-    let images: Vec<ImageCamera> = cams
-        .iter()
-        .map(|c| ImageCamera {
-            image: c.image.clone(),
-            size: c.camera.image_size,
-            camera: Some(c.camera),
-        })
-        .collect();
+    let images = image_cameras(&cams);
     let files: Vec<std::path::PathBuf> = cams
         .iter()
         .map(|c| shared_path("data/co3d_apple_posediffusion").join(&c.image))
