@@ -1,8 +1,8 @@
 #!/usr/bin/env python3
-"""Writes the seed corpus of every fuzz target into fuzz/corpus/<target>/ (small, synthetic
-files made here, none copied from ../shared): run once with numpy and pillow
-(`target/client-venv/bin/pip install pillow`), the seeds are committed. The fuzzer adds what it
-finds to the same folders."""
+"""Writes the seeds of every fuzz target into fuzz/seeds/<target>/ (small, synthetic files
+made here, none copied from ../shared): run once with numpy and pillow
+(`target/client-venv/bin/pip install pillow`), the seeds are committed. The fuzzers read them
+and keep what they find in fuzz/corpus/<target>/ (minimised)."""
 import gzip
 import io
 import json
@@ -16,7 +16,7 @@ import zipfile
 import numpy as np
 from PIL import Image
 
-ROOT = pathlib.Path(__file__).resolve().parent / "corpus"
+ROOT = pathlib.Path(__file__).resolve().parent / "seeds"
 
 
 def put(target, name, data):

@@ -491,6 +491,7 @@ fn fuzz(args: &[String]) -> Result<()> {
         let out = Command::new("cargo")
             .args(["fuzz", "run", "-s", "none", "-O", t])
             .arg(&corpus)
+            .arg(dir.join("seeds").join(t))
             .args([
                 "--",
                 &max_time,

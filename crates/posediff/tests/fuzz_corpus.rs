@@ -1,15 +1,17 @@
-//! The fuzz corpus (`fuzz/corpus/<target>/`: the seeds of `fuzz/make_seeds.py` and whatever
-//! the fuzzers kept) replayed through the same harnesses as the fuzz targets, uninstrumented:
-//! what once passed keeps passing. The seeds are also checked to reach the readers' success
-//! paths, so the fuzzers start from inputs that parse.
+//! The fuzz inputs (`fuzz/seeds/<target>/`: the seeds of `fuzz/make_seeds.py` and the inputs
+//! that once crashed; `fuzz/corpus/<target>/`: what the fuzzers kept, minimised) replayed
+//! through the same harnesses as the fuzz targets, uninstrumented: what once passed keeps
+//! passing. The seeds are also checked to reach the readers' success paths, so the fuzzers start
+//! from inputs that parse.
 
 #![allow(clippy::unwrap_used)]
 
 use std::path::{Path, PathBuf};
 
-fn corpus(target: &str) -> Vec<PathBuf> {
+fn inputs(kind: &str, target: &str) -> Vec<PathBuf> {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../../fuzz/corpus")
+        .join("../../fuzz")
+        .join(kind)
         .join(target);
     let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)
         .unwrap_or_else(|e| panic!("{}: {e}", dir.display()))
@@ -23,9 +25,9 @@ fn corpus(target: &str) -> Vec<PathBuf> {
 #[test]
 fn every_corpus_input_passes_its_harness() {
     for target in posediff::fuzzing::TARGETS {
-        let files = corpus(target);
-        assert!(!files.is_empty(), "no corpus for {target}");
-        for f in files {
+        let seeds = inputs("seeds", target);
+        assert!(!seeds.is_empty(), "no seeds for {target}");
+        for f in seeds.into_iter().chain(inputs("corpus", target)) {
             let data = std::fs::read(&f).unwrap();
             posediff::fuzzing::run(target, &data);
         }
@@ -36,7 +38,7 @@ fn every_corpus_input_passes_its_harness() {
 fn the_seeds_parse() {
     let seed = |target: &str, name: &str| {
         Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join("../../fuzz/corpus")
+            .join("../../fuzz/seeds")
             .join(target)
             .join(name)
     };

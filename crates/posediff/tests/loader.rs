@@ -86,9 +86,14 @@ fn files_are_found_sorted_read_as_rgb_and_bad_input_is_named() {
     std::fs::write(&corrupt, b"\xff\xd8\xff broken").unwrap();
     let err = load_images(std::slice::from_ref(&corrupt)).unwrap_err();
     assert!(
-        matches!(&err, PosediffError::UnreadableImage(p) if p == &corrupt),
+        matches!(
+            &err,
+            PosediffError::Matching(posediff_matching::MatchingError::CorruptImage { path, .. })
+                if path == &corrupt
+        ),
         "{err}"
     );
+    assert!(err.to_string().contains("truncated JPEG"), "{err}");
     let empty = dir.join("empty");
     std::fs::create_dir_all(&empty).unwrap();
     assert!(matches!(

@@ -1,0 +1,52 @@
+//! `posediff import-colmap`: a COLMAP model to cameras.json.
+
+use std::path::PathBuf;
+
+use posediff::colmap::ColmapModel;
+use posediff::export::{ImageCamera, write_cameras_json_partial};
+use posediff::loader::image_files;
+
+/// Convert a COLMAP model (text or binary) to cameras.json, e.g. for
+/// `estimate --init`: with --images, one entry per image of that folder in its order
+/// (images COLMAP did not register are marked not estimated).
+#[derive(clap::Args)]
+pub struct Args {
+    /// Folder of the COLMAP model (e.g. sparse/0).
+    model: PathBuf,
+    /// The image folder the model belongs to.
+    #[arg(long)]
+    images: Option<PathBuf>,
+    /// Output cameras.json.
+    #[arg(long)]
+    out: PathBuf,
+}
+
+impl Args {
+    /// Runs the command.
+    pub fn run(self) -> anyhow::Result<()> {
+        let Args { model, images, out } = self;
+        let entries = match images {
+            Some(dir) => posediff::export::colmap_for_images(&model, &image_files(&dir)?, &dir)?,
+            None => {
+                let mut cams = posediff::export::read_colmap_cameras(&model)?;
+                cams.sort_by(|a, b| a.image.cmp(&b.image));
+                cams.into_iter()
+                    .map(|c| ImageCamera {
+                        image: c.image,
+                        size: c.camera.image_size,
+                        camera: Some(c.camera),
+                    })
+                    .collect()
+            }
+        };
+        write_cameras_json_partial(&out, &entries)?;
+        let points = ColmapModel::read(&model)?.points.len();
+        println!(
+            "wrote {} ({} of {} images registered; the model has {points} points)",
+            out.display(),
+            entries.iter().filter(|e| e.camera.is_some()).count(),
+            entries.len()
+        );
+        Ok(())
+    }
+}

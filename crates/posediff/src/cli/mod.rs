@@ -1,0 +1,154 @@
+//! The `posediff` commands, one module each (the layout of cargo's `src/bin/cargo/commands/`):
+//! an `Args` struct per command with `fn run(self) -> anyhow::Result<()>`, and what they share
+//! (progress bars, the device argument, the ground truth matched by name).
+
+pub mod bench;
+pub mod estimate;
+pub mod import_colmap;
+pub mod plot;
+pub mod score;
+pub mod train;
+pub mod view;
+
+use std::path::Path;
+
+use anyhow::Context;
+use clap::{Subcommand, ValueEnum};
+use posediff::Progress;
+use posediff::export::ImageCamera;
+
+/// Every command.
+#[derive(Subcommand)]
+pub enum Command {
+    /// Estimate the cameras of a folder of images (or a list of image files).
+    Estimate(estimate::Args),
+    /// Score a method on the real sets of `--data` over `--subsets` (JSON + Markdown report).
+    BenchReal(bench::RealArgs),
+    /// The official CO3Dv2 test protocol (JSON + Markdown report).
+    BenchCo3d(bench::Co3dArgs),
+    /// Train on CO3D-layout data (e.g. `cargo xtask synth` output): the official recipe with a
+    /// frozen backbone whose features are computed once.
+    Train(train::Args),
+    /// Convert a COLMAP model (text or binary) to cameras.json, e.g. for
+    /// `estimate --init`: with --images, one entry per image of that folder in its order
+    /// (images COLMAP did not register are marked not estimated).
+    ImportColmap(import_colmap::Args),
+    /// Score cameras against a ground truth with the official test.py metrics (every pair,
+    /// images not estimated failed in all their pairs).
+    Score(score::Args),
+    /// Write view.html (cameras with thumbnails, points, the aligned ground truth) for an
+    /// output folder of `estimate`.
+    View(view::Args),
+    /// Plot cameras (frusta from above and from the side), optionally against the ground truth.
+    Plot(plot::Args),
+}
+
+impl Command {
+    /// Runs the command.
+    pub fn run(self) -> anyhow::Result<()> {
+        match self {
+            Self::Estimate(a) => a.run(),
+            Self::BenchReal(a) => a.run(),
+            Self::BenchCo3d(a) => a.run(),
+            Self::Train(a) => a.run(),
+            Self::ImportColmap(a) => a.run(),
+            Self::Score(a) => a.run(),
+            Self::View(a) => a.run(),
+            Self::Plot(a) => a.run(),
+        }
+    }
+}
+
+/// Where the network runs.
+#[derive(Clone, Copy, ValueEnum)]
+pub enum DeviceArg {
+    Cpu,
+    Cuda,
+}
+
+impl DeviceArg {
+    /// The candle device.
+    ///
+    /// # Errors
+    /// CUDA without a CUDA build or a GPU.
+    pub fn device(self) -> anyhow::Result<candle_core::Device> {
+        match self {
+            Self::Cpu => Ok(candle_core::Device::Cpu),
+            Self::Cuda => candle_core::Device::new_cuda(0)
+                .context("--device cuda needs a CUDA build (feature `cuda`) and a GPU"),
+        }
+    }
+
+    /// Its name in run.json.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Cpu => "cpu",
+            Self::Cuda => "cuda",
+        }
+    }
+}
+
+/// Progress bars on stderr (drawn only on a terminal).
+#[derive(Default)]
+pub struct Bars {
+    bar: Option<indicatif::ProgressBar>,
+}
+
+impl Progress for Bars {
+    fn start(&mut self, stage: &str, total: u64) {
+        let bar = if total > 0 {
+            let b = indicatif::ProgressBar::new(total);
+            if let Ok(style) = indicatif::ProgressStyle::with_template(
+                "{msg:>10} [{bar:40}] {pos}/{len} {elapsed}",
+            ) {
+                b.set_style(style.progress_chars("=> "));
+            }
+            b
+        } else {
+            let b = indicatif::ProgressBar::new_spinner();
+            b.enable_steady_tick(std::time::Duration::from_millis(120));
+            b
+        };
+        bar.set_message(stage.to_owned());
+        self.bar = Some(bar);
+    }
+
+    fn advance(&mut self) {
+        if let Some(b) = &self.bar {
+            b.inc(1);
+        }
+    }
+
+    fn finish(&mut self) {
+        if let Some(b) = self.bar.take() {
+            b.finish_and_clear();
+        }
+    }
+}
+
+/// The ground truth's cameras for the entries of `cameras`, matched by name: every entry
+/// must have one and every ground-truth camera an entry.
+fn truth_for(
+    cameras: &Path,
+    est: &[ImageCamera],
+    gt: &Path,
+) -> anyhow::Result<Vec<posediff_geometry::Camera>> {
+    let truth = posediff::export::read_cameras_json(gt)
+        .with_context(|| format!("reading {}", gt.display()))?;
+    let names: Vec<String> = est.iter().map(|e| e.image.clone()).collect();
+    posediff::records::match_by_name(
+        &names,
+        truth
+            .into_iter()
+            .map(|c| (c.image.clone(), c.camera))
+            .collect(),
+    )
+    .map_err(|e| anyhow::anyhow!("--gt {}: {e}", gt.display()))?
+    .complete(&format!("--gt (for {})", cameras.display()), gt)
+    .map_err(anyhow::Error::msg)
+}
+
+/// The command line, for reports.
+pub fn command_line() -> String {
+    std::env::args().collect::<Vec<_>>().join(" ")
+}

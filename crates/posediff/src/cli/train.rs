@@ -1,0 +1,155 @@
+//! `posediff train`: the official recipe on CO3D-layout data.
+
+use std::path::PathBuf;
+
+use anyhow::bail;
+
+use super::DeviceArg;
+
+/// Train on CO3D-layout data (e.g. `cargo xtask synth` output): the official recipe with a
+/// frozen backbone whose features are computed once.
+#[derive(clap::Args)]
+pub struct Args {
+    /// CO3D root (image paths of the annotations are relative to it).
+    #[arg(long)]
+    co3d_dir: PathBuf,
+    /// Folder of `{category}_{split}.jgz`.
+    #[arg(long)]
+    annotation_dir: PathBuf,
+    /// Comma-separated categories.
+    #[arg(long)]
+    categories: String,
+    /// Checkpoint folder (model.safetensors, optimizer.safetensors, trainer.json, loss.csv,
+    /// loss.png).
+    #[arg(long)]
+    out: PathBuf,
+    /// Settings: `tiny` (a CPU-sized run) or `official` (cfgs/default_train.yaml).
+    #[arg(long, default_value = "tiny")]
+    config: String,
+    /// Initial weights in the official layout (e.g. the official checkpoint to fine-tune, or
+    /// ../shared/reference/tiny/model_tiny.safetensors); without it a fresh model of the
+    /// preset's depths (PyTorch's default initialisation; DINO's for the ViT, so a frozen
+    /// fresh backbone gives random features: fine-tune from pretrained weights instead).
+    #[arg(long)]
+    init: Option<PathBuf>,
+    /// Keep the backbone fixed and cache its features (no augmentation; the practical mode
+    /// on a CPU). Without it every batch is read, augmented as the official dataset does
+    /// and the backbone is trained too.
+    #[arg(long)]
+    freeze_backbone: bool,
+    /// Continue the run saved in --out.
+    #[arg(long)]
+    resume: bool,
+    /// Override the iteration count of the preset.
+    #[arg(long)]
+    iterations: Option<u64>,
+    /// Stop after this many iterations of this invocation (the schedule still spans
+    /// --iterations; --resume continues).
+    #[arg(long)]
+    stop_after: Option<u64>,
+    /// Annotation split.
+    #[arg(long, default_value = "train")]
+    split: String,
+    /// Where the network runs.
+    #[arg(long, value_enum, default_value = "cpu")]
+    device: DeviceArg,
+    /// No progress bar.
+    #[arg(long)]
+    quiet: bool,
+}
+
+impl Args {
+    /// Runs the command.
+    pub fn run(self) -> anyhow::Result<()> {
+        let Args {
+            co3d_dir,
+            annotation_dir,
+            categories,
+            out,
+            config,
+            init,
+            freeze_backbone,
+            resume,
+            iterations,
+            stop_after,
+            split,
+            device,
+            quiet,
+        } = self;
+        let mut cfg = match config.as_str() {
+            "tiny" => posediff::train::TrainConfig::tiny(),
+            "official" => posediff::train::TrainConfig::official(),
+            other => bail!("unknown --config {other:?} (tiny or official)"),
+        };
+        if let Some(k) = iterations {
+            cfg.iterations = k;
+            cfg.period = cfg.period.min(k.max(1));
+        }
+        let device = device.device()?;
+        let mut trainer = posediff::train::Trainer::open(
+            init.as_deref(),
+            &out,
+            cfg,
+            freeze_backbone,
+            resume,
+            &device,
+        )?;
+        if let (true, Some(k)) = (resume, iterations) {
+            // A resumed run keeps its schedule; only its length changes.
+            trainer.state.config.iterations = k;
+        }
+        let list: Vec<String> = categories
+            .split(',')
+            .map(|c| c.trim().to_owned())
+            .filter(|c| !c.is_empty())
+            .collect();
+        let bar = if quiet {
+            indicatif::ProgressBar::hidden()
+        } else {
+            indicatif::ProgressBar::new(0)
+        };
+        if let Ok(style) =
+            indicatif::ProgressStyle::with_template("{msg:>12} [{bar:40}] {pos}/{len} {elapsed}")
+        {
+            bar.set_style(style.progress_chars("=> "));
+        }
+        bar.set_message("features");
+        let data = posediff::train::load_training_data(
+            &co3d_dir,
+            &annotation_dir,
+            &list,
+            &split,
+            trainer.state.config.min_frames,
+            trainer
+                .state
+                .freeze_backbone
+                .then_some(&trainer.trainable.model),
+            &device,
+            |done, total| {
+                bar.set_length(total as u64);
+                bar.set_position(done as u64);
+            },
+        )?;
+        bar.set_length(trainer.state.config.iterations);
+        bar.set_position(trainer.state.iteration);
+        bar.set_message("training");
+        trainer.run(&data, stop_after, |row, images_per_s| {
+            bar.set_position(row.iteration + 1);
+            bar.set_message(format!(
+                "loss {:.4} lr {:.1e} {:.0} img/s",
+                row.loss, row.lr, images_per_s
+            ));
+        })?;
+        bar.finish_and_clear();
+        if !quiet {
+            println!(
+                "{} sequences; iteration {} of {}; checkpoint in {}",
+                data.len(),
+                trainer.state.iteration,
+                trainer.state.config.iterations,
+                out.display()
+            );
+        }
+        Ok(())
+    }
+}
