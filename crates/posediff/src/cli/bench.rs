@@ -7,7 +7,7 @@ use candle_core::Device;
 use clap::ValueEnum;
 use posediff::{EstimateConfig, Estimator};
 
-use super::command_line;
+use super::{Categories, command_line};
 
 /// What a benchmark scores.
 #[derive(Clone, Copy, ValueEnum)]
@@ -72,7 +72,7 @@ pub struct Co3dArgs {
     annotation_dir: PathBuf,
     /// `seen`, `unseen` or a comma-separated list.
     #[arg(long, default_value = "seen")]
-    categories: String,
+    categories: Categories,
     /// Frames drawn per sequence.
     #[arg(long, default_value_t = 10)]
     num_frames: usize,
@@ -111,21 +111,7 @@ impl Co3dArgs {
             no_ggs,
             out,
         } = self;
-        let list: Vec<String> = match categories.as_str() {
-            "seen" => posediff::co3d::SEEN_CATEGORIES
-                .iter()
-                .map(|c| c.to_string())
-                .collect(),
-            "unseen" => posediff::co3d::UNSEEN_CATEGORIES
-                .iter()
-                .map(|c| c.to_string())
-                .collect(),
-            other => other
-                .split(',')
-                .map(|c| c.trim().to_owned())
-                .filter(|c| !c.is_empty())
-                .collect(),
-        };
+        let list = categories.0;
         let method = bench_method(method, weights.as_deref(), no_ggs)?;
         let report = posediff::bench::bench_co3d(
             &co3d_dir,

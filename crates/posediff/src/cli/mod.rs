@@ -59,6 +59,36 @@ impl Command {
     }
 }
 
+/// A set of CO3D categories: `seen`, `unseen` (the official lists) or a comma-separated list.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Categories(pub Vec<String>);
+
+impl std::str::FromStr for Categories {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        let list: Vec<String> = match s {
+            "seen" => posediff::co3d::SEEN_CATEGORIES
+                .iter()
+                .map(|c| (*c).to_owned())
+                .collect(),
+            "unseen" => posediff::co3d::UNSEEN_CATEGORIES
+                .iter()
+                .map(|c| (*c).to_owned())
+                .collect(),
+            other => other
+                .split(',')
+                .map(|c| c.trim().to_owned())
+                .filter(|c| !c.is_empty())
+                .collect(),
+        };
+        if list.is_empty() {
+            return Err("no category: give `seen`, `unseen` or a comma-separated list".into());
+        }
+        Ok(Self(list))
+    }
+}
+
 /// Where the network runs.
 #[derive(Clone, Copy, ValueEnum)]
 pub enum DeviceArg {

@@ -2,9 +2,36 @@
 
 use std::path::PathBuf;
 
-use anyhow::bail;
+use clap::ValueEnum;
 
-use super::DeviceArg;
+use super::{Categories, DeviceArg};
+
+/// Training settings.
+#[derive(Clone, Copy, ValueEnum)]
+pub enum Preset {
+    /// A CPU-sized run.
+    Tiny,
+    /// The official `cfgs/default_train.yaml`.
+    Official,
+}
+
+/// An annotation split.
+#[derive(Clone, Copy, ValueEnum)]
+pub enum Split {
+    /// `{category}_train.jgz`.
+    Train,
+    /// `{category}_test.jgz`.
+    Test,
+}
+
+impl Split {
+    fn name(self) -> &'static str {
+        match self {
+            Self::Train => "train",
+            Self::Test => "test",
+        }
+    }
+}
 
 /// Train on CO3D-layout data (e.g. `cargo xtask synth` output): the official recipe with a
 /// frozen backbone whose features are computed once.
@@ -16,16 +43,16 @@ pub struct Args {
     /// Folder of `{category}_{split}.jgz`.
     #[arg(long)]
     annotation_dir: PathBuf,
-    /// Comma-separated categories.
+    /// `seen`, `unseen` or a comma-separated list of categories.
     #[arg(long)]
-    categories: String,
+    categories: Categories,
     /// Checkpoint folder (model.safetensors, optimizer.safetensors, trainer.json, loss.csv,
     /// loss.png).
     #[arg(long)]
     out: PathBuf,
-    /// Settings: `tiny` (a CPU-sized run) or `official` (cfgs/default_train.yaml).
-    #[arg(long, default_value = "tiny")]
-    config: String,
+    /// Settings.
+    #[arg(long, value_enum, default_value = "tiny")]
+    config: Preset,
     /// Initial weights in the official layout (e.g. the official checkpoint to fine-tune, or
     /// ../shared/reference/tiny/model_tiny.safetensors); without it a fresh model of the
     /// preset's depths (PyTorch's default initialisation; DINO's for the ViT, so a frozen
@@ -47,9 +74,9 @@ pub struct Args {
     /// --iterations; --resume continues).
     #[arg(long)]
     stop_after: Option<u64>,
-    /// Annotation split.
-    #[arg(long, default_value = "train")]
-    split: String,
+    /// Annotation split (`{category}_{split}.jgz`).
+    #[arg(long, value_enum, default_value = "train")]
+    split: Split,
     /// Where the network runs.
     #[arg(long, value_enum, default_value = "cpu")]
     device: DeviceArg,
@@ -76,10 +103,9 @@ impl Args {
             device,
             quiet,
         } = self;
-        let mut cfg = match config.as_str() {
-            "tiny" => posediff::train::TrainConfig::tiny(),
-            "official" => posediff::train::TrainConfig::official(),
-            other => bail!("unknown --config {other:?} (tiny or official)"),
+        let mut cfg = match config {
+            Preset::Tiny => posediff::train::TrainConfig::tiny(),
+            Preset::Official => posediff::train::TrainConfig::official(),
         };
         if let Some(k) = iterations {
             cfg.iterations = k;
@@ -98,11 +124,7 @@ impl Args {
             // A resumed run keeps its schedule; only its length changes.
             trainer.state.config.iterations = k;
         }
-        let list: Vec<String> = categories
-            .split(',')
-            .map(|c| c.trim().to_owned())
-            .filter(|c| !c.is_empty())
-            .collect();
+        let list = categories.0;
         let bar = if quiet {
             indicatif::ProgressBar::hidden()
         } else {
@@ -118,7 +140,7 @@ impl Args {
             &co3d_dir,
             &annotation_dir,
             &list,
-            &split,
+            split.name(),
             trainer.state.config.min_frames,
             trainer
                 .state
