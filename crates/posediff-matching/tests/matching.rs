@@ -31,15 +31,18 @@ fn temp_dir(tag: &str) -> PathBuf {
     d
 }
 
-/// A binary PGM (P5) image.
-fn write_pgm(path: &Path, width: usize, height: usize, pixel: impl Fn(usize, usize) -> u8) {
-    let mut bytes = format!("P5\n{width} {height}\n255\n").into_bytes();
+/// A grey PNG image (only JPEG and PNG files reach the decoders).
+fn write_png(path: &Path, width: usize, height: usize, pixel: impl Fn(usize, usize) -> u8) {
+    use opencv::prelude::*;
+    let mut bytes = Vec::with_capacity(width * height);
     for y in 0..height {
         for x in 0..width {
             bytes.push(pixel(x, y));
         }
     }
-    std::fs::write(path, bytes).unwrap();
+    let flat = opencv::core::Mat::from_slice(&bytes).unwrap();
+    let img = flat.reshape(1, height as i32).unwrap().try_clone().unwrap();
+    assert!(opencv::imgcodecs::imwrite_def(path.to_str().unwrap(), &img).unwrap());
 }
 
 #[test]
@@ -91,9 +94,9 @@ fn keypoints_are_in_original_pixels_after_downscaling() {
     // at integers) in a 640×480 image, detected on a 320-px copy: SIFT must report it where it
     // is in the original image.
     let dir = temp_dir("blob");
-    let path = dir.join("blob.pgm");
+    let path = dir.join("blob.png");
     let (cx, cy, sigma) = (301.3, 207.6, 6.0);
-    write_pgm(&path, 640, 480, |x, y| {
+    write_png(&path, 640, 480, |x, y| {
         let d2 = (x as f64 - cx).powi(2) + (y as f64 - cy).powi(2);
         (30.0 + 200.0 * (-d2 / (2.0 * sigma * sigma)).exp()).round() as u8
     });
@@ -132,8 +135,8 @@ fn keypoints_are_in_original_pixels_after_downscaling() {
 #[test]
 fn a_featureless_image_has_no_matches_and_bad_input_is_named() {
     let dir = temp_dir("bad");
-    let flat = dir.join("flat.pgm");
-    write_pgm(&flat, 200, 150, |_, _| 128);
+    let flat = dir.join("flat.png");
+    write_png(&flat, 200, 150, |_, _| 128);
     let (images, _) = dataset("strecha_fountainP11");
     let (features, matches) = match_images(
         &[images[0].clone(), flat.clone()],
@@ -153,10 +156,11 @@ fn a_featureless_image_has_no_matches_and_bad_input_is_named() {
     )
     .unwrap_err();
     assert!(
-        matches!(&err, MatchingError::UnreadableImage { path } if path == &corrupt),
+        matches!(&err, MatchingError::CorruptImage { path, .. } if path == &corrupt),
         "{err}"
     );
     assert!(err.to_string().contains("corrupt.jpg"));
+    assert!(err.to_string().contains("JPEG"), "{err}");
     let missing = dir.join("missing.png");
     assert!(matches!(
         read_grey(&missing),
