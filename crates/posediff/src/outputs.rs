@@ -115,8 +115,12 @@ enum ImagesPlan {
     AlreadyThere,
     /// `out/images` → the input folder.
     LinkFolder(PathBuf),
-    /// One entry per image inside the real folder `out/images`.
-    PerFile,
+    /// One entry per image inside the real folder `out/images` (replacing a link that is
+    /// there).
+    PerFile {
+        /// `out/images` is a link to remove first.
+        replace_link: bool,
+    },
 }
 
 fn images_plan(out: &Path, inputs: &InputImages, mode: ImagesMode) -> Result<ImagesPlan> {
@@ -131,24 +135,23 @@ fn images_plan(out: &Path, inputs: &InputImages, mode: ImagesMode) -> Result<Ima
         if dest.canonicalize().is_ok_and(|d| d == canonical) {
             return Ok(ImagesPlan::AlreadyThere);
         }
-        if mode == ImagesMode::Link && !dest.is_dir() {
-            if dest.exists() && !dest.is_symlink() {
-                return Err(PosediffError::InvalidArgument(format!(
-                    "{} exists and is not a folder or a link: remove it or give --images none",
-                    dest.display()
-                )));
-            }
+        if mode == ImagesMode::Link && (dest.is_symlink() || !dest.exists()) {
             return Ok(ImagesPlan::LinkFolder(canonical));
         }
     }
-    // Per-file entries: an existing regular file of another image in the way is an error
-    // (never overwritten in link mode).
-    if dest.is_symlink() && !dest.is_dir() {
+    // `out/images` as a link (an earlier run's, to other images) is replaced by a real folder,
+    // never written through.
+    if dest.is_symlink() {
+        return Ok(ImagesPlan::PerFile { replace_link: true });
+    }
+    if dest.exists() && !dest.is_dir() {
         return Err(PosediffError::InvalidArgument(format!(
-            "{} is a broken link: remove it",
+            "{} exists and is not a folder: remove it or give --images none",
             dest.display()
         )));
     }
+    // Per-file links into a real folder: an existing file of another image in the way is an
+    // error (never overwritten in link mode).
     if mode == ImagesMode::Link && dest.is_dir() {
         for (file, name) in inputs.files.iter().zip(names(inputs)) {
             let entry = dest.join(&name);
@@ -164,7 +167,9 @@ fn images_plan(out: &Path, inputs: &InputImages, mode: ImagesMode) -> Result<Ima
             }
         }
     }
-    Ok(ImagesPlan::PerFile)
+    Ok(ImagesPlan::PerFile {
+        replace_link: false,
+    })
 }
 
 /// Image names as the outputs record them.
@@ -190,7 +195,10 @@ fn make_images(out: &Path, inputs: &InputImages, mode: ImagesMode) -> Result<()>
             }
             symlink(&target, &dest).map_err(io(&dest))
         }
-        ImagesPlan::PerFile => {
+        ImagesPlan::PerFile { replace_link } => {
+            if replace_link {
+                std::fs::remove_file(&dest).map_err(io(&dest))?;
+            }
             for (file, name) in inputs.files.iter().zip(names(inputs)) {
                 let entry = dest.join(&name);
                 if let Some(parent) = entry.parent() {

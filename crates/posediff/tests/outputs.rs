@@ -157,3 +157,37 @@ fn an_unusable_output_folder_fails_before_any_work() {
     prepare_output_dir(&out, &inputs, ImagesMode::None).unwrap();
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+#[test]
+fn an_earlier_runs_link_is_replaced_never_written_through() {
+    let dir = temp_dir("relink");
+    let (inputs, recon) = three_frames(&dir);
+    let run = serde_json::json!({});
+    let elsewhere = dir.join("elsewhere");
+    std::fs::create_dir_all(&elsewhere).unwrap();
+    let out = dir.join("out");
+    std::fs::create_dir_all(&out).unwrap();
+    std::os::unix::fs::symlink(&elsewhere, out.join("images")).unwrap();
+    // Files one by one: a real folder replaces the link; the other folder stays empty.
+    let files = InputImages {
+        folder_given: false,
+        ..inputs.clone()
+    };
+    prepare_output_dir(&out, &files, ImagesMode::Link).unwrap();
+    write_outputs(&out, &recon, &files, &run, &options(ImagesMode::Link)).unwrap();
+    assert!(!out.join("images").is_symlink() && out.join("images").is_dir());
+    assert_eq!(std::fs::read_dir(&elsewhere).unwrap().count(), 0);
+    // A folder: the link points at it.
+    std::fs::remove_dir_all(out.join("images")).unwrap();
+    std::os::unix::fs::symlink(&elsewhere, out.join("images")).unwrap();
+    write_outputs(&out, &recon, &inputs, &run, &options(ImagesMode::Link)).unwrap();
+    assert_eq!(
+        out.join("images").canonicalize().unwrap(),
+        inputs.folder.as_ref().unwrap().canonicalize().unwrap()
+    );
+    assert_eq!(std::fs::read_dir(&elsewhere).unwrap().count(), 0);
+    for p in frame_paths(&out) {
+        assert!(out.join(&p).is_file(), "{p}");
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
