@@ -242,7 +242,7 @@ fn symlink(target: &Path, link: &Path) -> std::io::Result<()> {
 }
 
 /// What was written, for the summary line and run.json.
-#[derive(Debug, Clone, Default, serde::Serialize)]
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
 pub struct Written {
     /// Files and folders written, relative to the output folder.
     pub files: Vec<String>,
@@ -254,8 +254,8 @@ pub struct Written {
     pub mean_track_length: f64,
 }
 
-/// Writes every output of `r` into `out` (see the module's layout), `run` as run.json with a
-/// `"outputs"` entry added.
+/// Writes every output of `r` into `out` (see the module's layout), `run` as run.json with
+/// its `outputs` filled.
 ///
 /// # Errors
 /// I/O errors naming the file; images that cannot be read for the thumbnails.
@@ -263,7 +263,7 @@ pub fn write_outputs(
     out: &Path,
     r: &Reconstruction,
     inputs: &InputImages,
-    run: &serde_json::Value,
+    run: &crate::run_report::RunReport,
     options: &OutputOptions,
 ) -> Result<Written> {
     std::fs::create_dir_all(out).map_err(|source| PosediffError::Write {
@@ -333,9 +333,7 @@ pub fn write_outputs(
         mean_track_length: r.mean_track_length(),
     };
     let mut run = run.clone();
-    if let Some(map) = run.as_object_mut() {
-        map.insert("outputs".into(), serde_json::to_value(&written)?);
-    }
+    run.outputs = Some(written.clone());
     let path = out.join("run.json");
     std::fs::write(&path, serde_json::to_string_pretty(&run)?)
         .map_err(|source| PosediffError::Write { path, source })?;

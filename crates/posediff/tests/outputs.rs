@@ -10,6 +10,7 @@ use posediff::outputs::{
     ImagesMode, InputImages, OutputOptions, prepare_output_dir, write_outputs,
 };
 use posediff::reconstruction::Reconstruction;
+use posediff::run_report::{MethodReport, RunReport};
 use posediff_fixtures::shared_path;
 
 fn temp_dir(tag: &str) -> PathBuf {
@@ -46,6 +47,16 @@ fn three_frames(dir: &Path) -> (InputImages, Reconstruction) {
     )
 }
 
+fn report() -> RunReport {
+    RunReport::new(
+        Vec::new(),
+        MethodReport::Geometric {
+            refine: "None".into(),
+            report: Box::default(),
+        },
+    )
+}
+
 fn options(images: ImagesMode) -> OutputOptions {
     OutputOptions {
         images,
@@ -65,7 +76,7 @@ fn frame_paths(out: &Path) -> Vec<String> {
 fn images_are_linked_copied_or_named_absolutely_and_every_frame_path_resolves() {
     let dir = temp_dir("modes");
     let (inputs, recon) = three_frames(&dir);
-    let run = serde_json::json!({});
+    let run = report();
     // A folder: one link to it.
     let out = dir.join("link");
     prepare_output_dir(&out, &inputs, ImagesMode::Link).unwrap();
@@ -162,7 +173,7 @@ fn an_unusable_output_folder_fails_before_any_work() {
 fn an_earlier_runs_link_is_replaced_never_written_through() {
     let dir = temp_dir("relink");
     let (inputs, recon) = three_frames(&dir);
-    let run = serde_json::json!({});
+    let run = report();
     let elsewhere = dir.join("elsewhere");
     std::fs::create_dir_all(&elsewhere).unwrap();
     let out = dir.join("out");

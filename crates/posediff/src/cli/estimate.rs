@@ -15,6 +15,10 @@ use posediff::outputs::{
     ImagesMode, InputImages, OutputOptions, prepare_output_dir, write_outputs,
 };
 use posediff::reconstruction::Reconstruction;
+use posediff::run_report::{
+    MethodReport, NetworkReport, NetworkSeconds, PairCount, PointsSummary, RunReport, SampleSpread,
+    SkippedImage,
+};
 use posediff::{EstimateConfig, Estimator, Progress, Silent};
 use posediff_matching::Detector;
 use posediff_sfm::points::PointOptions;
@@ -240,9 +244,12 @@ fn estimate(args: Args) -> anyhow::Result<()> {
             }
         );
     }
-    let skipped: Vec<serde_json::Value> = bad_images
+    let skipped: Vec<SkippedImage> = bad_images
         .iter()
-        .map(|(p, why)| serde_json::json!({"image": p, "reason": why}))
+        .map(|(p, why)| SkippedImage {
+            image: p.clone(),
+            reason: why.clone(),
+        })
         .collect();
     let inputs = InputImages {
         files: images.clone(),
@@ -365,17 +372,25 @@ fn estimate(args: Args) -> anyhow::Result<()> {
                 camera: *camera,
             })
             .collect();
-        let run = serde_json::json!({
-            "posediff": env!("CARGO_PKG_VERSION"),
-            "method": "geometric (no checkpoint)",
-            "images": images,
-            "init": args.init,
-            "refine": format!("{:?}", geometric.refinement),
-            "report": result.report,
-            "matches_per_pair": result.pairs.iter().map(|p| serde_json::json!({"first": p.first, "second": p.second, "matches": p.len()})).collect::<Vec<_>>(),
-            "skipped_images": skipped,
-            "warnings": warnings,
-        });
+        let mut run = RunReport::new(
+            images.clone(),
+            MethodReport::Geometric {
+                refine: format!("{:?}", geometric.refinement),
+                report: Box::new(result.report.clone()),
+            },
+        );
+        run.init = args.init.clone();
+        run.skipped_images = skipped;
+        run.warnings = warnings;
+        run.matches_per_pair = result
+            .pairs
+            .iter()
+            .map(|p| PairCount {
+                first: p.first,
+                second: p.second,
+                matches: p.len(),
+            })
+            .collect();
         return finish(
             &args.out,
             entries,
@@ -474,27 +489,49 @@ fn estimate(args: Args) -> anyhow::Result<()> {
     for w in &warnings {
         log::warn!("{w}");
     }
-    let run = serde_json::json!({
-        "posediff": env!("CARGO_PKG_VERSION"),
-        "method": "posediffusion",
-        "weights": weights,
-        "images": images,
-        "init": args.init,
-        "start_step": init_cameras.as_ref().map(|_| args.start_step),
-        "seed": args.seed,
-        "samples": args.samples,
-        "ggs": !args.no_ggs,
-        "bundle": bundle_report,
-        "device": device_name,
-        "seconds": {"load_weights": load_weights, "load_images": estimate.times.load, "matching": estimate.times.matching,
-                    "features": estimate.times.features, "sampling": estimate.times.sampling, "ggs": estimate.times.ggs},
-        "matches_per_pair": estimate.matches_per_pair.iter().map(|(a, b, n)| serde_json::json!({"first": a, "second": b, "matches": n})).collect::<Vec<_>>(),
-        "skipped_images": skipped,
-        "sample_spread": first.iter().zip(estimate.spread()?).map(|(c, s)| serde_json::json!({
-            "image": c.image, "rotation_deg_max": s.rotation_deg_max, "center_distance_max": s.center_distance_max,
-        })).collect::<Vec<_>>(),
-        "warnings": warnings,
-    });
+    let t = &estimate.times;
+    let sample_spread = first
+        .iter()
+        .zip(estimate.spread()?)
+        .map(|(c, s)| SampleSpread {
+            image: c.image.clone(),
+            rotation_deg_max: s.rotation_deg_max,
+            center_distance_max: s.center_distance_max,
+        })
+        .collect();
+    let mut run = RunReport::new(
+        images.clone(),
+        MethodReport::Posediffusion(Box::new(NetworkReport {
+            weights: weights.clone(),
+            start_step: init_cameras.as_ref().map(|_| args.start_step),
+            seed: args.seed,
+            samples: args.samples,
+            ggs: !args.no_ggs,
+            bundle: bundle_report,
+            device: device_name,
+            seconds: NetworkSeconds {
+                load_weights,
+                load_images: t.load,
+                matching: t.matching,
+                features: t.features,
+                sampling: t.sampling,
+                ggs: t.ggs,
+            },
+            sample_spread,
+        })),
+    );
+    run.init = args.init.clone();
+    run.skipped_images = skipped;
+    run.warnings = warnings;
+    run.matches_per_pair = estimate
+        .matches_per_pair
+        .iter()
+        .map(|&(first, second, matches)| PairCount {
+            first,
+            second,
+            matches,
+        })
+        .collect();
     if estimate.pairs.iter().all(|p| p.is_empty()) {
         log::warn!("no verified matches (--no-ggs skips matching): the COLMAP model has no points");
     }
@@ -538,7 +575,7 @@ fn finish(
     entries: Vec<ImageCamera>,
     pairs: &[posediff_geometry::PairMatches],
     inputs: &InputImages,
-    mut run: serde_json::Value,
+    mut run: RunReport,
     options: &OutputOptions,
     quiet: bool,
 ) -> anyhow::Result<()> {
@@ -548,23 +585,7 @@ fn finish(
         pairs,
         &PointOptions::default(),
     )?;
-    if let Some(map) = run.as_object_mut() {
-        map.insert(
-            "points".into(),
-            serde_json::json!({
-                "tracks": points.tracks.tracks,
-                "inconsistent_tracks": points.tracks.inconsistent,
-                "points": points.points,
-                "observations": points.observations,
-                "dropped_observations": points.dropped_observations,
-                "tracks_without_two_estimated_images": points.unseen,
-                "rejected_tracks": points.rejected,
-                "mean_reprojection_error_px": points.mean_error_px,
-                "max_reprojection_px": PointOptions::default().max_reprojection_px,
-                "min_triangulation_angle_deg": PointOptions::default().min_angle_deg,
-            }),
-        );
-    }
+    run.points = Some(PointsSummary::new(&points, &PointOptions::default()));
     let written = write_outputs(out, &recon, inputs, &run, options)?;
     if !quiet {
         println!(

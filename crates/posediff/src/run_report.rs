@@ -1,0 +1,187 @@
+//! `run.json`: one typed record of a run, whichever path estimated the cameras.
+
+use std::path::PathBuf;
+
+use serde::Serialize;
+
+use crate::geometric::GeometricReport;
+use crate::outputs::Written;
+
+/// The version of run.json's layout; raised when a field changes meaning or goes.
+pub const RUN_REPORT_SCHEMA: u32 = 1;
+
+/// How the cameras were estimated, with what that path reports.
+#[derive(Debug, Clone, Serialize)]
+#[serde(tag = "method", rename_all = "snake_case")]
+pub enum MethodReport {
+    /// Without a checkpoint: the mapper of `posediff-sfm`.
+    Geometric {
+        /// `--refine`, as configured.
+        refine: String,
+        /// What each stage did.
+        report: Box<GeometricReport>,
+    },
+    /// PoseDiffusion with `--weights`.
+    Posediffusion(Box<NetworkReport>),
+}
+
+/// What the network path reports.
+#[derive(Debug, Clone, Serialize)]
+pub struct NetworkReport {
+    /// The checkpoint.
+    pub weights: PathBuf,
+    /// The diffusion step the initial cameras were noised to, with `--init`.
+    pub start_step: Option<usize>,
+    /// The sampler's seed.
+    pub seed: u64,
+    /// Samples drawn.
+    pub samples: usize,
+    /// Whether GGS ran.
+    pub ggs: bool,
+    /// The hybrid bundle adjustment's report (`--refine bundle`).
+    pub bundle: Option<crate::geometric::BundleRefinement>,
+    /// `cpu` or `cuda`.
+    pub device: &'static str,
+    /// Seconds per stage.
+    pub seconds: NetworkSeconds,
+    /// Per image, how far the samples spread.
+    pub sample_spread: Vec<SampleSpread>,
+}
+
+/// Seconds per stage of the network path.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct NetworkSeconds {
+    /// Reading the checkpoint.
+    pub load_weights: f64,
+    /// Loading the images.
+    pub load_images: f64,
+    /// Features and matches for GGS.
+    pub matching: f64,
+    /// DINO features.
+    pub features: f64,
+    /// The reverse diffusion.
+    pub sampling: f64,
+    /// GGS inside it.
+    pub ggs: f64,
+}
+
+/// How far the samples of one image spread.
+#[derive(Debug, Clone, Serialize)]
+pub struct SampleSpread {
+    /// The image.
+    pub image: String,
+    /// Largest rotation between two samples, degrees.
+    pub rotation_deg_max: f64,
+    /// Largest distance between two samples' centres.
+    pub center_distance_max: f64,
+}
+
+/// Verified matches of one pair.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct PairCount {
+    /// First image index.
+    pub first: usize,
+    /// Second image index.
+    pub second: usize,
+    /// Verified matches.
+    pub matches: usize,
+}
+
+/// An input image left out (`--skip-bad-images`).
+#[derive(Debug, Clone, Serialize)]
+pub struct SkippedImage {
+    /// The file.
+    pub image: PathBuf,
+    /// Why.
+    pub reason: String,
+}
+
+/// The points of the exports.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct PointsSummary {
+    /// Tracks built from the matches.
+    pub tracks: usize,
+    /// Tracks dropped for seeing an image twice.
+    pub inconsistent_tracks: usize,
+    /// Points kept.
+    pub points: usize,
+    /// Their observations.
+    pub observations: usize,
+    /// Observations dropped beyond the threshold.
+    pub dropped_observations: usize,
+    /// Tracks without two estimated images.
+    pub tracks_without_two_estimated_images: usize,
+    /// Tracks no point fits.
+    pub rejected_tracks: usize,
+    /// Mean reprojection error, px.
+    pub mean_reprojection_error_px: f64,
+    /// The threshold, px.
+    pub max_reprojection_px: f64,
+    /// The smallest triangulation angle kept, degrees.
+    pub min_triangulation_angle_deg: f64,
+}
+
+impl PointsSummary {
+    /// From the triangulation's report and options.
+    pub fn new(
+        r: &posediff_sfm::points::PointsReport,
+        o: &posediff_sfm::points::PointOptions,
+    ) -> Self {
+        Self {
+            tracks: r.tracks.tracks,
+            inconsistent_tracks: r.tracks.inconsistent,
+            points: r.points,
+            observations: r.observations,
+            dropped_observations: r.dropped_observations,
+            tracks_without_two_estimated_images: r.unseen,
+            rejected_tracks: r.rejected,
+            mean_reprojection_error_px: r.mean_error_px,
+            max_reprojection_px: o.max_reprojection_px,
+            min_triangulation_angle_deg: o.min_angle_deg,
+        }
+    }
+}
+
+/// run.json.
+#[derive(Debug, Clone, Serialize)]
+pub struct RunReport {
+    /// [`RUN_REPORT_SCHEMA`].
+    pub schema: u32,
+    /// The version of posediff.
+    pub posediff: &'static str,
+    /// The images used, in order.
+    pub images: Vec<PathBuf>,
+    /// Images left out.
+    pub skipped_images: Vec<SkippedImage>,
+    /// `--init` as given.
+    pub init: Option<String>,
+    /// How the cameras were estimated.
+    #[serde(flatten)]
+    pub method: MethodReport,
+    /// Verified matches per pair.
+    pub matches_per_pair: Vec<PairCount>,
+    /// The points of the exports (filled when they are triangulated).
+    pub points: Option<PointsSummary>,
+    /// Things the user should know.
+    pub warnings: Vec<String>,
+    /// What was written (filled by [`crate::outputs::write_outputs`]).
+    pub outputs: Option<Written>,
+}
+
+impl RunReport {
+    /// A report of this version of posediff.
+    pub fn new(images: Vec<PathBuf>, method: MethodReport) -> Self {
+        Self {
+            schema: RUN_REPORT_SCHEMA,
+            posediff: env!("CARGO_PKG_VERSION"),
+            images,
+            skipped_images: Vec::new(),
+            init: None,
+            method,
+            matches_per_pair: Vec::new(),
+            points: None,
+            warnings: Vec::new(),
+            outputs: None,
+        }
+    }
+}
