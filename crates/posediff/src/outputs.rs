@@ -71,7 +71,7 @@ pub struct InputImages {
 }
 
 /// Longer side of the viewer's thumbnails, px (smaller for long sequences).
-fn thumbnail_side(n: usize) -> u32 {
+pub fn thumbnail_side(n: usize) -> u32 {
     if n > 300 {
         64
     } else if n > 100 {
@@ -255,7 +255,8 @@ pub struct Written {
 }
 
 /// Writes every output of `r` into `out` (see the module's layout), `run` as run.json with
-/// its `outputs` filled.
+/// its `outputs` filled. The viewer's thumbnails are `thumbnails_made` when given (e.g. from
+/// [`Reconstruction::colour_and_thumbnails`], one decode per image), else made here.
 ///
 /// # Errors
 /// I/O errors naming the file; images that cannot be read for the thumbnails.
@@ -265,6 +266,7 @@ pub fn write_outputs(
     inputs: &InputImages,
     run: &crate::run_report::RunReport,
     options: &OutputOptions,
+    thumbnails_made: Option<&[Option<Vec<u8>>]>,
 ) -> Result<Written> {
     std::fs::create_dir_all(out).map_err(|source| PosediffError::Write {
         path: out.to_owned(),
@@ -318,7 +320,10 @@ pub fn write_outputs(
     write_pytorch3d(&out.join("pytorch3d.json"), &with_crops)?;
     files.push("pytorch3d.json".into());
     if options.view {
-        let thumbs = thumbnails(r, &inputs.files)?;
+        let thumbs = match thumbnails_made {
+            Some(t) => t.to_vec(),
+            None => thumbnails(r, &inputs.files)?,
+        };
         let title = set_title(inputs.folder.as_deref());
         let html = crate::viewer::render(&title, r, &thumbs, None)?;
         let path = out.join("view.html");

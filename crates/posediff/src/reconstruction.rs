@@ -164,6 +164,19 @@ impl Reconstruction {
     /// # Errors
     /// A count that does not match the images; an image that cannot be read.
     pub fn colour_from(&mut self, paths: &[PathBuf]) -> Result<()> {
+        self.colour_and_thumbnails(paths, None).map(|_| ())
+    }
+
+    /// [`Self::colour_from`] and, with `thumbnail_side`, a JPEG thumbnail of each estimated
+    /// image ([`thumbnail_jpeg`]) from the same decode: one read of each image.
+    ///
+    /// # Errors
+    /// As [`Self::colour_from`].
+    pub fn colour_and_thumbnails(
+        &mut self,
+        paths: &[PathBuf],
+        thumbnail_side: Option<u32>,
+    ) -> Result<Vec<Option<Vec<u8>>>> {
         if paths.len() != self.images.len() {
             return Err(PosediffError::InvalidArgument(format!(
                 "{} image files for {} images",
@@ -178,19 +191,25 @@ impl Reconstruction {
                 wanted[e.image].push((index, self.images[e.image].keypoints[e.keypoint].xy));
             }
         }
-        let samples: Vec<Vec<(usize, [u8; 3])>> = wanted
+        let per_image: Vec<(Vec<Sample>, Option<Vec<u8>>)> = wanted
             .par_iter()
             .zip(paths)
-            .map(|(w, path)| {
-                if w.is_empty() {
-                    return Ok(Vec::new());
+            .zip(&self.images)
+            .map(|((w, path), record)| {
+                let thumb = thumbnail_side.filter(|_| record.camera.camera.is_some());
+                if w.is_empty() && thumb.is_none() {
+                    return Ok((Vec::new(), None));
                 }
                 let img = read_colour(path)?;
-                Ok(w.iter()
+                let samples = w
+                    .iter()
                     .map(|(index, xy)| (*index, sample(&img, *xy)))
-                    .collect())
+                    .collect();
+                let thumbnail = thumb.map(|side| thumbnail_jpeg(&img, side)).transpose()?;
+                Ok((samples, thumbnail))
             })
             .collect::<Result<_>>()?;
+        let (samples, thumbnails): (Vec<_>, Vec<_>) = per_image.into_iter().unzip();
         let mut sums = vec![[0u64; 4]; self.points.len()];
         for (index, rgb) in samples.into_iter().flatten() {
             let s = &mut sums[index];
@@ -204,7 +223,7 @@ impl Reconstruction {
                 p.rgb = [0, 1, 2].map(|c| ((s[c] + s[3] / 2) / s[3]) as u8);
             }
         }
-        Ok(())
+        Ok(thumbnails)
     }
 
     /// Mean over points of their recorded errors, px (`None` without points).
@@ -221,6 +240,9 @@ impl Reconstruction {
         self.points.iter().map(|p| p.track.len()).sum::<usize>() as f64 / self.points.len() as f64
     }
 }
+
+/// One point's colour as seen in one image.
+type Sample = (usize, [u8; 3]);
 
 /// An image as 8-bit BGR, the file named on failure.
 ///

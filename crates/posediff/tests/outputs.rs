@@ -80,7 +80,15 @@ fn images_are_linked_copied_or_named_absolutely_and_every_frame_path_resolves() 
     // A folder: one link to it.
     let out = dir.join("link");
     prepare_output_dir(&out, &inputs, ImagesMode::Link).unwrap();
-    write_outputs(&out, &recon, &inputs, &run, &options(ImagesMode::Link)).unwrap();
+    write_outputs(
+        &out,
+        &recon,
+        &inputs,
+        &run,
+        &options(ImagesMode::Link),
+        None,
+    )
+    .unwrap();
     assert!(out.join("images").is_symlink());
     for p in frame_paths(&out) {
         assert!(p.starts_with("images/"), "{p}");
@@ -92,7 +100,7 @@ fn images_are_linked_copied_or_named_absolutely_and_every_frame_path_resolves() 
         ..inputs.clone()
     };
     let out = dir.join("files");
-    write_outputs(&out, &recon, &files, &run, &options(ImagesMode::Link)).unwrap();
+    write_outputs(&out, &recon, &files, &run, &options(ImagesMode::Link), None).unwrap();
     assert!(out.join("images").is_dir() && !out.join("images").is_symlink());
     for p in frame_paths(&out) {
         assert!(out.join(&p).is_symlink(), "{p}");
@@ -100,7 +108,15 @@ fn images_are_linked_copied_or_named_absolutely_and_every_frame_path_resolves() 
     }
     // Copies.
     let out = dir.join("copy");
-    write_outputs(&out, &recon, &inputs, &run, &options(ImagesMode::Copy)).unwrap();
+    write_outputs(
+        &out,
+        &recon,
+        &inputs,
+        &run,
+        &options(ImagesMode::Copy),
+        None,
+    )
+    .unwrap();
     for (p, f) in frame_paths(&out).iter().zip(&inputs.files) {
         assert!(!out.join(p).is_symlink());
         assert_eq!(
@@ -110,7 +126,15 @@ fn images_are_linked_copied_or_named_absolutely_and_every_frame_path_resolves() 
     }
     // None: absolute paths.
     let out = dir.join("none");
-    write_outputs(&out, &recon, &inputs, &run, &options(ImagesMode::None)).unwrap();
+    write_outputs(
+        &out,
+        &recon,
+        &inputs,
+        &run,
+        &options(ImagesMode::None),
+        None,
+    )
+    .unwrap();
     assert!(!out.join("images").exists());
     for p in frame_paths(&out) {
         assert!(
@@ -136,6 +160,7 @@ fn images_are_linked_copied_or_named_absolutely_and_every_frame_path_resolves() 
         &scene_inputs,
         &run,
         &options(ImagesMode::Link),
+        None,
     )
     .unwrap();
     assert!(!out.join("images").is_symlink());
@@ -185,13 +210,21 @@ fn an_earlier_runs_link_is_replaced_never_written_through() {
         ..inputs.clone()
     };
     prepare_output_dir(&out, &files, ImagesMode::Link).unwrap();
-    write_outputs(&out, &recon, &files, &run, &options(ImagesMode::Link)).unwrap();
+    write_outputs(&out, &recon, &files, &run, &options(ImagesMode::Link), None).unwrap();
     assert!(!out.join("images").is_symlink() && out.join("images").is_dir());
     assert_eq!(std::fs::read_dir(&elsewhere).unwrap().count(), 0);
     // A folder: the link points at it.
     std::fs::remove_dir_all(out.join("images")).unwrap();
     std::os::unix::fs::symlink(&elsewhere, out.join("images")).unwrap();
-    write_outputs(&out, &recon, &inputs, &run, &options(ImagesMode::Link)).unwrap();
+    write_outputs(
+        &out,
+        &recon,
+        &inputs,
+        &run,
+        &options(ImagesMode::Link),
+        None,
+    )
+    .unwrap();
     assert_eq!(
         out.join("images").canonicalize().unwrap(),
         inputs.folder.as_ref().unwrap().canonicalize().unwrap()

@@ -579,14 +579,15 @@ fn finish(
     options: &OutputOptions,
     quiet: bool,
 ) -> anyhow::Result<()> {
-    let (recon, points) = Reconstruction::triangulate(
-        entries,
-        Some(&inputs.files),
-        pairs,
-        &PointOptions::default(),
-    )?;
+    let (mut recon, points) =
+        Reconstruction::triangulate(entries, None, pairs, &PointOptions::default())?;
+    // Colours and the viewer's thumbnails from one decode of each image.
+    let side = options
+        .view
+        .then(|| posediff::outputs::thumbnail_side(recon.images.len()));
+    let thumbnails = recon.colour_and_thumbnails(&inputs.files, side)?;
     run.points = Some(PointsSummary::new(&points, &PointOptions::default()));
-    let written = write_outputs(out, &recon, inputs, &run, options)?;
+    let written = write_outputs(out, &recon, inputs, &run, options, Some(&thumbnails))?;
     if !quiet {
         println!(
             "{:<32} {:>9} {:>9} {:>28}",
