@@ -65,6 +65,11 @@ fn options(images: ImagesMode) -> OutputOptions {
     }
 }
 
+/// `write_outputs` without the viewer, thumbnails made there.
+fn write(out: &Path, recon: &Reconstruction, inputs: &InputImages, mode: ImagesMode) {
+    write_outputs(out, recon, inputs, &report(), &options(mode), None).unwrap();
+}
+
 fn frame_paths(out: &Path) -> Vec<String> {
     let t: NerfstudioTransforms =
         serde_json::from_str(&std::fs::read_to_string(out.join("transforms.json")).unwrap())
@@ -76,19 +81,10 @@ fn frame_paths(out: &Path) -> Vec<String> {
 fn images_are_linked_copied_or_named_absolutely_and_every_frame_path_resolves() {
     let dir = temp_dir("modes");
     let (inputs, recon) = three_frames(&dir);
-    let run = report();
     // A folder: one link to it.
     let out = dir.join("link");
     prepare_output_dir(&out, &inputs, ImagesMode::Link).unwrap();
-    write_outputs(
-        &out,
-        &recon,
-        &inputs,
-        &run,
-        &options(ImagesMode::Link),
-        None,
-    )
-    .unwrap();
+    write(&out, &recon, &inputs, ImagesMode::Link);
     assert!(out.join("images").is_symlink());
     for p in frame_paths(&out) {
         assert!(p.starts_with("images/"), "{p}");
@@ -100,7 +96,7 @@ fn images_are_linked_copied_or_named_absolutely_and_every_frame_path_resolves() 
         ..inputs.clone()
     };
     let out = dir.join("files");
-    write_outputs(&out, &recon, &files, &run, &options(ImagesMode::Link), None).unwrap();
+    write(&out, &recon, &files, ImagesMode::Link);
     assert!(out.join("images").is_dir() && !out.join("images").is_symlink());
     for p in frame_paths(&out) {
         assert!(out.join(&p).is_symlink(), "{p}");
@@ -108,15 +104,7 @@ fn images_are_linked_copied_or_named_absolutely_and_every_frame_path_resolves() 
     }
     // Copies.
     let out = dir.join("copy");
-    write_outputs(
-        &out,
-        &recon,
-        &inputs,
-        &run,
-        &options(ImagesMode::Copy),
-        None,
-    )
-    .unwrap();
+    write(&out, &recon, &inputs, ImagesMode::Copy);
     for (p, f) in frame_paths(&out).iter().zip(&inputs.files) {
         assert!(!out.join(p).is_symlink());
         assert_eq!(
@@ -126,15 +114,7 @@ fn images_are_linked_copied_or_named_absolutely_and_every_frame_path_resolves() 
     }
     // None: absolute paths.
     let out = dir.join("none");
-    write_outputs(
-        &out,
-        &recon,
-        &inputs,
-        &run,
-        &options(ImagesMode::None),
-        None,
-    )
-    .unwrap();
+    write(&out, &recon, &inputs, ImagesMode::None);
     assert!(!out.join("images").exists());
     for p in frame_paths(&out) {
         assert!(
@@ -154,15 +134,7 @@ fn images_are_linked_copied_or_named_absolutely_and_every_frame_path_resolves() 
         folder_given: true,
     };
     std::fs::rename(dir.join("in"), dir.join("images")).unwrap();
-    write_outputs(
-        &out,
-        &recon,
-        &scene_inputs,
-        &run,
-        &options(ImagesMode::Link),
-        None,
-    )
-    .unwrap();
+    write(&out, &recon, &scene_inputs, ImagesMode::Link);
     assert!(!out.join("images").is_symlink());
     assert_eq!(frame_paths(&out).len(), 3);
     std::fs::remove_dir_all(&dir).unwrap();
@@ -198,7 +170,6 @@ fn an_unusable_output_folder_fails_before_any_work() {
 fn an_earlier_runs_link_is_replaced_never_written_through() {
     let dir = temp_dir("relink");
     let (inputs, recon) = three_frames(&dir);
-    let run = report();
     let elsewhere = dir.join("elsewhere");
     std::fs::create_dir_all(&elsewhere).unwrap();
     let out = dir.join("out");
@@ -210,21 +181,13 @@ fn an_earlier_runs_link_is_replaced_never_written_through() {
         ..inputs.clone()
     };
     prepare_output_dir(&out, &files, ImagesMode::Link).unwrap();
-    write_outputs(&out, &recon, &files, &run, &options(ImagesMode::Link), None).unwrap();
+    write(&out, &recon, &files, ImagesMode::Link);
     assert!(!out.join("images").is_symlink() && out.join("images").is_dir());
     assert_eq!(std::fs::read_dir(&elsewhere).unwrap().count(), 0);
     // A folder: the link points at it.
     std::fs::remove_dir_all(out.join("images")).unwrap();
     std::os::unix::fs::symlink(&elsewhere, out.join("images")).unwrap();
-    write_outputs(
-        &out,
-        &recon,
-        &inputs,
-        &run,
-        &options(ImagesMode::Link),
-        None,
-    )
-    .unwrap();
+    write(&out, &recon, &inputs, ImagesMode::Link);
     assert_eq!(
         out.join("images").canonicalize().unwrap(),
         inputs.folder.as_ref().unwrap().canonicalize().unwrap()
