@@ -6,6 +6,17 @@ use std::path::PathBuf;
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
 pub enum PosediffError {
+    /// An input path that does not exist.
+    #[error("no such file or directory: {0}")]
+    NotFound(PathBuf),
+    /// An error while reading one of the inputs a flag names.
+    #[error("{what}: {source}")]
+    Context {
+        /// What was being done, naming the flag and the file.
+        what: String,
+        /// Why it failed.
+        source: Box<PosediffError>,
+    },
     /// A folder without images.
     #[error("no .png/.jpg/.jpeg images in {0}")]
     NoImages(PathBuf),
@@ -83,6 +94,14 @@ pub enum PosediffError {
 }
 
 impl PosediffError {
+    /// The innermost error (past every [`PosediffError::Context`]).
+    pub fn root(&self) -> &Self {
+        match self {
+            Self::Context { source, .. } => source.root(),
+            other => other,
+        }
+    }
+
     /// A read failure of `path`.
     pub(crate) fn read(path: &std::path::Path, source: std::io::Error) -> Self {
         Self::Read {

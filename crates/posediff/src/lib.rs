@@ -10,6 +10,7 @@
 //! - [`colmap`]: COLMAP sparse models, text and binary, with points.
 //! - [`fuzzing`]: the harnesses of the fuzz targets (`fuzz/`) and of the corpus replay test.
 //! - [`records`]: per-image records matched to the images by name, never by position.
+//! - [`run`]: one estimation run, either path: inputs checked, cameras, points, one result.
 //! - [`run_report`]: run.json, one typed record for both estimation paths.
 //! - [`outputs`]: the output folder (COLMAP sparse/0, images, nerfstudio, PLY, viewer).
 //! - [`viewer`]: view.html, a self-contained three.js page.
@@ -33,6 +34,7 @@ pub mod pipeline;
 pub mod plot;
 pub mod reconstruction;
 pub mod records;
+pub mod run;
 pub mod run_report;
 pub mod train;
 pub mod viewer;

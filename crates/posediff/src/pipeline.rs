@@ -259,6 +259,20 @@ impl Estimator {
         })
     }
 
+    /// The same model with other settings (the weights are shared, not copied).
+    pub fn with_config(&self, config: EstimateConfig) -> Self {
+        Self {
+            model: self.model.clone(),
+            device: self.device.clone(),
+            config,
+        }
+    }
+
+    /// Its settings.
+    pub fn config(&self) -> &EstimateConfig {
+        &self.config
+    }
+
     /// An estimator around an already loaded model.
     pub fn from_model(model: PoseDiffusionModel, device: Device, config: EstimateConfig) -> Self {
         Self {

@@ -8,7 +8,7 @@ use crate::geometric::GeometricReport;
 use crate::outputs::Written;
 
 /// The version of run.json's layout; raised when a field changes meaning or goes.
-pub const RUN_REPORT_SCHEMA: u32 = 1;
+pub const RUN_REPORT_SCHEMA: u32 = 2;
 
 /// How the cameras were estimated, with what that path reports.
 #[derive(Debug, Clone, Serialize)]
@@ -16,8 +16,8 @@ pub const RUN_REPORT_SCHEMA: u32 = 1;
 pub enum MethodReport {
     /// Without a checkpoint: the mapper of `posediff-sfm`.
     Geometric {
-        /// `--refine`, as configured.
-        refine: String,
+        /// `--refine`.
+        refine: crate::run::RefineMode,
         /// What each stage did.
         report: Box<GeometricReport>,
     },

@@ -51,7 +51,7 @@ fn report() -> RunReport {
     RunReport::new(
         Vec::new(),
         MethodReport::Geometric {
-            refine: "None".into(),
+            refine: posediff::run::RefineMode::None,
             report: Box::default(),
         },
     )

@@ -1,0 +1,662 @@
+//! One estimation run, whichever path makes the cameras: the input images checked and named,
+//! the options checked before any expensive work, the cameras from the checkpoint-free mapper
+//! or from PoseDiffusion, the points triangulated and coloured, and one [`Run`] that the CLI
+//! and the Python module write the same way.
+//!
+//! ```text
+//! Inputs::resolve ─► RunOptions::check ─► run ─► Run { reconstruction, report } ─► Run::write
+//! ```
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use posediff_geometry::{Camera, PairMatches};
+use posediff_matching::{Detector, PairSelection};
+use posediff_sfm::points::PointOptions;
+use serde::Serialize;
+
+use crate::error::{PosediffError, Result};
+use crate::export::{ImageCamera, read_cameras_json_partial};
+use crate::geometric::{
+    GeometricConfig, KnownIntrinsics, Refinement, bundle_refine_cameras, estimate_geometric,
+    refine_given_cameras,
+};
+use crate::loader::{check_images, image_files};
+use crate::outputs::{InputImages, OutputOptions, Written, write_outputs};
+use crate::pipeline::{Estimator, Progress, relative_name};
+use crate::reconstruction::Reconstruction;
+use crate::records::{Matched, match_by_name};
+use crate::run_report::{
+    MethodReport, NetworkReport, NetworkSeconds, PairCount, PointsSummary, RunReport, SampleSpread,
+    SkippedImage,
+};
+
+/// The input images, checked and named: the files in use, the folder their names are relative
+/// to, and the files left out.
+#[derive(Debug, Clone)]
+pub struct Inputs {
+    /// The files in use and their folder.
+    pub images: InputImages,
+    /// Each image's name (relative to the folder): the key of every per-image record.
+    pub names: Vec<String>,
+    /// Images left out as unusable (only with `skip_bad_images`).
+    pub skipped: Vec<SkippedImage>,
+}
+
+impl Inputs {
+    /// A folder (its .png/.jpg/.jpeg files, sorted) or image files (in the order given); every
+    /// image's header is checked, and unusable images stop the run unless `skip_bad_images`.
+    ///
+    /// # Errors
+    /// A path that does not exist; a folder among files; a folder without images; unusable
+    /// images (listed); fewer than two images; two images of the same name.
+    pub fn resolve(paths: &[PathBuf], skip_bad_images: bool) -> Result<Self> {
+        for path in paths {
+            if !path.exists() {
+                return Err(PosediffError::NotFound(path.clone()));
+            }
+        }
+        let folder_given = matches!(paths, [one] if one.is_dir());
+        let (listed, folder) = match paths {
+            [one] if one.is_dir() => (image_files(one)?, Some(one.clone())),
+            files => {
+                if let Some(dir) = files.iter().find(|f| f.is_dir()) {
+                    return Err(PosediffError::InvalidArgument(format!(
+                        "{} is a folder: give one folder, or image files",
+                        dir.display()
+                    )));
+                }
+                let folder = files
+                    .first()
+                    .and_then(|f| f.parent())
+                    .map(Path::to_path_buf);
+                (files.to_vec(), folder)
+            }
+        };
+        let (files, bad) = check_images(&listed);
+        if !bad.is_empty() {
+            let list: Vec<String> = bad
+                .iter()
+                .map(|(p, why)| format!("{}: {why}", p.display()))
+                .collect();
+            if !skip_bad_images {
+                return Err(PosediffError::InvalidArgument(format!(
+                    "{} unusable image(s) (give --skip-bad-images to go on without them):\n  {}",
+                    list.len(),
+                    list.join("\n  ")
+                )));
+            }
+            for l in &list {
+                log::warn!("skipped {l}");
+            }
+        }
+        if files.len() < 2 {
+            return Err(PosediffError::InvalidArgument(format!(
+                "need at least 2 images, got {}{}",
+                files.len(),
+                if bad.is_empty() {
+                    String::new()
+                } else {
+                    format!(" after skipping {} unusable", bad.len())
+                }
+            )));
+        }
+        let names: Vec<String> = files
+            .iter()
+            .map(|p| relative_name(p, folder.as_deref()))
+            .collect();
+        let mut seen = HashMap::new();
+        for (k, n) in names.iter().enumerate() {
+            if let Some(first) = seen.insert(n.as_str(), k) {
+                return Err(PosediffError::InvalidArgument(format!(
+                    "{} and {} have the same name {n:?}: the outputs name images by it; give each image once, with distinct file names",
+                    files[first].display(),
+                    files[k].display()
+                )));
+            }
+        }
+        Ok(Self {
+            images: InputImages {
+                files,
+                folder,
+                folder_given,
+            },
+            names,
+            skipped: bad
+                .into_iter()
+                .map(|(image, reason)| SkippedImage { image, reason })
+                .collect(),
+        })
+    }
+}
+
+/// Where the initial cameras come from (`--init`).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum InitSource {
+    /// The checkpoint-free cameras (`geometric`).
+    Geometric,
+    /// A cameras.json, matched to the images by name.
+    File(PathBuf),
+}
+
+impl std::str::FromStr for InitSource {
+    type Err = std::convert::Infallible;
+
+    fn from_str(s: &str) -> std::result::Result<Self, Self::Err> {
+        Ok(match s {
+            "geometric" => Self::Geometric,
+            path => Self::File(PathBuf::from(path)),
+        })
+    }
+}
+
+impl std::fmt::Display for InitSource {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Geometric => f.write_str("geometric"),
+            Self::File(p) => write!(f, "{}", p.display()),
+        }
+    }
+}
+
+/// Where the intrinsics come from.
+#[derive(Debug, Clone, PartialEq)]
+pub enum IntrinsicsSource {
+    /// Estimated (one shared focal, principal points at the centres).
+    Estimate,
+    /// One known focal length in pixels for every image.
+    FocalPx(f64),
+    /// A cameras.json whose `K` per image is used (matched by name; R and t ignored).
+    File(PathBuf),
+    /// Given per image, in image order.
+    PerImage(Vec<posediff_geometry::Intrinsics>),
+}
+
+/// How the cameras are refined (`--refine`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum RefineMode {
+    /// Levenberg–Marquardt on the Sampson distances until the cost stops falling, then the
+    /// bundle adjustment with tracks.
+    #[default]
+    Converge,
+    /// With a checkpoint: PoseDiffusion's cameras (after GGS) refined by the mapper's bundle
+    /// adjustment; without, as `Converge`.
+    Bundle,
+    /// The official five-phase GGS schedule (7000 SGD iterations) in the 224 crops.
+    Official,
+    /// The averaged cameras as they are.
+    None,
+}
+
+/// Everything a run is asked to do besides its images and its checkpoint.
+#[derive(Debug, Clone)]
+pub struct RunOptions {
+    /// Initial cameras.
+    pub init: Option<InitSource>,
+    /// With a checkpoint and `init`: the diffusion step the initial cameras are noised to.
+    pub start_step: usize,
+    /// Known or estimated intrinsics.
+    pub intrinsics: IntrinsicsSource,
+    /// Refinement.
+    pub refine: RefineMode,
+    /// Which pairs the checkpoint-free path matches.
+    pub pairs: PairSelection,
+    /// Keypoint detector.
+    pub detector: Detector,
+    /// Seed of the sampler.
+    pub seed: u64,
+    /// Samples per image set.
+    pub samples: usize,
+    /// Geometry-guided sampling (and its matching).
+    pub ggs: bool,
+    /// Longer side of the viewer's thumbnails, made from the same decode as the colours
+    /// (`None`: no thumbnails now; the writer makes them when it needs them).
+    pub thumbnail_side: Option<u32>,
+}
+
+impl Default for RunOptions {
+    fn default() -> Self {
+        Self {
+            init: None,
+            start_step: DEFAULT_START_STEP,
+            intrinsics: IntrinsicsSource::Estimate,
+            refine: RefineMode::Converge,
+            pairs: PairSelection::Auto,
+            detector: Detector::Sift,
+            seed: 0,
+            samples: 1,
+            ggs: true,
+            thumbnail_side: None,
+        }
+    }
+}
+
+/// The diffusion step initial cameras are noised to by default.
+pub const DEFAULT_START_STEP: usize = 30;
+
+impl RunOptions {
+    /// The checks that need no image: counts and numbers in range.
+    ///
+    /// # Errors
+    /// An option out of range, naming it.
+    pub fn check(&self) -> Result<()> {
+        if self.samples == 0 {
+            return Err(PosediffError::InvalidArgument(
+                "--samples must be at least 1".into(),
+            ));
+        }
+        if let IntrinsicsSource::FocalPx(f) = self.intrinsics
+            && !(f.is_finite() && f > 0.0)
+        {
+            return Err(PosediffError::InvalidArgument(format!(
+                "--focal-px must be a positive, finite number of pixels, got {f}"
+            )));
+        }
+        if self.start_step > 99 {
+            return Err(PosediffError::InvalidArgument(format!(
+                "--start-step must be 0-99 (a step of the 100-step schedule), got {}",
+                self.start_step
+            )));
+        }
+        if let Some(InitSource::File(p)) = &self.init
+            && !p.is_file()
+        {
+            return Err(PosediffError::NotFound(p.clone()));
+        }
+        if let IntrinsicsSource::File(p) = &self.intrinsics
+            && !p.is_file()
+        {
+            return Err(PosediffError::NotFound(p.clone()));
+        }
+        Ok(())
+    }
+
+    fn geometric_config(&self, intrinsics: &KnownIntrinsics) -> GeometricConfig {
+        let mut config = GeometricConfig {
+            intrinsics: intrinsics.clone(),
+            pairs: self.pairs.clone(),
+            refinement: match self.refine {
+                RefineMode::Converge | RefineMode::Bundle => Refinement::Converge(
+                    posediff_sfm::sampson_refine::SampsonRefineOptions::default(),
+                ),
+                RefineMode::Official => {
+                    Refinement::Official(posediff_guidance::GgsConfig::default())
+                }
+                RefineMode::None => Refinement::None,
+            },
+            ..GeometricConfig::default()
+        };
+        config.matching.features.detector = self.detector;
+        config
+    }
+}
+
+/// A loaded checkpoint for [`run`], with what run.json says of it.
+#[derive(Debug, Clone, Copy)]
+pub struct Network<'a> {
+    /// The model.
+    pub estimator: &'a Estimator,
+    /// Its file.
+    pub weights: &'a Path,
+    /// `cpu` or `cuda`.
+    pub device: &'static str,
+    /// Seconds spent loading it.
+    pub load_seconds: f64,
+}
+
+/// The result of a run: cameras and points, and the report (run.json without its outputs).
+#[derive(Debug, Clone)]
+pub struct Run {
+    /// Images with cameras (or `None` where not estimated), keypoints and points.
+    pub reconstruction: Reconstruction,
+    /// What the run did.
+    pub report: RunReport,
+    /// The images, for the writers (links, thumbnails, colours).
+    pub inputs: InputImages,
+    /// The viewer's thumbnails when [`RunOptions::thumbnail_side`] asked for them.
+    pub thumbnails: Option<Vec<Option<Vec<u8>>>>,
+}
+
+impl Run {
+    /// Writes every output into `out` (see [`crate::outputs`]); `out` should have passed
+    /// [`crate::outputs::prepare_output_dir`].
+    ///
+    /// # Errors
+    /// As [`write_outputs`].
+    pub fn write(&self, out: &Path, options: &OutputOptions) -> Result<Written> {
+        write_outputs(
+            out,
+            &self.reconstruction,
+            &self.inputs,
+            &self.report,
+            options,
+            self.thumbnails.as_deref(),
+        )
+    }
+}
+
+/// Initial cameras, resolved against the images.
+enum Init {
+    Geometric,
+    /// Per image (`None`: no camera given).
+    Given(Vec<Option<Camera>>),
+}
+
+/// Estimates the cameras of `inputs` with the checkpoint-free mapper, or with PoseDiffusion
+/// when `network` is given, then triangulates and colours the points.
+///
+/// # Errors
+/// Invalid options; a cameras.json (`init`, intrinsics) that names none of the images; every
+/// error of the estimation itself.
+pub fn run(
+    inputs: &Inputs,
+    options: &RunOptions,
+    network: Option<Network<'_>>,
+    progress: &mut dyn Progress,
+) -> Result<Run> {
+    options.check()?;
+    let names = &inputs.names;
+    let files = &inputs.images.files;
+    let known = match &options.intrinsics {
+        IntrinsicsSource::Estimate => KnownIntrinsics::Unknown,
+        IntrinsicsSource::FocalPx(f) => KnownIntrinsics::FocalPx(*f),
+        IntrinsicsSource::PerImage(k) => {
+            if k.len() != files.len() {
+                return Err(PosediffError::InvalidArgument(format!(
+                    "{} intrinsics for {} images",
+                    k.len(),
+                    files.len()
+                )));
+            }
+            KnownIntrinsics::PerImage(k.clone())
+        }
+        IntrinsicsSource::File(path) => {
+            let given = read_per_image(path, names, "--intrinsics")?
+                .complete("--intrinsics", path)
+                .map_err(|e| PosediffError::invalid(path, e))?;
+            KnownIntrinsics::PerImage(
+                given
+                    .iter()
+                    .map(|g| {
+                        g.camera.map(|c| c.intrinsics).ok_or_else(|| {
+                            PosediffError::invalid(path, format!("no K for {}", g.image))
+                        })
+                    })
+                    .collect::<Result<Vec<_>>>()?,
+            )
+        }
+    };
+    let mut warnings = Vec::new();
+    let init = match &options.init {
+        None => None,
+        Some(InitSource::Geometric) => Some(Init::Geometric),
+        Some(InitSource::File(path)) => {
+            let matched = read_per_image(path, names, "--init")?;
+            if matched.matched() == 0 {
+                return Err(PosediffError::invalid(
+                    path,
+                    matched.mismatch("--init", path),
+                ));
+            }
+            if !matched.images_without_record.is_empty()
+                || !matched.records_without_image.is_empty()
+            {
+                warnings.push(format!(
+                    "{} (images without an initial camera start uninitialised)",
+                    matched.mismatch("--init", path)
+                ));
+            }
+            let cams: Vec<Option<Camera>> = matched
+                .per_image
+                .into_iter()
+                .map(|r| r.and_then(|r| r.camera))
+                .collect();
+            if cams.iter().all(Option::is_none) {
+                return Err(PosediffError::invalid(
+                    path,
+                    "--init: none of its cameras is estimated",
+                ));
+            }
+            Some(Init::Given(cams))
+        }
+    };
+    let geometric = options.geometric_config(&known);
+    let (entries, pairs, mut report) = match network {
+        None => {
+            progress.start("geometry", 0);
+            let result = match &init {
+                Some(Init::Given(cams)) => refine_given_cameras(files, cams, &geometric),
+                _ => estimate_geometric(files, &geometric),
+            };
+            progress.finish();
+            let result = result?;
+            warnings.extend(result.warnings.iter().cloned());
+            let entries: Vec<ImageCamera> = names
+                .iter()
+                .zip(&result.cameras)
+                .zip(&result.sizes)
+                .map(|((name, camera), size)| ImageCamera {
+                    image: name.clone(),
+                    size: *size,
+                    camera: *camera,
+                })
+                .collect();
+            let mut report = RunReport::new(
+                files.clone(),
+                MethodReport::Geometric {
+                    refine: options.refine,
+                    report: Box::new(result.report.clone()),
+                },
+            );
+            report.matches_per_pair = pair_counts(&result.pairs);
+            (entries, result.pairs, report)
+        }
+        Some(net) => network_run(
+            inputs,
+            options,
+            net,
+            &known,
+            &geometric,
+            init,
+            &mut warnings,
+            progress,
+        )?,
+    };
+    for w in &warnings {
+        log::warn!("{w}");
+    }
+    report.init = options.init.as_ref().map(ToString::to_string);
+    report.skipped_images = inputs.skipped.clone();
+    report.warnings = warnings;
+    let point_options = PointOptions::default();
+    let (mut reconstruction, points) =
+        Reconstruction::triangulate(entries, None, &pairs, &point_options)?;
+    // Colours (and the viewer's thumbnails) from one decode of each image.
+    let thumbnails = reconstruction.colour_and_thumbnails(files, options.thumbnail_side)?;
+    report.points = Some(PointsSummary::new(&points, &point_options));
+    Ok(Run {
+        reconstruction,
+        report,
+        inputs: inputs.images.clone(),
+        thumbnails: options.thumbnail_side.map(|_| thumbnails),
+    })
+}
+
+/// The PoseDiffusion path: cameras, the matches of GGS, the report.
+#[allow(clippy::too_many_arguments)] // the pieces of one run, each used once
+fn network_run(
+    inputs: &Inputs,
+    options: &RunOptions,
+    net: Network<'_>,
+    known: &KnownIntrinsics,
+    geometric: &GeometricConfig,
+    init: Option<Init>,
+    warnings: &mut Vec<String>,
+    progress: &mut dyn Progress,
+) -> Result<(Vec<ImageCamera>, Vec<PairMatches>, RunReport)> {
+    let names = &inputs.names;
+    let files = &inputs.images.files;
+    let init_cameras: Option<Vec<Camera>> = match init {
+        None => None,
+        Some(source) => {
+            let given = match source {
+                Init::Geometric => {
+                    progress.start("geometry", 0);
+                    let g = estimate_geometric(files, geometric);
+                    progress.finish();
+                    let g = g?;
+                    warnings.extend(g.warnings);
+                    g.cameras
+                }
+                Init::Given(cams) => cams,
+            };
+            let Some(fallback) = given.iter().flatten().next().copied() else {
+                return Err(PosediffError::InvalidArgument(
+                    "the initial estimate has no camera".into(),
+                ));
+            };
+            let missing: Vec<&str> = names
+                .iter()
+                .zip(&given)
+                .filter(|(_, c)| c.is_none())
+                .map(|(n, _)| n.as_str())
+                .collect();
+            if !missing.is_empty() {
+                warnings.push(format!(
+                    "no initial camera for {}: the diffusion starts them at the first estimated camera",
+                    missing.join(", ")
+                ));
+            }
+            Some(given.iter().map(|c| c.unwrap_or(fallback)).collect())
+        }
+    };
+    let mut config = crate::EstimateConfig {
+        seed: options.seed,
+        samples: options.samples,
+        ggs: options.ggs,
+        intrinsics: known.clone(),
+        ..net.estimator.config().clone()
+    };
+    config.matching.features.detector = options.detector;
+    let estimator = net.estimator.with_config(config);
+    let estimate = estimator.estimate_from(
+        files,
+        inputs.images.folder.as_deref(),
+        init_cameras.as_deref().map(|c| (c, options.start_step)),
+        progress,
+    )?;
+    let mut first = estimate.samples[0].clone();
+    let mut bundle = None;
+    if options.refine == RefineMode::Bundle {
+        if estimate.pairs.iter().all(|p| p.is_empty()) {
+            return Err(PosediffError::InvalidArgument(
+                "--refine bundle needs verified matches (none were found, or --no-ggs was given)"
+                    .into(),
+            ));
+        }
+        let mut cams: Vec<Camera> = first.iter().map(|c| c.camera).collect();
+        let report = bundle_refine_cameras(
+            &mut cams,
+            &estimate.pairs,
+            !matches!(known, KnownIntrinsics::Unknown),
+        )?;
+        for (named, c) in first.iter_mut().zip(cams) {
+            named.camera = c;
+        }
+        bundle = Some(report);
+    }
+    let entries: Vec<ImageCamera> = first
+        .iter()
+        .map(|c| ImageCamera {
+            image: c.image.clone(),
+            size: c.camera.image_size,
+            camera: Some(c.camera),
+        })
+        .collect();
+    warnings.extend(estimate.warnings.iter().cloned());
+    if estimate.pairs.iter().all(|p| p.is_empty()) {
+        warnings.push(
+            "no verified matches (GGS off skips matching): the COLMAP model has no points".into(),
+        );
+    }
+    let t = &estimate.times;
+    let sample_spread = first
+        .iter()
+        .zip(estimate.spread()?)
+        .map(|(c, s)| SampleSpread {
+            image: c.image.clone(),
+            rotation_deg_max: s.rotation_deg_max,
+            center_distance_max: s.center_distance_max,
+        })
+        .collect();
+    let mut report = RunReport::new(
+        files.clone(),
+        MethodReport::Posediffusion(Box::new(NetworkReport {
+            weights: net.weights.to_owned(),
+            start_step: init_cameras.as_ref().map(|_| options.start_step),
+            seed: options.seed,
+            samples: options.samples,
+            ggs: options.ggs,
+            bundle,
+            device: net.device,
+            seconds: NetworkSeconds {
+                load_weights: net.load_seconds,
+                load_images: t.load,
+                matching: t.matching,
+                features: t.features,
+                sampling: t.sampling,
+                ggs: t.ggs,
+            },
+            sample_spread,
+        })),
+    );
+    report.matches_per_pair = estimate
+        .matches_per_pair
+        .iter()
+        .map(|&(first, second, matches)| PairCount {
+            first,
+            second,
+            matches,
+        })
+        .collect();
+    Ok((entries, estimate.pairs, report))
+}
+
+fn pair_counts(pairs: &[PairMatches]) -> Vec<PairCount> {
+    pairs
+        .iter()
+        .map(|p| PairCount {
+            first: p.first,
+            second: p.second,
+            matches: p.len(),
+        })
+        .collect()
+}
+
+/// A cameras.json's entries matched to the images by name.
+fn read_per_image(path: &Path, names: &[String], what: &str) -> Result<Matched<ImageCamera>> {
+    let given = read_cameras_json_partial(path).map_err(|e| PosediffError::Context {
+        what: format!("reading {what} {}", path.display()),
+        source: Box::new(e),
+    })?;
+    match_by_name(
+        names,
+        given.into_iter().map(|g| (g.image.clone(), g)).collect(),
+    )
+    .map_err(|e| PosediffError::invalid(path, format!("{what}: {e}")))
+}
+
+/// Loads a checkpoint, timing it (for [`Network::load_seconds`]).
+///
+/// # Errors
+/// As [`Estimator::load`].
+pub fn load_estimator(weights: &Path, device: candle_core::Device) -> Result<(Estimator, f64)> {
+    if !weights.is_file() {
+        return Err(PosediffError::NotFound(weights.to_owned()));
+    }
+    let clock = Instant::now();
+    let estimator = Estimator::load(weights, device, crate::EstimateConfig::default())?;
+    Ok((estimator, clock.elapsed().as_secs_f64()))
+}
