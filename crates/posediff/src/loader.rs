@@ -130,6 +130,31 @@ pub fn load_images(paths: &[PathBuf]) -> Result<Vec<LoadedImage>> {
         .collect()
 }
 
+/// Writes an RGB image (`height × width × 3` bytes, row-major) as a lossless PNG: the same
+/// pixels come back from [`read_rgb`].
+///
+/// # Errors
+/// A buffer that is not `width × height × 3` bytes; an empty image; OpenCV or I/O errors.
+pub fn write_rgb_png(path: &Path, width: u32, height: u32, rgb: &[u8]) -> Result<()> {
+    let expected = width as usize * height as usize * 3;
+    if width == 0 || height == 0 || rgb.len() != expected {
+        return Err(PosediffError::InvalidArgument(format!(
+            "an image of {width}×{height} RGB pixels needs {expected} bytes, got {}",
+            rgb.len()
+        )));
+    }
+    let flat = Mat::from_slice(rgb)?;
+    let shaped = flat.reshape(3, height as i32)?;
+    let mut bgr = Mat::default();
+    opencv::imgproc::cvt_color_def(&shaped, &mut bgr, opencv::imgproc::COLOR_RGB2BGR)?;
+    let mut bytes = opencv::core::Vector::<u8>::new();
+    opencv::imgcodecs::imencode(".png", &bgr, &mut bytes, &opencv::core::Vector::new())?;
+    std::fs::write(path, bytes.as_slice()).map_err(|source| PosediffError::Write {
+        path: path.to_owned(),
+        source,
+    })
+}
+
 /// The files that can be used and, for the others, why not (missing, unreadable, empty, not
 /// a JPEG or PNG, corrupt or truncated: [`posediff_matching::image_check::image_problem`]). Files are read in parallel; no
 /// image is decoded.

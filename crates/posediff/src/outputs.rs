@@ -47,6 +47,12 @@ pub struct OutputOptions {
     pub images: ImagesMode,
     /// `view.html`.
     pub view: bool,
+    /// The COLMAP model `sparse/0`.
+    pub colmap: bool,
+    /// nerfstudio's `transforms.json` and its points `sparse_pc.ply`.
+    pub nerfstudio: bool,
+    /// `pytorch3d.json`.
+    pub pytorch3d: bool,
 }
 
 impl Default for OutputOptions {
@@ -55,6 +61,9 @@ impl Default for OutputOptions {
             colmap_format: ColmapFormat::Text,
             images: ImagesMode::Link,
             view: true,
+            colmap: true,
+            nerfstudio: true,
+            pytorch3d: true,
         }
     }
 }
@@ -276,49 +285,55 @@ pub fn write_outputs(
     let entries: Vec<_> = r.images.iter().map(|i| i.camera.clone()).collect();
     write_cameras_json_partial(&out.join("cameras.json"), &entries)?;
     let model = ColmapModel::from_reconstruction(r)?;
-    model.write(&out.join("sparse").join("0"), options.colmap_format)?;
-    files.push("sparse/0".into());
-    if options.images != ImagesMode::None {
+    if options.colmap {
+        model.write(&out.join("sparse").join("0"), options.colmap_format)?;
+        files.push("sparse/0".into());
+    }
+    if options.images != ImagesMode::None && (options.colmap || options.nerfstudio) {
         make_images(out, inputs, options.images)?;
         files.push("images".into());
     }
-    write_ply(
-        &out.join("sparse_pc.ply"),
-        &r.points,
-        &nerfstudio_applied_transform(),
-    )?;
-    files.push("sparse_pc.ply".into());
-    let nerf: Vec<NerfstudioCamera> = r
-        .images
-        .iter()
-        .zip(&inputs.files)
-        .enumerate()
-        .filter_map(|(i, (record, file))| {
-            record.camera.camera.map(|camera| NerfstudioCamera {
-                camera,
-                file_path: match options.images {
-                    ImagesMode::None => file
-                        .canonicalize()
-                        .unwrap_or_else(|_| file.clone())
-                        .to_string_lossy()
-                        .into_owned(),
-                    _ => format!("images/{}", record.camera.image),
-                },
-                colmap_id: Some(i as u32 + 1),
+    if options.nerfstudio {
+        write_ply(
+            &out.join("sparse_pc.ply"),
+            &r.points,
+            &nerfstudio_applied_transform(),
+        )?;
+        files.push("sparse_pc.ply".into());
+        let nerf: Vec<NerfstudioCamera> = r
+            .images
+            .iter()
+            .zip(&inputs.files)
+            .enumerate()
+            .filter_map(|(i, (record, file))| {
+                record.camera.camera.map(|camera| NerfstudioCamera {
+                    camera,
+                    file_path: match options.images {
+                        ImagesMode::None => file
+                            .canonicalize()
+                            .unwrap_or_else(|_| file.clone())
+                            .to_string_lossy()
+                            .into_owned(),
+                        _ => format!("images/{}", record.camera.image),
+                    },
+                    colmap_id: Some(i as u32 + 1),
+                })
             })
-        })
-        .collect();
-    write_nerfstudio(&out.join("transforms.json"), &nerf, Some("sparse_pc.ply"))?;
-    files.push("transforms.json".into());
-    let with_crops: Vec<_> = crate::export::ImageCamera::estimated(&entries)
-        .into_iter()
-        .map(|c| {
-            let crop = CenterCrop::official(c.camera.image_size, MODEL_INPUT_SIDE);
-            (c, crop)
-        })
-        .collect();
-    write_pytorch3d(&out.join("pytorch3d.json"), &with_crops)?;
-    files.push("pytorch3d.json".into());
+            .collect();
+        write_nerfstudio(&out.join("transforms.json"), &nerf, Some("sparse_pc.ply"))?;
+        files.push("transforms.json".into());
+    }
+    if options.pytorch3d {
+        let with_crops: Vec<_> = crate::export::ImageCamera::estimated(&entries)
+            .into_iter()
+            .map(|c| {
+                let crop = CenterCrop::official(c.camera.image_size, MODEL_INPUT_SIDE);
+                (c, crop)
+            })
+            .collect();
+        write_pytorch3d(&out.join("pytorch3d.json"), &with_crops)?;
+        files.push("pytorch3d.json".into());
+    }
     if options.view {
         let thumbs = match thumbnails_made {
             Some(t) => t.to_vec(),

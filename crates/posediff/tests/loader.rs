@@ -102,3 +102,21 @@ fn files_are_found_sorted_read_as_rgb_and_bad_input_is_named() {
     ));
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+#[test]
+fn rgb_written_as_png_reads_back_pixel_for_pixel() {
+    let fx = fixture();
+    let dir = std::env::temp_dir().join(format!("posediff-loader-png-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let (name, w, h) = RAW[1];
+    let rgb = raw(&fx, name);
+    let path = dir.join("b.png");
+    posediff::loader::write_rgb_png(&path, w, h, &rgb).unwrap();
+    let (size, back) = posediff::loader::read_rgb(&path).unwrap();
+    assert_eq!(size, ImageSize::new(w, h).unwrap());
+    assert!(back == rgb, "pixels changed through the PNG");
+    // A buffer of the wrong length is refused, naming both sizes.
+    let err = posediff::loader::write_rgb_png(&path, w, h + 1, &rgb).unwrap_err();
+    assert!(err.to_string().contains(&format!("{w}×{}", h + 1)), "{err}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}

@@ -139,6 +139,7 @@ impl Args {
                 ImagesArg::None => ImagesMode::None,
             },
             view: !self.no_view,
+            ..OutputOptions::default()
         }
     }
 }

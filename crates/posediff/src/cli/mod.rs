@@ -163,19 +163,12 @@ fn truth_for(
     est: &[ImageCamera],
     gt: &Path,
 ) -> anyhow::Result<Vec<posediff_geometry::Camera>> {
-    let truth = posediff::export::read_cameras_json(gt)
-        .with_context(|| format!("reading {}", gt.display()))?;
     let names: Vec<String> = est.iter().map(|e| e.image.clone()).collect();
-    posediff::records::match_by_name(
+    Ok(posediff::records::ground_truth_for(
         &names,
-        truth
-            .into_iter()
-            .map(|c| (c.image.clone(), c.camera))
-            .collect(),
-    )
-    .map_err(|e| anyhow::anyhow!("--gt {}: {e}", gt.display()))?
-    .complete(&format!("--gt (for {})", cameras.display()), gt)
-    .map_err(anyhow::Error::msg)
+        gt,
+        &cameras.display().to_string(),
+    )?)
 }
 
 /// The command line, for reports.
