@@ -13,6 +13,10 @@
 //! - `bench-scale [--sizes 20,50,100,300,1000] [--paths orbit,forward] [--pairs auto] --out D`:
 //!   the mapper on synthetic sequences of growing length (per-stage time, peak RSS, accuracy,
 //!   growth exponents; JSON + Markdown).
+//! - `wheel [--profile release]`: the Python module `crates/posediff-py` as an abi3 wheel in
+//!   `target/wheels/` (maturin from the test venv).
+//! - `py-test [--profile release]`: that wheel installed into the test venv and its pytest suite
+//!   (`crates/posediff-py/tests`) against the `posediff` binary of the same profile.
 //! - `setup`: only the system set-up (Debian packages for the OpenCV bindings and the browser
 //!   tests, cargo-nextest, the Python venv of the output tests in `target/client-venv`).
 //! - `fuzz [--seconds 600] [--targets a,b]`: the coverage-guided fuzz targets of `fuzz/`
@@ -52,7 +56,8 @@ const APT_PACKAGES: [&str; 6] = [
     "chromium",
 ];
 
-/// The Python environment of the output tests (pycolmap, numpy, plyfile).
+/// The Python environment of the output tests (pycolmap, numpy, plyfile) and of the Python
+/// module's tests (maturin, pytest).
 const CLIENT_VENV: &str = "target/client-venv";
 const CLIENT_REQUIREMENTS: &str = "scripts/requirements-clients.txt";
 
@@ -106,6 +111,8 @@ fn main() -> Result<()> {
         "vendor-three" => vendor_three(),
         "fuzz" => fuzz(&std::env::args().skip(2).collect::<Vec<_>>()),
         "deps-check" => deps_check(),
+        "wheel" => wheel(&profile_arg()?).map(|_| ()),
+        "py-test" => py_test(&profile_arg()?),
         "bench-matching" => cargo_run(
             &["-p", "posediff-matching", "--example", "bench_matching"],
             &caller_args()?,
@@ -393,6 +400,8 @@ fn ci() -> Result<()> {
         .concat(),
         &[("RUSTDOCFLAGS", "-D warnings")],
     )?;
+    // The Python module: its wheel from the same profile, its tests against the CLI.
+    py_test(CI_PROFILE)?;
     deps_check()?;
     // The geometry crate alone, default features, as a downstream user builds it.
     run(
@@ -686,6 +695,92 @@ fn client_venv() -> Result<()> {
     )?;
     std::fs::write(&stamp, wanted).with_context(|| format!("writing {}", stamp.display()))?;
     Ok(())
+}
+
+/// `--profile P` of the caller (default `release`).
+fn profile_arg() -> Result<String> {
+    let args: Vec<String> = std::env::args().skip(2).collect();
+    match args.as_slice() {
+        [] => Ok("release".into()),
+        [flag, p] if flag == "--profile" => Ok(p.clone()),
+        other => bail!("expected [--profile P], got {other:?}"),
+    }
+}
+
+/// The folder cargo puts `profile`'s artefacts in.
+fn profile_dir(profile: &str) -> std::path::PathBuf {
+    let dir = if profile == "dev" { "debug" } else { profile };
+    workspace_root().join("target").join(dir)
+}
+
+/// Builds the abi3 wheel of `crates/posediff-py` with `profile`; returns its path.
+fn wheel(profile: &str) -> Result<std::path::PathBuf> {
+    client_venv()?;
+    let root = workspace_root();
+    let maturin = root.join(CLIENT_VENV).join("bin/maturin");
+    let out = root.join("target/wheels");
+    let _ = std::fs::remove_dir_all(&out);
+    let start = Instant::now();
+    run(
+        &maturin.to_string_lossy(),
+        &[
+            "build",
+            "--profile",
+            profile,
+            "-m",
+            "crates/posediff-py/Cargo.toml",
+            "--out",
+            &out.to_string_lossy(),
+        ],
+        &[],
+    )?;
+    let wheel = std::fs::read_dir(&out)?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .find(|p| p.extension().is_some_and(|x| x == "whl"))
+        .context("maturin wrote no wheel")?;
+    eprintln!(
+        "wheel {} ({:.1} MB) built in {:.0} s",
+        wheel.display(),
+        std::fs::metadata(&wheel)?.len() as f64 / 1e6,
+        start.elapsed().as_secs_f64()
+    );
+    Ok(wheel)
+}
+
+/// The wheel installed into the test venv, then its pytest suite against the CLI of the same
+/// profile.
+fn py_test(profile: &str) -> Result<()> {
+    let wheel = wheel(profile)?;
+    let root = workspace_root();
+    let python = root.join(CLIENT_VENV).join("bin/python");
+    let py = python.to_string_lossy();
+    run(
+        &py,
+        &[
+            "-m",
+            "pip",
+            "install",
+            "-q",
+            "--force-reinstall",
+            "--no-deps",
+            &wheel.to_string_lossy(),
+        ],
+        &[("PIP_DISABLE_PIP_VERSION_CHECK", "1")],
+    )?;
+    let binary = profile_dir(profile).join("posediff");
+    if !binary.is_file() {
+        run(
+            "cargo",
+            &["build", "-p", "posediff", "--profile", profile],
+            &[],
+        )?;
+    }
+    let binary = binary.to_string_lossy().into_owned();
+    run(
+        &py,
+        &["-m", "pytest", "-q", "crates/posediff-py/tests"],
+        &[("POSEDIFF_BIN", &binary)],
+    )
 }
 
 /// Fails if a crate pulls in a back end or a workspace crate it must not use.

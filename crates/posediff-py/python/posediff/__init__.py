@@ -1,0 +1,122 @@
+"""posediff: camera poses (and sparse points) from a handful of photos or a few hundred frames.
+
+Without a checkpoint the cameras come from posediff's global structure-from-motion mapper;
+with ``weights`` (an official PoseDiffusion checkpoint) from the diffusion model with
+geometry-guided sampling. Cameras speak OpenCV: ``x_cam = R @ x_world + t``, pixels::
+
+    import posediff
+    rec = posediff.estimate("scene/images")            # a folder, paths, or HxWx3 uint8 arrays
+    for cam in rec.cameras:
+        print(cam.name, cam.K, cam.R, cam.t)
+    rec.write("scene/out")                             # cameras.json, COLMAP, nerfstudio, PyTorch3D
+
+The computation runs in Rust with the GIL released. Errors are ``FileNotFoundError`` (a
+missing path), ``ValueError`` (a wrong input or option) or ``posediff.Error`` (an estimation
+that failed), each with posediff's message.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, Optional, Union
+
+from . import _native
+from ._native import (
+    Camera,
+    Error,
+    Reconstruction,
+    __version__,
+    opencv_to_pytorch3d,
+    pose_encoding_to_cameras,
+    pytorch3d_to_opencv,
+    read_cameras,
+    read_image,
+    score,
+)
+
+__all__ = [
+    "Camera",
+    "Error",
+    "Estimator",
+    "Reconstruction",
+    "__version__",
+    "estimate",
+    "opencv_to_pytorch3d",
+    "pose_encoding_to_cameras",
+    "pytorch3d_to_opencv",
+    "read_cameras",
+    "read_image",
+    "score",
+]
+
+ProgressCallback = Callable[[str, int, int, bool], Any]
+
+
+class _Bars:
+    """tqdm bars, one per stage (``callback(stage, done, total, finished)``)."""
+
+    def __init__(self, tqdm: Any) -> None:
+        self._tqdm = tqdm
+        self._bar: Any = None
+
+    def __call__(self, stage: str, done: int, total: int, finished: bool) -> None:
+        if finished:
+            if self._bar is not None:
+                self._bar.close()
+                self._bar = None
+            return
+        if done == 0:
+            if self._bar is not None:
+                self._bar.close()
+            self._bar = self._tqdm(total=total or None, desc=stage, leave=False)
+        elif self._bar is not None:
+            self._bar.update(1)
+
+
+def _progress(progress: Union[bool, ProgressCallback, None]) -> Optional[ProgressCallback]:
+    if progress is None or progress is False:
+        return None
+    if callable(progress):
+        return progress
+    try:
+        from tqdm.auto import tqdm
+    except ImportError:
+        return None
+    return _Bars(tqdm)
+
+
+def estimate(images: Any, *, weights: Any = None, progress: Union[bool, ProgressCallback, None] = True,
+             **options: Any) -> Reconstruction:
+    """Cameras (and points) for ``images``.
+
+    ``images``: a folder (its .png/.jpg/.jpeg files, sorted), a list of image paths (in that
+    order) or a list of HxWx3 uint8 RGB arrays (named by ``names``, default ``image_000.png``,
+    ...). ``weights``: an official PoseDiffusion checkpoint; without it the mapper estimates the
+    cameras. Options, as the CLI's flags: ``focal_px``, ``intrinsics`` (a cameras.json path or
+    an (N, 3, 3) array), ``init`` (``"geometric"`` or a cameras.json), ``start_step``,
+    ``refine`` (``"converge"``, ``"bundle"``, ``"official"``, ``"none"``), ``matcher``
+    (``"sift"``, ``"orb"``), ``pairs`` (``"auto"``, ``"exhaustive"``, ``"sequential:K"``,
+    ``"retrieval:K"``), ``samples``, ``seed``, ``ggs``, ``device`` (``"cpu"``, ``"cuda"``),
+    ``skip_bad_images``. ``progress``: ``True`` for tqdm bars when tqdm is installed, ``False``,
+    or a callable ``(stage, done, total, finished)``.
+    """
+    return _native.estimate(images, weights=weights, progress=_progress(progress), **options)
+
+
+class Estimator:
+    """A PoseDiffusion checkpoint loaded once for many calls::
+
+        est = posediff.Estimator("posediffusion.pth")
+        for folder in folders:
+            est.estimate(folder, seed=0).write(folder + "/out")
+    """
+
+    def __init__(self, weights: Any, *, device: str = "cpu") -> None:
+        self._native = _native.Estimator(weights, device=device)
+
+    def estimate(self, images: Any, *, progress: Union[bool, ProgressCallback, None] = True,
+                 **options: Any) -> Reconstruction:
+        """As :func:`posediff.estimate` with this checkpoint."""
+        return self._native.estimate(images, progress=_progress(progress), **options)
+
+    def __repr__(self) -> str:
+        return repr(self._native)
