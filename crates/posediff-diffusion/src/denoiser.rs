@@ -28,8 +28,8 @@ const LN_EPS: f64 = 1e-5;
 const MAX_PERIOD: f64 = 10000.0;
 /// Harmonic functions of the pose embedding (frequencies 2^0..2^9).
 pub const HARMONICS: usize = 10;
-/// Pose encoding width.
-pub const POSE_DIM: usize = 9;
+/// Pose encoding width (the official 9-D encoding).
+use posediff_geometry::POSE_ENCODING_DIM as POSE_DIM;
 /// Image feature width.
 pub const FEATURE_DIM: usize = 384;
 

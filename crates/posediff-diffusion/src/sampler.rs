@@ -19,12 +19,10 @@ use rand::SeedableRng;
 use rand::rngs::StdRng;
 use rand_distr::{Distribution, StandardNormal};
 
-use crate::denoiser::{Denoiser, POSE_DIM};
+use crate::denoiser::Denoiser;
 use crate::error::{DiffusionError, Result};
 use crate::schedule::Schedule;
-
-/// The official `cond_start_step`: GGS replaces the mean at t < 10.
-pub const GGS_START_STEP: usize = 10;
+use posediff_geometry::POSE_ENCODING_DIM as POSE_DIM;
 
 /// Where the sampler's Gaussian noise comes from.
 pub trait NoiseSource {

@@ -109,7 +109,7 @@ pub fn training_forward(
     freeze_backbone: bool,
 ) -> Result<StepForward> {
     let (b, n, _) = x0.dims3()?;
-    if t.len() != b || noise.dims3()? != (b, n, crate::denoiser::POSE_DIM) {
+    if t.len() != b || noise.dims3()? != (b, n, posediff_geometry::POSE_ENCODING_DIM) {
         return Err(DiffusionError::Invalid(
             "one step per sequence and noise shaped like x0",
         ));
@@ -147,7 +147,7 @@ pub fn denoising_loss(
     noise: &Tensor,
 ) -> Result<(Tensor, Tensor, Tensor)> {
     let (b, n, _) = x0.dims3()?;
-    if t.len() != b || noise.dims3()? != (b, n, crate::denoiser::POSE_DIM) {
+    if t.len() != b || noise.dims3()? != (b, n, posediff_geometry::POSE_ENCODING_DIM) {
         return Err(DiffusionError::Invalid(
             "one step per sequence and noise shaped like x0",
         ));

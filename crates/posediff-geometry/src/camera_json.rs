@@ -13,6 +13,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::camera::{Camera, ImageSize, Intrinsics, Pose};
 use crate::error::{GeometryError, Result, ensure_finite};
+use crate::pytorch3d::{NdcIntrinsics, Pytorch3dCamera};
 
 /// Rows of a 3×3 matrix.
 pub type Rows3 = [[f64; 3]; 3];
@@ -80,5 +81,79 @@ impl CameraRecord {
             r: rows(&camera.cam_from_world.rotation),
             t: [t.x, t.y, t.z],
         }
+    }
+}
+
+/// A PyTorch3D `PerspectiveCameras` entry as JSON records hold it (CO3D annotations,
+/// `pytorch3d.json`): row-vector `R` (`X_cam = X_world · R + T`), `T`, and the NDC
+/// `focal_length` and `principal_point`. Records embed it with `#[serde(flatten)]`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Pytorch3dParams {
+    /// Row-vector rotation, rows.
+    #[serde(rename = "R")]
+    pub r: Rows3,
+    /// Translation.
+    #[serde(rename = "T")]
+    pub t: [f64; 3],
+    /// Focal length, NDC.
+    pub focal_length: [f64; 2],
+    /// Principal point, NDC.
+    pub principal_point: [f64; 2],
+}
+
+impl From<&Pytorch3dCamera> for Pytorch3dParams {
+    fn from(p: &Pytorch3dCamera) -> Self {
+        Self {
+            r: rows(&p.r),
+            t: [p.t.x, p.t.y, p.t.z],
+            focal_length: [p.intrinsics.focal.x, p.intrinsics.focal.y],
+            principal_point: [
+                p.intrinsics.principal_point.x,
+                p.intrinsics.principal_point.y,
+            ],
+        }
+    }
+}
+
+impl Pytorch3dParams {
+    /// The camera.
+    pub fn camera(&self) -> Pytorch3dCamera {
+        Pytorch3dCamera {
+            r: matrix(&self.r),
+            t: Vector3::from(self.t),
+            intrinsics: NdcIntrinsics {
+                focal: nalgebra::Vector2::from(self.focal_length),
+                principal_point: nalgebra::Vector2::from(self.principal_point),
+            },
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn pytorch3d_params_keep_the_camera_and_the_official_keys() {
+        let p = Pytorch3dCamera {
+            r: crate::Quaternion::new(0.4, -0.3, 0.8, 0.1)
+                .to_rotation_matrix()
+                .unwrap_or_else(|_| Matrix3::identity()),
+            t: Vector3::new(0.3, -0.4, 5.0),
+            intrinsics: NdcIntrinsics {
+                focal: nalgebra::Vector2::new(2.0, 2.2),
+                principal_point: nalgebra::Vector2::new(0.1, -0.05),
+            },
+        };
+        let params = Pytorch3dParams::from(&p);
+        assert_eq!(params.camera(), p);
+        // Rows are rows: R[0][1] is the matrix's (0, 1).
+        assert_eq!(params.r[0][1], p.r[(0, 1)]);
+        let json = serde_json::to_string(&params).unwrap_or_default();
+        assert!(
+            json.starts_with(r#"{"R":[["#) && json.contains(r#""T":[0.3,-0.4,5.0]"#),
+            "{json}"
+        );
+        assert!(json.contains(r#""focal_length":[2.0,2.2]"#), "{json}");
     }
 }

@@ -37,6 +37,12 @@ pub fn rotation_angle(r: &Rotation3<f64>) -> f64 {
     sin2.atan2(m.trace() - 1.0)
 }
 
+/// The angle between two rotation matrices in degrees: the rotation angle of `aᵀ b` (stable
+/// near 0 and 180°, see [`rotation_angle`]).
+pub fn rotation_angle_between_deg(a: &Matrix3<f64>, b: &Matrix3<f64>) -> f64 {
+    rotation_angle(&Rotation3::from_matrix_unchecked(a.transpose() * b)).to_degrees()
+}
+
 /// The rotation closest to `K_b⁻¹ H K_a` (a homography of a pure rotation is `K_b R K_a⁻¹`)
 /// and the ratio of its largest to smallest singular value after scaling to unit determinant
 /// (1 for an exact rotation homography at the right intrinsics). `None` when singular.
@@ -155,6 +161,24 @@ mod tests {
         let a = Vector3::new(0.3, -1.2, 2.0);
         let b = Vector3::new(-0.7, 0.4, 1.1);
         assert!((skew(&a) * b - a.cross(&b)).norm() < 1e-15);
+    }
+
+    #[test]
+    fn angle_between_rotations_is_the_relative_rotation_angle() {
+        let axis = nalgebra::Unit::new_normalize(Vector3::new(0.2, -0.5, 0.8));
+        let a = Rotation3::from_axis_angle(&axis, 0.7);
+        for deg in [0.0, 1e-6, 37.0, 179.999_99, 180.0] {
+            let d = Rotation3::from_axis_angle(
+                &nalgebra::Unit::new_normalize(Vector3::new(-0.9, 0.1, 0.3)),
+                f64::to_radians(deg),
+            );
+            let b = a * d;
+            let got = rotation_angle_between_deg(a.matrix(), b.matrix());
+            assert!((got - deg).abs() < 1e-9, "{deg}: {got}");
+            // Symmetric, and the same in either world frame.
+            let back = rotation_angle_between_deg(b.matrix(), a.matrix());
+            assert!((back - got).abs() < 1e-9);
+        }
     }
 
     #[test]

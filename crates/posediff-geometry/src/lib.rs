@@ -48,7 +48,8 @@ pub use crop::{CenterCrop, MODEL_INPUT_SIDE};
 pub use encoding::{POSE_ENCODING_DIM, PoseEncoding};
 pub use epipolar::{
     essential_matrix, fundamental_from_cameras, fundamental_official, homography_rotation,
-    relative_pose, rotation_angle, sampson_error, symmetric_epipolar_distance_sq,
+    relative_pose, rotation_angle, rotation_angle_between_deg, sampson_error,
+    symmetric_epipolar_distance_sq,
 };
 pub use error::{GeometryError, Result};
 pub use matches::{PairMatches, TwoViewPose};

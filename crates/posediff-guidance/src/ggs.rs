@@ -22,7 +22,7 @@
 //! The official code would take the mean of an empty set (NaN) when no match is valid and
 //! `min_matches` is 0; here the phase stops instead. Nothing else differs.
 
-use posediff_geometry::{ImageSize, PoseEncoding};
+use posediff_geometry::{ImageSize, MODEL_INPUT_SIDE, PoseEncoding};
 
 use crate::error::{GuidanceError, Result};
 use crate::matches::MatchSet;
@@ -57,9 +57,6 @@ pub struct GgsConfig {
     pub fix_focal: bool,
 }
 
-/// The official model input size.
-const OFFICIAL_IMAGE_SIDE: u32 = 224;
-
 impl Default for GgsConfig {
     fn default() -> Self {
         Self {
@@ -69,7 +66,7 @@ impl Default for GgsConfig {
             min_matches: 10.0,
             alpha: 1e-4,
             start_step: 10,
-            image_size: match ImageSize::new(OFFICIAL_IMAGE_SIDE, OFFICIAL_IMAGE_SIDE) {
+            image_size: match ImageSize::new(MODEL_INPUT_SIDE, MODEL_INPUT_SIDE) {
                 Ok(size) => size,
                 Err(_) => unreachable!("224×224 is a valid size"),
             },

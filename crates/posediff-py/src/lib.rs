@@ -512,21 +512,70 @@ struct Call {
     names: Option<Vec<String>>,
 }
 
-#[allow(clippy::too_many_arguments)] // the keyword arguments of `estimate`, one each
-fn call_options(
-    focal_px: Option<f64>,
-    intrinsics: Option<&Bound<'_, PyAny>>,
-    init: Option<PathBuf>,
-    start_step: usize,
-    refine: &str,
-    matcher: &str,
-    pairs: &str,
-    samples: usize,
-    seed: u64,
-    ggs: bool,
-    skip_bad_images: bool,
-    names: Option<Vec<String>>,
-) -> PyResult<Call> {
+/// The options `estimate` takes as keywords (the CLI's flags).
+const OPTION_NAMES: [&str; 12] = [
+    "focal_px",
+    "intrinsics",
+    "init",
+    "start_step",
+    "refine",
+    "matcher",
+    "pairs",
+    "samples",
+    "seed",
+    "ggs",
+    "skip_bad_images",
+    "names",
+];
+
+/// One keyword of `options`, or its default.
+fn option<'py, T>(options: Option<&Bound<'py, PyDict>>, key: &str, default: T) -> PyResult<T>
+where
+    T: pyo3::conversion::FromPyObjectOwned<'py>,
+    for<'a> <T as FromPyObject<'a, 'py>>::Error: Into<PyErr>,
+{
+    match options.map(|o| o.get_item(key)).transpose()?.flatten() {
+        Some(v) if !v.is_none() => v.extract::<T>().map_err(|e| {
+            let e: PyErr = e.into();
+            value_err(format!("{key}: {e}"))
+        }),
+        _ => Ok(default),
+    }
+}
+
+/// The keyword options of an estimation, checked.
+fn call_options(options: Option<&Bound<'_, PyDict>>) -> PyResult<Call> {
+    if let Some(o) = options {
+        for key in o.keys() {
+            let key: String = key.extract()?;
+            if !OPTION_NAMES.contains(&key.as_str()) {
+                return Err(pyo3::exceptions::PyTypeError::new_err(format!(
+                    "estimate() got an unexpected keyword argument {key:?} (options: {})",
+                    OPTION_NAMES.join(", ")
+                )));
+            }
+        }
+    }
+    let focal_px: Option<f64> = option(options, "focal_px", None)?;
+    let intrinsics = options
+        .map(|o| o.get_item("intrinsics"))
+        .transpose()?
+        .flatten()
+        .filter(|v| !v.is_none());
+    let intrinsics = intrinsics.as_ref();
+    let init: Option<PathBuf> = option(options, "init", None)?;
+    let start_step: usize = option(options, "start_step", posediff::run::DEFAULT_START_STEP)?;
+    let refine: String = option(options, "refine", "converge".to_owned())?;
+    let refine = refine.as_str();
+    let matcher: String = option(options, "matcher", "sift".to_owned())?;
+    let matcher = matcher.as_str();
+    let pairs: String = option(options, "pairs", "auto".to_owned())?;
+    let pairs = pairs.as_str();
+    let samples: usize = option(options, "samples", 1)?;
+    let seed: u64 = option(options, "seed", 0)?;
+    let ggs: bool = option(options, "ggs", true)?;
+    let skip_bad_images: bool = option(options, "skip_bad_images", false)?;
+    let names: Option<Vec<String>> = option(options, "names", None)?;
     let intrinsics = match (focal_px, intrinsics) {
         (Some(_), Some(_)) => {
             return Err(value_err("give focal_px or intrinsics, not both"));
@@ -628,6 +677,17 @@ fn device_from(name: &str) -> PyResult<(candle_core::Device, &'static str)> {
     }
 }
 
+impl PyEstimator {
+    fn network(&self) -> Network<'_> {
+        Network {
+            estimator: &self.estimator,
+            weights: &self.weights,
+            device: self.device,
+            load_seconds: self.load_seconds,
+        }
+    }
+}
+
 #[pymethods]
 impl PyEstimator {
     /// Loads an official PoseDiffusion checkpoint (.pth or safetensors) on `device`.
@@ -646,52 +706,17 @@ impl PyEstimator {
         })
     }
 
-    /// As `posediff.estimate`, with this checkpoint.
-    #[pyo3(signature = (
-        images, *, focal_px = None, intrinsics = None, init = None, start_step = 30,
-        refine = "converge", matcher = "sift", pairs = "auto", samples = 1, seed = 0,
-        ggs = true, skip_bad_images = false, names = None, progress = None
-    ))]
-    #[allow(clippy::too_many_arguments)] // Python keyword arguments
+    /// As `posediff.estimate`, with this checkpoint (`options`: its keywords).
+    #[pyo3(signature = (images, options = None, progress = None))]
     fn estimate(
         &self,
         py: Python<'_>,
         images: &Bound<'_, PyAny>,
-        focal_px: Option<f64>,
-        intrinsics: Option<&Bound<'_, PyAny>>,
-        init: Option<PathBuf>,
-        start_step: usize,
-        refine: &str,
-        matcher: &str,
-        pairs: &str,
-        samples: usize,
-        seed: u64,
-        ggs: bool,
-        skip_bad_images: bool,
-        names: Option<Vec<String>>,
+        options: Option<&Bound<'_, PyDict>>,
         progress: Option<Py<PyAny>>,
     ) -> PyResult<PyReconstruction> {
-        let call = call_options(
-            focal_px,
-            intrinsics,
-            init,
-            start_step,
-            refine,
-            matcher,
-            pairs,
-            samples,
-            seed,
-            ggs,
-            skip_bad_images,
-            names,
-        )?;
-        let network = Network {
-            estimator: &self.estimator,
-            weights: &self.weights,
-            device: self.device,
-            load_seconds: self.load_seconds,
-        };
-        estimate_with(py, images, call, Some(network), progress)
+        let call = call_options(options)?;
+        estimate_with(py, images, call, Some(self.network()), progress)
     }
 
     fn __repr__(&self) -> String {
@@ -723,67 +748,27 @@ fn estimate_with(
     })
 }
 
-/// Cameras (and points) for `images`; see the package docstring.
+/// Cameras (and points) for `images`; see the package docstring (`options`: the keywords).
 #[pyfunction]
-#[pyo3(signature = (
-    images, *, weights = None, focal_px = None, intrinsics = None, init = None,
-    start_step = 30, refine = "converge", matcher = "sift", pairs = "auto", samples = 1,
-    seed = 0, ggs = true, device = "cpu", skip_bad_images = false, names = None,
-    progress = None
-))]
-#[allow(clippy::too_many_arguments)] // Python keyword arguments
+#[pyo3(signature = (images, options = None, weights = None, device = "cpu", progress = None))]
 fn estimate(
     py: Python<'_>,
     images: &Bound<'_, PyAny>,
+    options: Option<&Bound<'_, PyDict>>,
     weights: Option<PathBuf>,
-    focal_px: Option<f64>,
-    intrinsics: Option<&Bound<'_, PyAny>>,
-    init: Option<PathBuf>,
-    start_step: usize,
-    refine: &str,
-    matcher: &str,
-    pairs: &str,
-    samples: usize,
-    seed: u64,
-    ggs: bool,
     device: &str,
-    skip_bad_images: bool,
-    names: Option<Vec<String>>,
     progress: Option<Py<PyAny>>,
 ) -> PyResult<PyReconstruction> {
-    let call = call_options(
-        focal_px,
-        intrinsics,
-        init,
-        start_step,
-        refine,
-        matcher,
-        pairs,
-        samples,
-        seed,
-        ggs,
-        skip_bad_images,
-        names,
-    )?;
+    let call = call_options(options)?;
     match weights {
         Some(w) => {
             let est = PyEstimator::new(py, w, device)?;
-            let network = Network {
-                estimator: &est.estimator,
-                weights: &est.weights,
-                device: est.device,
-                load_seconds: est.load_seconds,
-            };
-            estimate_with(py, images, call, Some(network), progress)
+            estimate_with(py, images, call, Some(est.network()), progress)
         }
-        None => {
-            if device != "cpu" {
-                return Err(value_err(format!(
-                    "device {device:?} runs the network: it needs weights"
-                )));
-            }
-            estimate_with(py, images, call, None, progress)
-        }
+        None if device != "cpu" => Err(value_err(format!(
+            "device {device:?} runs the network: it needs weights"
+        ))),
+        None => estimate_with(py, images, call, None, progress),
     }
 }
 

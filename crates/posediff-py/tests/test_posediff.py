@@ -153,6 +153,10 @@ def test_bad_inputs_raise_the_right_exceptions(tmp_path: Path) -> None:
         posediff.estimate(temple, refine="fast", progress=False)
     with pytest.raises(ValueError, match="H×W×3"):
         posediff.estimate([np.zeros((8, 8), np.uint8)] * 2, progress=False)
+    with pytest.raises(TypeError, match='unexpected keyword argument "focal"'):
+        posediff.estimate(temple, focal=800.0, progress=False)
+    with pytest.raises(ValueError, match="^seed: "):
+        posediff.estimate(temple, seed="zero", progress=False)
     with pytest.raises(ValueError, match="--focal-px must be a positive"):
         posediff.estimate(temple, focal_px=-3.0, progress=False)
     with pytest.raises(ValueError, match="same name"):
@@ -230,3 +234,19 @@ def test_an_estimator_serves_many_calls_as_the_cli(cli: Path, tmp_path: Path) ->
     same_files(tmp_path / "cli", tmp_path / "py")
     assert a.report["method"] == "posediffusion" and a.report["seed"] == 3
     assert not np.allclose(a.cameras[1].R, b.cameras[1].R), "another seed, another sample"
+
+
+def test_the_readme_example_runs(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    from conftest import REPO
+
+    script = REPO / "examples" / "python" / "estimate_and_export.py"
+    out = tmp_path / "temple"
+    r = subprocess.run([sys.executable, str(script), str(images_of("middlebury_templeSR")), str(out)],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert "16/16 cameras" in r.stdout
+    for f in ["cameras.json", "transforms.json", "sparse_pc.ply", "sparse/0/points3D.txt"]:
+        assert (out / f).is_file(), f

@@ -19,7 +19,7 @@ pub mod scene;
 use std::io::Write as _;
 use std::path::{Path, PathBuf};
 
-use posediff_geometry::camera_json::CameraRecord;
+use posediff_geometry::camera_json::{CameraRecord, Pytorch3dParams};
 use posediff_geometry::{Camera, ImageSize, Pytorch3dCamera};
 use rayon::prelude::*;
 use serde::Serialize;
@@ -175,12 +175,8 @@ pub struct DatasetSpec {
 struct Co3dFrameOut {
     filepath: String,
     bbox: [f64; 4],
-    #[serde(rename = "R")]
-    r: [[f64; 3]; 3],
-    #[serde(rename = "T")]
-    t: [f64; 3],
-    focal_length: [f64; 2],
-    principal_point: [f64; 2],
+    #[serde(flatten)]
+    camera: Pytorch3dParams,
 }
 
 /// What was written.
@@ -296,13 +292,7 @@ pub fn write_dataset(out: &Path, spec: &DatasetSpec) -> Result<DatasetSummary> {
                 Ok(Co3dFrameOut {
                     filepath: format!("{CATEGORY}/{name}/{file}"),
                     bbox: frame.object_bbox(scene.objects.len()),
-                    r: [0, 1, 2].map(|i| [0, 1, 2].map(|j| p.r[(i, j)])),
-                    t: [p.t.x, p.t.y, p.t.z],
-                    focal_length: [p.intrinsics.focal.x, p.intrinsics.focal.y],
-                    principal_point: [
-                        p.intrinsics.principal_point.x,
-                        p.intrinsics.principal_point.y,
-                    ],
+                    camera: Pytorch3dParams::from(&p),
                 })
             })
             .collect::<Result<_>>()?;

@@ -6,7 +6,8 @@
 use std::io::Read;
 use std::path::{Path, PathBuf};
 
-use posediff_geometry::pytorch3d::{CropBox, NdcIntrinsics};
+use posediff_geometry::camera_json::Pytorch3dParams;
+use posediff_geometry::pytorch3d::CropBox;
 use posediff_geometry::{
     Camera, Canonicalized, CenterCrop, ImageSize, MODEL_INPUT_SIDE, Pose, Pytorch3dCamera,
     canonicalize,
@@ -89,29 +90,15 @@ pub struct Co3dFrame {
     pub filepath: String,
     /// Mask bounding box `[x0, y0, x1, y1]` (unused with the centre crop).
     pub bbox: [f64; 4],
-    /// PyTorch3D row-vector rotation.
-    #[serde(rename = "R")]
-    pub r: [[f64; 3]; 3],
-    /// PyTorch3D translation.
-    #[serde(rename = "T")]
-    pub t: [f64; 3],
-    /// Focal length, NDC of the original image.
-    pub focal_length: [f64; 2],
-    /// Principal point, NDC of the original image.
-    pub principal_point: [f64; 2],
+    /// The PyTorch3D camera, NDC of the original image.
+    #[serde(flatten)]
+    pub camera: Pytorch3dParams,
 }
 
 impl Co3dFrame {
     /// The PyTorch3D camera of the annotation.
     pub fn pytorch3d(&self) -> Pytorch3dCamera {
-        Pytorch3dCamera {
-            r: nalgebra::Matrix3::from_fn(|i, j| self.r[i][j]),
-            t: nalgebra::Vector3::from(self.t),
-            intrinsics: NdcIntrinsics {
-                focal: nalgebra::Vector2::from(self.focal_length),
-                principal_point: nalgebra::Vector2::from(self.principal_point),
-            },
-        }
+        self.camera.camera()
     }
 
     /// The extrinsics in the OpenCV convention.
@@ -227,7 +214,7 @@ pub fn usable_sequences(sequences: &[Co3dSequence], min_frames: usize) -> Vec<&C
         .filter(|s| {
             s.frames
                 .iter()
-                .all(|f| f.t.iter().sum::<f64>() <= MAX_TRANSLATION_SUM)
+                .all(|f| f.camera.t.iter().sum::<f64>() <= MAX_TRANSLATION_SUM)
         })
         .collect()
 }

@@ -16,7 +16,7 @@
 use std::path::Path;
 
 use nalgebra::{Matrix3, Matrix4, Vector3};
-use posediff_geometry::camera_json::CameraRecord;
+use posediff_geometry::camera_json::{CameraRecord, Pytorch3dParams};
 use posediff_geometry::{Camera, ImageSize, Intrinsics, Pose, Pytorch3dCamera};
 use serde::{Deserialize, Serialize};
 
@@ -491,16 +491,9 @@ pub fn read_ply(path: &Path) -> Result<Vec<([f32; 3], [u8; 3])>> {
 pub struct Pytorch3dRecord {
     /// Image path relative to the input folder.
     pub image: String,
-    /// Row-vector rotation, rows: `X_cam = X_world · R + T`.
-    #[serde(rename = "R")]
-    pub r: [[f64; 3]; 3],
-    /// Translation.
-    #[serde(rename = "T")]
-    pub t: [f64; 3],
-    /// Focal length in NDC of the crop.
-    pub focal_length: [f64; 2],
-    /// Principal point in NDC of the crop.
-    pub principal_point: [f64; 2],
+    /// The camera (NDC of the crop).
+    #[serde(flatten)]
+    pub camera: Pytorch3dParams,
 }
 
 /// Writes `pytorch3d.json`: each camera mapped into the 224 crop of its image, then converted
@@ -519,13 +512,7 @@ pub fn write_pytorch3d(
             let p = Pytorch3dCamera::from_opencv(&model);
             Ok(Pytorch3dRecord {
                 image: c.image.clone(),
-                r: [0, 1, 2].map(|i| [0, 1, 2].map(|j| p.r[(i, j)])),
-                t: [p.t.x, p.t.y, p.t.z],
-                focal_length: [p.intrinsics.focal.x, p.intrinsics.focal.y],
-                principal_point: [
-                    p.intrinsics.principal_point.x,
-                    p.intrinsics.principal_point.y,
-                ],
+                camera: Pytorch3dParams::from(&p),
             })
         })
         .collect::<Result<Vec<_>>>()?;

@@ -153,11 +153,10 @@ impl Estimate {
             for ((o, c), b) in out.iter_mut().zip(&cams).zip(&base) {
                 let aligned = sim.transform_camera(c);
                 // The aligned camera frame is scaled by the similarity; its centre is not.
-                let rel = b.cam_from_world.rotation.transpose() * aligned.cam_from_world.rotation;
-                let angle = ((rel.trace() - 1.0) / 2.0)
-                    .clamp(-1.0, 1.0)
-                    .acos()
-                    .to_degrees();
+                let angle = posediff_geometry::rotation_angle_between_deg(
+                    &b.cam_from_world.rotation,
+                    &aligned.cam_from_world.rotation,
+                );
                 o.rotation_deg_max = o.rotation_deg_max.max(angle);
                 o.center_distance_max = o
                     .center_distance_max

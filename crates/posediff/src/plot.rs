@@ -58,16 +58,13 @@ pub fn align_and_compare(
         .iter()
         .zip(&truth)
         .zip(estimate)
-        .map(|((a, t), n)| {
-            let rel = t.cam_from_world.rotation.transpose() * a.cam_from_world.rotation;
-            CameraErrors {
-                image: n.image.clone(),
-                rotation_deg: ((rel.trace() - 1.0) / 2.0)
-                    .clamp(-1.0, 1.0)
-                    .acos()
-                    .to_degrees(),
-                center_rel: (a.center() - t.center()).norm() / extent,
-            }
+        .map(|((a, t), n)| CameraErrors {
+            image: n.image.clone(),
+            rotation_deg: posediff_geometry::rotation_angle_between_deg(
+                &t.cam_from_world.rotation,
+                &a.cam_from_world.rotation,
+            ),
+            center_rel: (a.center() - t.center()).norm() / extent,
         })
         .collect();
     Ok((aligned, errors))

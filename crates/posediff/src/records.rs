@@ -140,6 +140,29 @@ pub fn match_by_name<T>(
     })
 }
 
+/// The ground truth's cameras for the images `names`, matched by name: every image must have
+/// one and every ground-truth camera an image (`what` names the estimate in the message).
+///
+/// # Errors
+/// An unreadable ground truth; names that do not match both ways.
+pub fn ground_truth_for(
+    names: &[String],
+    gt: &Path,
+    what: &str,
+) -> crate::Result<Vec<posediff_geometry::Camera>> {
+    let truth = crate::export::read_cameras_json(gt)?;
+    match_by_name(
+        names,
+        truth
+            .into_iter()
+            .map(|c| (c.image.clone(), c.camera))
+            .collect(),
+    )
+    .map_err(|e| crate::PosediffError::invalid(gt, format!("--gt: {e}")))?
+    .complete(&format!("--gt (for {what})"), gt)
+    .map_err(|e| crate::PosediffError::invalid(gt, e))
+}
+
 #[cfg(test)]
 mod tests {
     #![allow(clippy::unwrap_used)]
@@ -192,27 +215,4 @@ mod tests {
         .unwrap_err();
         assert!(e.contains("both name image a.jpg"), "{e}");
     }
-}
-
-/// The ground truth's cameras for the images `names`, matched by name: every image must have
-/// one and every ground-truth camera an image (`what` names the estimate in the message).
-///
-/// # Errors
-/// An unreadable ground truth; names that do not match both ways.
-pub fn ground_truth_for(
-    names: &[String],
-    gt: &Path,
-    what: &str,
-) -> crate::Result<Vec<posediff_geometry::Camera>> {
-    let truth = crate::export::read_cameras_json(gt)?;
-    match_by_name(
-        names,
-        truth
-            .into_iter()
-            .map(|c| (c.image.clone(), c.camera))
-            .collect(),
-    )
-    .map_err(|e| crate::PosediffError::invalid(gt, format!("--gt: {e}")))?
-    .complete(&format!("--gt (for {what})"), gt)
-    .map_err(|e| crate::PosediffError::invalid(gt, e))
 }

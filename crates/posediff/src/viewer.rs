@@ -175,11 +175,11 @@ pub fn render(
                 posediff_geometry::Pose::new(rotation, -(rotation * centre)),
                 g.image_size,
             );
-            let rel = est.cam_from_world.rotation * q * g.cam_from_world.rotation.transpose();
-            let angle = ((rel.trace() - 1.0) / 2.0)
-                .clamp(-1.0, 1.0)
-                .acos()
-                .to_degrees();
+            // The angle of R_est · q · R_gtᵀ, i.e. between R_gt and R_est · q.
+            let angle = posediff_geometry::rotation_angle_between_deg(
+                &g.cam_from_world.rotation,
+                &(est.cam_from_world.rotation * q),
+            );
             let centre_error = (est.center().coords - centre).norm() / (s * extent);
             cameras[slot].rotation_error_deg = Some(angle);
             cameras[slot].centre_error = Some(centre_error);

@@ -126,8 +126,8 @@ fn estimate_on_the_apple_frames_writes_four_formats_that_read_back_alike() {
     assert_eq!(p3d.len(), 20);
     // The model's principal point is the crop centre: NDC (0, 0).
     assert!(
-        p3d.iter()
-            .all(|r| r.principal_point[0].abs() < 1e-9 && r.principal_point[1].abs() < 1e-9)
+        p3d.iter().all(|r| r.camera.principal_point[0].abs() < 1e-9
+            && r.camera.principal_point[1].abs() < 1e-9)
     );
     let run: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("run.json")).unwrap()).unwrap();

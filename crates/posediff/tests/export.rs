@@ -216,21 +216,24 @@ fn pytorch3d_json_matches_the_official_conventions() {
     for (rec, stored) in records.iter().zip(raw.as_array().unwrap()) {
         let p = &stored["pytorch3d"];
         let r_expected = Matrix3::from_fn(|i, j| p["R"][i][j].as_f64().unwrap());
-        let r = Matrix3::from_fn(|i, j| rec.r[i][j]);
+        let r = Matrix3::from_fn(|i, j| rec.camera.r[i][j]);
         assert!((r - r_expected).norm() < 1e-6, "{}", rec.image);
         let t_expected = Vector3::from_fn(|i, _| p["T"][i].as_f64().unwrap());
         assert!(
-            (Vector3::from(rec.t) - t_expected).norm() < 1e-5,
+            (Vector3::from(rec.camera.t) - t_expected).norm() < 1e-5,
             "{}",
             rec.image
         );
         // fx in NDC of the short side; the stored value is fx's (the set has fx ≠ fy slightly).
         assert!(
-            (rec.focal_length[0] - p["focal_ndc"][0].as_f64().unwrap()).abs() < 1e-5,
+            (rec.camera.focal_length[0] - p["focal_ndc"][0].as_f64().unwrap()).abs() < 1e-5,
             "{}",
             rec.image
         );
-        assert!(rec.principal_point[0].abs() < 0.01 && rec.principal_point[1].abs() < 0.01);
+        assert!(
+            rec.camera.principal_point[0].abs() < 0.01
+                && rec.camera.principal_point[1].abs() < 0.01
+        );
     }
     std::fs::remove_dir_all(&dir).unwrap();
 }

@@ -11,7 +11,7 @@ use posediff_fixtures::tensors::tensor;
 use candle_core::{DType, Device, IndexOp};
 use posediff::GgsHook;
 use posediff_diffusion::PoseDiffusionModel;
-use posediff_diffusion::sampler::{GGS_START_STEP, MeanHook, denoise_step};
+use posediff_diffusion::sampler::{MeanHook, denoise_step};
 use posediff_fixtures::{SafetensorsFixture, assert_close, shared_path};
 use posediff_guidance::{GgsConfig, MatchSet};
 
@@ -42,7 +42,7 @@ fn ggs_steps_of_the_sampler_match_the_official_run() {
     let mut hook = GgsHook::new(&matches, config).unwrap();
     let z = tensor(&io, "z");
     let process = tensor(&run, "pose_process");
-    for k in (100 - GGS_START_STEP)..100 {
+    for k in (100 - GgsConfig::default().start_step)..100 {
         let t = 99 - k;
         let step = denoise_step(
             &model.denoiser,

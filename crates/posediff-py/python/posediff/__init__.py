@@ -17,7 +17,7 @@ that failed), each with posediff's message.
 
 from __future__ import annotations
 
-from typing import Any, Callable, Optional, Union
+from typing import TYPE_CHECKING, Any, Callable, Optional, Sequence, TypedDict, Union
 
 from . import _native
 from ._native import (
@@ -36,6 +36,7 @@ from ._native import (
 __all__ = [
     "Camera",
     "Error",
+    "EstimateOptions",
     "Estimator",
     "Reconstruction",
     "__version__",
@@ -48,7 +49,31 @@ __all__ = [
     "score",
 ]
 
+if TYPE_CHECKING:
+    from os import PathLike
+
+    import numpy as np
+    import numpy.typing as npt
+    from typing_extensions import Unpack
+
 ProgressCallback = Callable[[str, int, int, bool], Any]
+
+
+class EstimateOptions(TypedDict, total=False):
+    """The keyword options of :func:`estimate` and :meth:`Estimator.estimate` (the CLI's flags)."""
+
+    focal_px: float
+    intrinsics: "Union[str, PathLike[str], npt.NDArray[np.float64]]"
+    init: "Union[str, PathLike[str]]"
+    start_step: int
+    refine: str
+    matcher: str
+    pairs: str
+    samples: int
+    seed: int
+    ggs: bool
+    skip_bad_images: bool
+    names: Sequence[str]
 
 
 class _Bars:
@@ -84,8 +109,9 @@ def _progress(progress: Union[bool, ProgressCallback, None]) -> Optional[Progres
     return _Bars(tqdm)
 
 
-def estimate(images: Any, *, weights: Any = None, progress: Union[bool, ProgressCallback, None] = True,
-             **options: Any) -> Reconstruction:
+def estimate(images: Any, *, weights: Any = None, device: str = "cpu",
+             progress: Union[bool, ProgressCallback, None] = True,
+             **options: Unpack[EstimateOptions]) -> Reconstruction:
     """Cameras (and points) for ``images``.
 
     ``images``: a folder (its .png/.jpg/.jpeg files, sorted), a list of image paths (in that
@@ -99,7 +125,8 @@ def estimate(images: Any, *, weights: Any = None, progress: Union[bool, Progress
     ``skip_bad_images``. ``progress``: ``True`` for tqdm bars when tqdm is installed, ``False``,
     or a callable ``(stage, done, total, finished)``.
     """
-    return _native.estimate(images, weights=weights, progress=_progress(progress), **options)
+    return _native.estimate(images, dict(options), weights=weights, device=device,
+                            progress=_progress(progress))
 
 
 class Estimator:
@@ -114,9 +141,9 @@ class Estimator:
         self._native = _native.Estimator(weights, device=device)
 
     def estimate(self, images: Any, *, progress: Union[bool, ProgressCallback, None] = True,
-                 **options: Any) -> Reconstruction:
+                 **options: Unpack[EstimateOptions]) -> Reconstruction:
         """As :func:`posediff.estimate` with this checkpoint."""
-        return self._native.estimate(images, progress=_progress(progress), **options)
+        return self._native.estimate(images, dict(options), progress=_progress(progress))
 
     def __repr__(self) -> str:
         return repr(self._native)

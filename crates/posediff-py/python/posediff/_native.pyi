@@ -54,41 +54,14 @@ class Reconstruction:
 class Estimator:
     def __init__(self, weights: _Path, *, device: str = "cpu") -> None: ...
     def estimate(
-        self,
-        images: _Images,
-        *,
-        focal_px: Optional[float] = None,
-        intrinsics: Union[_Path, npt.NDArray[np.float64], None] = None,
-        init: Optional[_Path] = None,
-        start_step: int = 30,
-        refine: str = "converge",
-        matcher: str = "sift",
-        pairs: str = "auto",
-        samples: int = 1,
-        seed: int = 0,
-        ggs: bool = True,
-        skip_bad_images: bool = False,
-        names: Optional[Sequence[str]] = None,
-        progress: _Progress = None,
+        self, images: _Images, options: Optional[dict[str, Any]] = None, progress: _Progress = None
     ) -> Reconstruction: ...
 
 def estimate(
     images: _Images,
-    *,
+    options: Optional[dict[str, Any]] = None,
     weights: Optional[_Path] = None,
-    focal_px: Optional[float] = None,
-    intrinsics: Union[_Path, npt.NDArray[np.float64], None] = None,
-    init: Optional[_Path] = None,
-    start_step: int = 30,
-    refine: str = "converge",
-    matcher: str = "sift",
-    pairs: str = "auto",
-    samples: int = 1,
-    seed: int = 0,
-    ggs: bool = True,
     device: str = "cpu",
-    skip_bad_images: bool = False,
-    names: Optional[Sequence[str]] = None,
     progress: _Progress = None,
 ) -> Reconstruction: ...
 def read_cameras(path: _Path) -> list[Camera]: ...
