@@ -2,7 +2,7 @@
 //! (`python/posediff/__init__.py` re-exports it and adds tqdm progress).
 //!
 //! Every estimation goes through [`posediff::run::run`], the function the CLI calls, so the
-//! files [`PyReconstruction::write`] writes are the CLI's byte for byte. The GIL is released
+//! files `Reconstruction.write` writes are the CLI's byte for byte. The GIL is released
 //! while it runs; progress comes back through a Python callable, called with the GIL held.
 //! Cameras speak OpenCV (`x_cam = R x_world + t`, pixels); the PyTorch3D conversions are the
 //! geometry crate's (`posediff_geometry::pytorch3d`), with PyTorch3D's `image_size = (H, W)`.
