@@ -46,6 +46,19 @@ pub fn shared_path(relative: &str) -> PathBuf {
     path
 }
 
+/// A fresh, empty folder for one test: `posediff-<tag>-<pid>` in the system's temporary
+/// folder (an earlier run's is removed).
+///
+/// # Panics
+/// When the folder cannot be made (the test cannot run).
+#[allow(clippy::expect_used)] // test support: a failure is the test failing
+pub fn temp_dir(tag: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("posediff-{tag}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).expect("a temporary folder");
+    d
+}
+
 /// A tensor read from a fixture, converted to `f64`, row-major.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Tensor {

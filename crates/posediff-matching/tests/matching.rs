@@ -25,12 +25,6 @@ fn dataset(name: &str) -> (Vec<PathBuf>, Vec<Camera>) {
     )
 }
 
-fn temp_dir(tag: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("posediff-matching-{tag}-{}", std::process::id()));
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
-
 /// A grey PNG image (only JPEG and PNG files reach the decoders).
 fn write_png(path: &Path, width: usize, height: usize, pixel: impl Fn(usize, usize) -> u8) {
     use opencv::prelude::*;
@@ -93,7 +87,7 @@ fn keypoints_are_in_original_pixels_after_downscaling() {
     // A bright Gaussian blob centred at a non-integer pixel (OpenCV convention: pixel centres
     // at integers) in a 640×480 image, detected on a 320-px copy: SIFT must report it where it
     // is in the original image.
-    let dir = temp_dir("blob");
+    let dir = posediff_fixtures::temp_dir("matching-blob");
     let path = dir.join("blob.png");
     let (cx, cy, sigma) = (301.3, 207.6, 6.0);
     write_png(&path, 640, 480, |x, y| {
@@ -134,7 +128,7 @@ fn keypoints_are_in_original_pixels_after_downscaling() {
 
 #[test]
 fn a_featureless_image_has_no_matches_and_bad_input_is_named() {
-    let dir = temp_dir("bad");
+    let dir = posediff_fixtures::temp_dir("matching-bad");
     let flat = dir.join("flat.png");
     write_png(&flat, 200, 150, |_, _| 128);
     let (images, _) = dataset("strecha_fountainP11");

@@ -3,7 +3,7 @@
 //! rendered views obey the ground-truth epipolar geometry; the data is deterministic.
 #![allow(clippy::unwrap_used)]
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use nalgebra::Point2;
 use posediff::co3d::load_annotations;
@@ -27,12 +27,6 @@ fn spec(seed: u64) -> DatasetSpec {
     }
 }
 
-fn temp(tag: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("posediff-synth-{tag}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    d
-}
-
 /// Largest distance (px) between a pixel centre and the projection, with `camera`, of the world
 /// point the renderer saw there; and how many pixels were checked.
 fn worst_reprojection(frame: &posediff_synth::Frame, camera: &Camera) -> (f64, usize) {
@@ -52,7 +46,7 @@ fn worst_reprojection(frame: &posediff_synth::Frame, camera: &Camera) -> (f64, u
 
 #[test]
 fn both_layouts_reproject_rendered_points_onto_their_pixels() {
-    let out = temp("exact");
+    let out = posediff_fixtures::temp_dir("synth-exact");
     let spec = spec(3);
     write_dataset(&out, &spec).unwrap();
     let mut co3d = load_annotations(&out.join("synthetic_train.jgz")).unwrap();
@@ -93,7 +87,7 @@ fn image_pixels(path: &Path) -> Vec<u8> {
 
 #[test]
 fn sift_matches_between_rendered_views_obey_the_true_epipolar_geometry() {
-    let out = temp("sift");
+    let out = posediff_fixtures::temp_dir("synth-sift");
     let spec = DatasetSpec {
         sequences: 1,
         frames: 20,
@@ -140,7 +134,11 @@ fn the_same_seed_gives_the_same_bytes() {
         frames: 2,
         ..spec(5)
     };
-    let (a, b, c) = (temp("det-a"), temp("det-b"), temp("det-c"));
+    let (a, b, c) = (
+        posediff_fixtures::temp_dir("synth-det-a"),
+        posediff_fixtures::temp_dir("synth-det-b"),
+        posediff_fixtures::temp_dir("synth-det-c"),
+    );
     write_dataset(&a, &spec).unwrap();
     write_dataset(&b, &spec).unwrap();
     write_dataset(
@@ -163,7 +161,7 @@ fn the_same_seed_gives_the_same_bytes() {
 
 #[test]
 fn an_empty_spec_is_an_error() {
-    let out = temp("empty");
+    let out = posediff_fixtures::temp_dir("synth-empty");
     assert!(
         write_dataset(
             &out,
@@ -183,7 +181,7 @@ fn an_empty_spec_is_an_error() {
 
 #[test]
 fn the_co3d_protocol_reads_the_synthetic_test_split() {
-    let out = temp("co3d");
+    let out = posediff_fixtures::temp_dir("synth-co3d");
     let spec = DatasetSpec {
         sequences: 2,
         frames: 12,

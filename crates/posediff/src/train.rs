@@ -141,22 +141,69 @@ pub struct TrainSequence {
     pub frames: Vec<(PathBuf, Camera)>,
 }
 
-/// Reads the `{category}_{split}.jgz` annotations; with a frozen backbone (`features`) also
-/// computes every usable frame's features with `model`'s backbone, 16 images at a time.
+/// An annotation split: `{category}_{split}.jgz`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Split {
+    /// `{category}_train.jgz`.
+    Train,
+    /// `{category}_test.jgz`.
+    Test,
+}
+
+impl Split {
+    /// Its name in the file names.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Train => "train",
+            Self::Test => "test",
+        }
+    }
+}
+
+/// Where the training data is and which of it is used.
+#[derive(Debug, Clone, Copy)]
+pub struct TrainData<'a> {
+    /// CO3D root (the annotations' image paths are relative to it).
+    pub co3d_dir: &'a Path,
+    /// Folder of `{category}_{split}.jgz`.
+    pub annotation_dir: &'a Path,
+    /// Categories.
+    pub categories: &'a [String],
+    /// Split.
+    pub split: Split,
+    /// Sequences with fewer frames are left out.
+    pub min_frames: usize,
+}
+
+/// What a run feeds the model: each frame's features computed once by a frozen backbone, or
+/// the frames themselves, read and augmented per batch.
+#[derive(Debug, Clone, Copy)]
+pub enum FrameInput<'m> {
+    /// Features cached with this model's backbone.
+    CachedFeatures(&'m posediff_diffusion::PoseDiffusionModel),
+    /// Frames read per batch (only their sizes and cameras now).
+    Augmented,
+}
+
+/// Reads the annotations of `data`; with [`FrameInput::CachedFeatures`] also computes every
+/// usable frame's features with the model's backbone, 16 images at a time.
 ///
 /// # Errors
 /// Unreadable annotations or images, no usable sequence, model errors.
-#[allow(clippy::too_many_arguments)] // the data's location, selection and the model to encode it
 pub fn load_training_data(
-    co3d_dir: &Path,
-    annotation_dir: &Path,
-    categories: &[String],
-    split: &str,
-    min_frames: usize,
-    features: Option<&posediff_diffusion::PoseDiffusionModel>,
+    data: &TrainData<'_>,
+    input: FrameInput<'_>,
     device: &Device,
     mut progress: impl FnMut(usize, usize),
 ) -> Result<Vec<TrainSequence>> {
+    let TrainData {
+        co3d_dir,
+        annotation_dir,
+        categories,
+        split,
+        min_frames,
+    } = *data;
+    let split = split.name();
     let mut all = Vec::new();
     for category in categories {
         let sequences = load_annotations(&annotation_dir.join(format!("{category}_{split}.jgz")))?;
@@ -180,7 +227,7 @@ pub fn load_training_data(
         let mut cameras = Vec::new();
         let mut frames = Vec::new();
         for (chunk_paths, chunk_frames) in paths.chunks(16).zip(seq.frames.chunks(16)) {
-            let Some(model) = features else {
+            let FrameInput::CachedFeatures(model) = input else {
                 // Batches are read and augmented later: only the sizes are needed now.
                 for (path, f) in chunk_paths.iter().zip(chunk_frames) {
                     let (size, _) = read_rgb(path)?;
@@ -333,8 +380,36 @@ pub struct TrainerState {
     pub config: TrainConfig,
     /// The checkpoint the run started from (`None`: freshly initialised).
     pub init: Option<PathBuf>,
-    /// Whether the backbone was frozen.
-    pub freeze_backbone: bool,
+    /// Which parameters are trained.
+    pub mode: TrainMode,
+}
+
+/// Which parameters a run trains.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TrainMode {
+    /// The denoiser only; the backbone's features are computed once per frame (no
+    /// augmentation: the practical mode on a CPU).
+    FrozenBackbone,
+    /// Every parameter; batches are read and augmented as the official dataset does.
+    Full,
+}
+
+/// How [`Trainer::open`] starts a run.
+#[derive(Debug, Clone)]
+pub enum Start {
+    /// A new run from `init` (official layout; `None`: a fresh model of the preset's depths,
+    /// PyTorch's and DINO's default initialisation).
+    New {
+        /// Initial weights.
+        init: Option<PathBuf>,
+        /// Settings.
+        config: TrainConfig,
+        /// What is trained.
+        mode: TrainMode,
+    },
+    /// The run saved in the output folder, continued exactly (its settings and mode).
+    Resume,
 }
 
 /// A training run: the model, its optimizer and where it saves.
@@ -370,22 +445,22 @@ fn io_err(path: &Path, source: std::io::Error) -> PosediffError {
 }
 
 impl Trainer {
-    /// A new run from `init` (official layout; `None`: a fresh model of the preset's depths,
-    /// PyTorch's and DINO's default initialisation) writing to `out`, or, with `resume`, the run
-    /// saved in `out` continued.
+    /// A run writing to `out`: new, or the one saved there continued.
     ///
     /// # Errors
     /// Unreadable checkpoints or state.
-    pub fn open(
-        init: Option<&Path>,
-        out: &Path,
-        config: TrainConfig,
-        freeze_backbone: bool,
-        resume: bool,
-        device: &Device,
-    ) -> Result<Self> {
+    pub fn open(out: &Path, start: Start, device: &Device) -> Result<Self> {
         let state_path = out.join("trainer.json");
-        let (weights, state, log) = if resume {
+        let resume = matches!(start, Start::Resume);
+        let (weights, state, log) = if let Start::New { init, config, mode } = start {
+            let state = TrainerState {
+                iteration: 0,
+                config,
+                init: init.clone(),
+                mode,
+            };
+            (init, state, Vec::new())
+        } else {
             let text = crate::error::read_text(&state_path)?;
             let state: TrainerState =
                 serde_json::from_str(&text).map_err(|e| PosediffError::invalid(&state_path, e))?;
@@ -394,14 +469,6 @@ impl Trainer {
                 .filter(|r| r.iteration < state.iteration)
                 .collect();
             (Some(out.join("model.safetensors")), state, log)
-        } else {
-            let state = TrainerState {
-                iteration: 0,
-                config,
-                init: init.map(Path::to_owned),
-                freeze_backbone,
-            };
-            (init.map(Path::to_owned), state, Vec::new())
         };
         let checkpoint = match &weights {
             Some(w) => Checkpoint::load(w, device)?,
@@ -424,7 +491,7 @@ impl Trainer {
         let trained: Vec<_> = trainable
             .named_variables()
             .into_iter()
-            .filter(|(k, _)| !freeze_backbone || k.starts_with("diffuser."))
+            .filter(|(k, _)| state.mode == TrainMode::Full || k.starts_with("diffuser."))
             .collect();
         let mut optimizer = AdamW::new(trained)?;
         if resume {
@@ -441,6 +508,14 @@ impl Trainer {
             out: out.to_owned(),
             device: device.clone(),
         })
+    }
+
+    /// What [`load_training_data`] should give this run.
+    pub fn frame_input(&self) -> FrameInput<'_> {
+        match self.state.mode {
+            TrainMode::FrozenBackbone => FrameInput::CachedFeatures(&self.trainable.model),
+            TrainMode::Full => FrameInput::Augmented,
+        }
     }
 
     /// Runs iterations until `config.iterations` (or `stop_after` more), saving checkpoints;
@@ -465,7 +540,7 @@ impl Trainer {
             let start = Instant::now();
             let mut rng = iteration_rng(config.seed, it);
             let sets = sample_sets(data, &config, &mut rng)?;
-            let (z, x0) = if self.state.freeze_backbone {
+            let (z, x0) = if self.state.mode == TrainMode::FrozenBackbone {
                 cached_batch(&sets, &device)?
             } else {
                 let (images, x0) = image_batch(&sets, &mut rng, &device)?;

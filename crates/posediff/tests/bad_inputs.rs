@@ -11,13 +11,6 @@ use std::time::Instant;
 
 use posediff_fixtures::shared_path;
 
-fn temp_dir(tag: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("posediff-bad-{tag}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
-
 fn apple() -> PathBuf {
     shared_path("data/co3d_apple_posediffusion/images")
 }
@@ -106,7 +99,7 @@ fn folder_with(dir: &Path, tag: &str, extra: (&str, &[u8])) -> PathBuf {
 
 #[test]
 fn bad_images_are_named_before_any_work() {
-    let dir = temp_dir("images");
+    let dir = posediff_fixtures::temp_dir("bad-images");
     let out = dir.join("out");
     let jpeg = std::fs::read(&apple_files()[0]).unwrap();
     let png =
@@ -231,7 +224,7 @@ fn bad_images_are_named_before_any_work() {
 
 #[test]
 fn bad_options_fail_before_any_work() {
-    let dir = temp_dir("options");
+    let dir = posediff_fixtures::temp_dir("bad-options");
     let out = dir.join("out");
     let file_out = write(&dir.join("a-file"), b"x");
     let a = apple();
@@ -362,7 +355,7 @@ fn edited_checkpoint(
 
 #[test]
 fn broken_checkpoints_are_reported_at_load() {
-    let dir = temp_dir("weights");
+    let dir = posediff_fixtures::temp_dir("bad-weights");
     let out = dir.join("out");
     let a = apple();
     let text = write(&dir.join("weights.pth"), b"not a checkpoint");
@@ -472,7 +465,7 @@ fn cameras_json(path: &Path, names: &[&str], estimated: bool) -> PathBuf {
 
 #[test]
 fn per_image_files_must_name_the_images() {
-    let dir = temp_dir("records");
+    let dir = posediff_fixtures::temp_dir("bad-records");
     let out = dir.join("out");
     let a = apple();
     let (names, other) = apple_and_other_names();
@@ -542,7 +535,7 @@ fn per_image_files_must_name_the_images() {
 
 #[test]
 fn other_commands_name_what_is_wrong() {
-    let dir = temp_dir("commands");
+    let dir = posediff_fixtures::temp_dir("bad-commands");
     let gt = shared_path("data/co3d_apple_posediffusion/cameras.json");
     let (names, other) = apple_and_other_names();
     let other_refs: Vec<&str> = other.iter().map(String::as_str).collect();
@@ -631,7 +624,7 @@ fn other_commands_name_what_is_wrong() {
 
 #[test]
 fn ground_truths_in_another_order_score_the_same() {
-    let dir = temp_dir("shuffled");
+    let dir = posediff_fixtures::temp_dir("bad-shuffled");
     let gt = shared_path("data/co3d_apple_posediffusion/cameras.json");
     let mut entries: Vec<serde_json::Value> =
         serde_json::from_str(&std::fs::read_to_string(&gt).unwrap()).unwrap();
@@ -670,7 +663,7 @@ fn ground_truths_in_another_order_score_the_same() {
 
 #[test]
 fn skipped_images_are_listed_and_the_rest_estimated() {
-    let dir = temp_dir("skip");
+    let dir = posediff_fixtures::temp_dir("bad-skip");
     let jpeg = std::fs::read(&apple_files()[0]).unwrap();
     let set = dir.join("set");
     std::fs::create_dir_all(&set).unwrap();
@@ -717,7 +710,7 @@ fn skipped_images_are_listed_and_the_rest_estimated() {
 
 #[test]
 fn the_same_inputs_give_byte_identical_outputs_on_one_or_two_threads() {
-    let dir = temp_dir("determinism");
+    let dir = posediff_fixtures::temp_dir("bad-determinism");
     let images = shared_path("data/middlebury_templeSR/images");
     let run = |threads: &str, tag: &str| {
         let out = dir.join(tag);
@@ -752,7 +745,7 @@ fn the_same_inputs_give_byte_identical_outputs_on_one_or_two_threads() {
 
 #[test]
 fn initial_cameras_are_matched_by_name_in_any_order() {
-    let dir = temp_dir("init-order");
+    let dir = posediff_fixtures::temp_dir("bad-init-order");
     let set = shared_path("data/middlebury_templeSR");
     let mut gt: Vec<serde_json::Value> =
         serde_json::from_str(&std::fs::read_to_string(set.join("cameras.json")).unwrap()).unwrap();

@@ -40,13 +40,6 @@ fn chromium() -> PathBuf {
     p
 }
 
-fn temp_dir(tag: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("posediff-clients-{tag}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
-
 fn posediff(args: &[&std::ffi::OsStr]) -> std::process::Output {
     let out = Command::new(env!("CARGO_BIN_EXE_posediff"))
         .args(args)
@@ -159,7 +152,7 @@ fn drawn_fraction(shot: &Path) -> f64 {
 #[test]
 fn fountain_outputs_load_in_pycolmap_plyfile_chromium_and_import_colmap() {
     let images = shared_path("data/strecha_fountainP11/images");
-    let dir = temp_dir("fountain");
+    let dir = posediff_fixtures::temp_dir("clients-fountain");
     let out = dir.join("out");
     posediff(&[
         "estimate".as_ref(),
@@ -282,7 +275,7 @@ fn fountain_outputs_load_in_pycolmap_plyfile_chromium_and_import_colmap() {
 
 #[test]
 fn an_empty_page_draws_nothing_so_the_screenshot_check_can_fail() {
-    let dir = temp_dir("blank");
+    let dir = posediff_fixtures::temp_dir("clients-blank");
     let page = dir.join("view.html");
     let html = posediff::viewer::render(
         "blank",

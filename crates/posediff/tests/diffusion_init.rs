@@ -6,7 +6,7 @@
 use std::path::PathBuf;
 
 use candle_core::{DType, Device};
-use nalgebra::{Matrix3, Rotation3, Vector3};
+use nalgebra::{Rotation3, Vector3};
 use posediff::export::read_cameras_json;
 use posediff::geometric::KnownIntrinsics;
 use posediff::{EstimateConfig, Estimator, Silent};
@@ -39,20 +39,13 @@ fn fountain(n: usize) -> (Vec<PathBuf>, Vec<Camera>) {
     )
 }
 
-fn angle_deg(r: &Matrix3<f64>) -> f64 {
-    ((r.trace() - 1.0) / 2.0)
-        .clamp(-1.0, 1.0)
-        .acos()
-        .to_degrees()
-}
-
 fn worst_relative_rotation(a: &[Camera], b: &[Camera]) -> f64 {
     let mut worst = 0.0f64;
     for i in 0..a.len() {
         for j in i + 1..a.len() {
             let ra = relative_pose(&a[i].cam_from_world, &a[j].cam_from_world).rotation;
             let rb = relative_pose(&b[i].cam_from_world, &b[j].cam_from_world).rotation;
-            worst = worst.max(angle_deg(&(ra * rb.transpose())));
+            worst = worst.max(posediff_geometry::rotation_angle_between_deg(&rb, &ra));
         }
     }
     worst

@@ -17,12 +17,6 @@ use posediff_fixtures::shared_path;
 use posediff_geometry::{Camera, CenterCrop, ImageSize, Intrinsics, Pose, Quaternion};
 use posediff_sfm::points::PointOptions;
 
-fn temp_dir(tag: &str) -> std::path::PathBuf {
-    let d = std::env::temp_dir().join(format!("posediff-export-{tag}-{}", std::process::id()));
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
-
 fn apple() -> (Vec<NamedCamera>, serde_json::Value) {
     let path = shared_path("data/co3d_apple_posediffusion/cameras.json");
     let raw: serde_json::Value =
@@ -82,7 +76,7 @@ fn assert_same(a: &[NamedCamera], b: &[NamedCamera]) {
 #[test]
 fn every_format_round_trips_real_cameras() {
     let (cams, _) = apple();
-    let dir = temp_dir("roundtrip");
+    let dir = posediff_fixtures::temp_dir("export-roundtrip");
     write_cameras_json(&dir.join("cameras.json"), &cams).unwrap();
     assert_same(
         &cams,
@@ -124,7 +118,7 @@ fn hand_checked_colmap_and_nerfstudio_values() {
         image: "images/a b.jpg".into(),
         camera: cam,
     }];
-    let dir = temp_dir("hand");
+    let dir = posediff_fixtures::temp_dir("export-hand");
     write_colmap(&dir, &reconstruction_of(&named), ColmapFormat::Text).unwrap();
     let cams_txt = std::fs::read_to_string(dir.join("cameras.txt")).unwrap();
     assert!(
@@ -204,7 +198,7 @@ fn pytorch3d_json_matches_the_official_conventions() {
     // The apple set stores each camera's PyTorch3D R, T and NDC focal (of the original image,
     // whose NDC unit, half the shorter side, is the crop's too).
     let (cams, raw) = apple();
-    let dir = temp_dir("p3d");
+    let dir = posediff_fixtures::temp_dir("export-p3d");
     let with_crops: Vec<(NamedCamera, CenterCrop)> = cams
         .iter()
         .map(|c| (c.clone(), CenterCrop::official(c.camera.image_size, 224)))
@@ -309,7 +303,7 @@ fn colmap_models_with_points_round_trip_in_text_and_binary() {
         .map(|c| format!("{:?} {:?}", c.camera.intrinsics, c.camera.image_size))
         .collect();
     assert_eq!(model.cameras.len(), distinct.len());
-    let dir = temp_dir("points");
+    let dir = posediff_fixtures::temp_dir("export-points");
     for (format, sub) in [(ColmapFormat::Text, "text"), (ColmapFormat::Binary, "bin")] {
         model.write(&dir.join(sub), format).unwrap();
         let back = ColmapModel::read(&dir.join(sub)).unwrap();
@@ -359,7 +353,7 @@ fn one_colmap_camera_per_distinct_intrinsics() {
 #[test]
 fn broken_binary_models_are_errors_that_name_the_file() {
     let (cams, _) = apple();
-    let dir = temp_dir("broken-bin");
+    let dir = posediff_fixtures::temp_dir("export-broken-bin");
     write_colmap(&dir, &reconstruction_of(&cams), ColmapFormat::Binary).unwrap();
     let images = dir.join("images.bin");
     let bytes = std::fs::read(&images).unwrap();
@@ -381,7 +375,7 @@ fn broken_binary_models_are_errors_that_name_the_file() {
     assert!(e.contains("3 bytes after"), "{e}");
     std::fs::remove_dir_all(&dir).unwrap();
     // No model at all.
-    let e = ColmapModel::read(&temp_dir("empty-model"))
+    let e = ColmapModel::read(&posediff_fixtures::temp_dir("export-empty-model"))
         .unwrap_err()
         .to_string();
     assert!(e.contains("no COLMAP model"), "{e}");
@@ -400,7 +394,7 @@ fn ply_points_are_in_the_transformed_world_with_their_colours() {
             .unwrap();
     // Colours come from the images: not all the grey placeholder.
     assert!(recon.points.iter().any(|p| p.rgb != [128, 128, 128]));
-    let dir = temp_dir("ply");
+    let dir = posediff_fixtures::temp_dir("export-ply");
     let path = dir.join("sparse_pc.ply");
     write_ply(&path, &recon.points, &nerfstudio_applied_transform()).unwrap();
     let back = read_ply(&path).unwrap();

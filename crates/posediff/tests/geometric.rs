@@ -21,13 +21,6 @@ use posediff_fixtures::shared_path;
 use posediff_geometry::epipolar::relative_pose;
 use posediff_geometry::{Camera, Pose};
 
-fn angle_deg(r: &Matrix3<f64>) -> f64 {
-    ((r.trace() - 1.0) / 2.0)
-        .clamp(-1.0, 1.0)
-        .acos()
-        .to_degrees()
-}
-
 /// Worst relative rotation and translation-direction errors over all pairs (degrees).
 fn worst_pair_errors(est: &[Camera], gt: &[Camera]) -> (f64, f64) {
     let (mut rot, mut trans) = (0.0f64, 0.0f64);
@@ -35,7 +28,10 @@ fn worst_pair_errors(est: &[Camera], gt: &[Camera]) -> (f64, f64) {
         for j in i + 1..est.len() {
             let e = relative_pose(&est[i].cam_from_world, &est[j].cam_from_world);
             let g = relative_pose(&gt[i].cam_from_world, &gt[j].cam_from_world);
-            rot = rot.max(angle_deg(&(e.rotation * g.rotation.transpose())));
+            rot = rot.max(posediff_geometry::rotation_angle_between_deg(
+                &g.rotation,
+                &e.rotation,
+            ));
             let c = e
                 .translation
                 .normalize()
@@ -70,13 +66,6 @@ fn posediff<const N: usize>(args: [OsString; N], ok: bool) -> std::process::Outp
         );
     }
     run
-}
-
-fn temp_dir(tag: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("posediff-geometric-{tag}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
 }
 
 #[test]
@@ -163,7 +152,7 @@ fn images_without_any_match_are_an_error() {
     );
 
     // The command says so and fails.
-    let out = temp_dir("nomatch");
+    let out = posediff_fixtures::temp_dir("geometric-nomatch");
     let run = posediff(
         [
             OsString::from("estimate"),
@@ -201,7 +190,7 @@ fn a_second_group_is_reported_not_estimated() {
     assert!(rot < 2.0 && trans < 3.0, "worst pair: {rot}° / {trans}°");
 
     // cameras.json keeps every image, marking the temple views; the other formats omit them.
-    let dir = temp_dir("groups");
+    let dir = posediff_fixtures::temp_dir("geometric-groups");
     for (k, img) in images.iter().enumerate() {
         std::fs::copy(
             img,
@@ -271,7 +260,7 @@ fn write_rotated(image: &Path, k: &Matrix3<f64>, r: &Matrix3<f64>, out: &Path) {
 fn pure_rotation_gives_one_centre_and_the_rotations() {
     let (images, gt) = set("strecha_fountainP11");
     let k = gt[5].intrinsics.matrix();
-    let dir = temp_dir("rotation");
+    let dir = posediff_fixtures::temp_dir("geometric-rotation");
     let rotations: Vec<Matrix3<f64>> = [(0.0, 0.0, 0.0), (0.02, 0.05, 0.0), (-0.03, 0.09, 0.01)]
         .iter()
         .map(|&(a, b, c)| *Rotation3::from_euler_angles(a, b, c).matrix())
@@ -299,7 +288,7 @@ fn pure_rotation_gives_one_centre_and_the_rotations() {
     // is rotated by R_i relative to camera 0.
     for i in 1..3 {
         let rel = cams[i].cam_from_world.rotation * cams[0].cam_from_world.rotation.transpose();
-        let err = angle_deg(&(rel * rotations[i].transpose()));
+        let err = posediff_geometry::rotation_angle_between_deg(&rotations[i], &rel);
         assert!(err < 0.2, "camera {i}: {err}°");
     }
     let focal = cams[0].intrinsics.fx();
@@ -309,7 +298,7 @@ fn pure_rotation_gives_one_centre_and_the_rotations() {
 #[test]
 fn identical_images_get_the_same_camera() {
     let (images, _) = set("strecha_fountainP11");
-    let dir = temp_dir("twins");
+    let dir = posediff_fixtures::temp_dir("geometric-twins");
     let files: Vec<PathBuf> = [0, 1, 2, 0]
         .iter()
         .enumerate()
@@ -324,7 +313,7 @@ fn identical_images_get_the_same_camera() {
     let scale = (cams[1].center() - cams[0].center()).norm();
     assert!((cams[3].center() - cams[0].center()).norm() < 1e-3 * scale);
     let rel = cams[3].cam_from_world.rotation * cams[0].cam_from_world.rotation.transpose();
-    assert!(angle_deg(&rel) < 0.05);
+    assert!(posediff_geometry::rotation_angle_between_deg(&Matrix3::identity(), &rel) < 0.05);
     assert!(e.report.rotation_only_pairs >= 1);
 }
 
@@ -361,7 +350,7 @@ fn a_repeated_viewpoint_shares_its_centre_and_keeps_the_ring() {
 #[test]
 fn a_colmap_model_imports_and_initialises_the_refinement() {
     let (images, gt) = set("strecha_fountainP11");
-    let dir = temp_dir("colmap");
+    let dir = posediff_fixtures::temp_dir("geometric-colmap");
     let folder = dir.join("images");
     std::fs::create_dir_all(&folder).unwrap();
     for image in &images[..3] {
@@ -476,7 +465,7 @@ fn the_official_ggs_schedule_is_an_option() {
 #[test]
 fn known_intrinsics_from_a_file_are_returned_exactly() {
     let dir = shared_path("data/strecha_fountainP11");
-    let out = temp_dir("intrinsics");
+    let out = posediff_fixtures::temp_dir("geometric-intrinsics");
     posediff(
         [
             OsString::from("estimate"),

@@ -3,7 +3,7 @@
 
 #![allow(clippy::unwrap_used)]
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use posediff::export::{ImageCamera, NerfstudioTransforms, read_cameras_json_partial};
 use posediff::outputs::{
@@ -12,13 +12,6 @@ use posediff::outputs::{
 use posediff::reconstruction::Reconstruction;
 use posediff::run_report::{MethodReport, RunReport};
 use posediff_fixtures::shared_path;
-
-fn temp_dir(tag: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("posediff-outputs-{tag}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
 
 /// Three apple frames (copied into `dir/in`) and their ground-truth cameras.
 fn three_frames(dir: &Path) -> (InputImages, Reconstruction) {
@@ -79,7 +72,7 @@ fn frame_paths(out: &Path) -> Vec<String> {
 
 #[test]
 fn images_are_linked_copied_or_named_absolutely_and_every_frame_path_resolves() {
-    let dir = temp_dir("modes");
+    let dir = posediff_fixtures::temp_dir("outputs-modes");
     let (inputs, recon) = three_frames(&dir);
     // A folder: one link to it.
     let out = dir.join("link");
@@ -142,7 +135,7 @@ fn images_are_linked_copied_or_named_absolutely_and_every_frame_path_resolves() 
 
 #[test]
 fn an_unusable_output_folder_fails_before_any_work() {
-    let dir = temp_dir("bad-out");
+    let dir = posediff_fixtures::temp_dir("outputs-bad-out");
     let (inputs, _) = three_frames(&dir);
     // --out is a file.
     let file = dir.join("file");
@@ -168,7 +161,7 @@ fn an_unusable_output_folder_fails_before_any_work() {
 
 #[test]
 fn an_earlier_runs_link_is_replaced_never_written_through() {
-    let dir = temp_dir("relink");
+    let dir = posediff_fixtures::temp_dir("outputs-relink");
     let (inputs, recon) = three_frames(&dir);
     let elsewhere = dir.join("elsewhere");
     std::fs::create_dir_all(&elsewhere).unwrap();

@@ -4,6 +4,9 @@ use std::path::PathBuf;
 
 use clap::ValueEnum;
 
+use anyhow::bail;
+use posediff::train::{Split, Start, TrainData, TrainMode, Trainer, load_training_data};
+
 use super::{Categories, DeviceArg};
 
 /// Training settings.
@@ -13,24 +16,6 @@ pub enum Preset {
     Tiny,
     /// The official `cfgs/default_train.yaml`.
     Official,
-}
-
-/// An annotation split.
-#[derive(Clone, Copy, ValueEnum)]
-pub enum Split {
-    /// `{category}_train.jgz`.
-    Train,
-    /// `{category}_test.jgz`.
-    Test,
-}
-
-impl Split {
-    fn name(self) -> &'static str {
-        match self {
-            Self::Train => "train",
-            Self::Test => "test",
-        }
-    }
 }
 
 /// Train on CO3D-layout data (e.g. `cargo xtask synth` output): the official recipe with a
@@ -112,14 +97,31 @@ impl Args {
             cfg.period = cfg.period.min(k.max(1));
         }
         let device = device.device()?;
-        let mut trainer = posediff::train::Trainer::open(
-            init.as_deref(),
-            &out,
-            cfg,
-            freeze_backbone,
-            resume,
-            &device,
-        )?;
+        let mode = if freeze_backbone {
+            TrainMode::FrozenBackbone
+        } else {
+            TrainMode::Full
+        };
+        let start = if resume {
+            Start::Resume
+        } else {
+            Start::New {
+                init,
+                config: cfg,
+                mode,
+            }
+        };
+        let mut trainer = Trainer::open(&out, start, &device)?;
+        if trainer.state.mode != mode {
+            bail!(
+                "{} was trained with {}: give the same --freeze-backbone to resume it",
+                out.display(),
+                match trainer.state.mode {
+                    TrainMode::FrozenBackbone => "a frozen backbone (--freeze-backbone)",
+                    TrainMode::Full => "every parameter (no --freeze-backbone)",
+                }
+            );
+        }
         if let (true, Some(k)) = (resume, iterations) {
             // A resumed run keeps its schedule; only its length changes.
             trainer.state.config.iterations = k;
@@ -136,16 +138,15 @@ impl Args {
             bar.set_style(style.progress_chars("=> "));
         }
         bar.set_message("features");
-        let data = posediff::train::load_training_data(
-            &co3d_dir,
-            &annotation_dir,
-            &list,
-            split.name(),
-            trainer.state.config.min_frames,
-            trainer
-                .state
-                .freeze_backbone
-                .then_some(&trainer.trainable.model),
+        let data = load_training_data(
+            &TrainData {
+                co3d_dir: &co3d_dir,
+                annotation_dir: &annotation_dir,
+                categories: &list,
+                split,
+                min_frames: trainer.state.config.min_frames,
+            },
+            trainer.frame_input(),
             &device,
             |done, total| {
                 bar.set_length(total as u64);

@@ -5,16 +5,13 @@
 use std::path::{Path, PathBuf};
 
 use candle_core::Device;
-use posediff::train::{LogRow, TrainConfig, Trainer, load_training_data, read_log};
+use posediff::train::{
+    FrameInput, LogRow, Split, Start, TrainConfig, TrainData, TrainMode, Trainer,
+    load_training_data, read_log,
+};
 use posediff::{EstimateConfig, Estimator};
 use posediff_geometry::ImageSize;
 use posediff_synth::{DatasetSpec, write_dataset};
-
-fn temp(tag: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("posediff-train-{tag}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    d
-}
 
 fn tiny_model() -> PathBuf {
     posediff_fixtures::shared_path("reference/tiny/model_tiny.safetensors")
@@ -39,6 +36,17 @@ fn max_change(
         .unwrap()
 }
 
+/// The synthetic category's training split of `dir` (the dataset's root and annotations).
+fn train_data<'a>(dir: &'a Path, categories: &'a [String]) -> TrainData<'a> {
+    TrainData {
+        co3d_dir: dir,
+        annotation_dir: dir,
+        categories,
+        split: Split::Train,
+        min_frames: 5,
+    }
+}
+
 fn config() -> TrainConfig {
     TrainConfig {
         iterations: 4,
@@ -57,15 +65,16 @@ fn config() -> TrainConfig {
 /// once with `None`); returns the log.
 fn run(data_dir: &Path, out: &Path, split: Option<u64>) -> Vec<LogRow> {
     let device = Device::Cpu;
-    let mut trainer =
-        Trainer::open(Some(&tiny_model()), out, config(), true, false, &device).unwrap();
+    let start = Start::New {
+        init: Some(tiny_model()),
+        config: config(),
+        mode: TrainMode::FrozenBackbone,
+    };
+    let mut trainer = Trainer::open(out, start, &device).unwrap();
+    let categories = ["synthetic".to_owned()];
     let data = load_training_data(
-        data_dir,
-        data_dir,
-        &["synthetic".to_owned()],
-        "train",
-        5,
-        Some(&trainer.trainable.model),
+        &train_data(data_dir, &categories),
+        trainer.frame_input(),
         &device,
         |_, _| {},
     )
@@ -73,9 +82,9 @@ fn run(data_dir: &Path, out: &Path, split: Option<u64>) -> Vec<LogRow> {
     trainer.run(&data, split, |_, _| {}).unwrap();
     if let Some(done) = split {
         drop(trainer);
-        let mut resumed =
-            Trainer::open(Some(&tiny_model()), out, config(), true, true, &device).unwrap();
+        let mut resumed = Trainer::open(out, Start::Resume, &device).unwrap();
         assert_eq!(resumed.state.iteration, done);
+        assert_eq!(resumed.state.mode, TrainMode::FrozenBackbone);
         resumed.run(&data, None, |_, _| {}).unwrap();
         return resumed.log.clone();
     }
@@ -84,7 +93,7 @@ fn run(data_dir: &Path, out: &Path, split: Option<u64>) -> Vec<LogRow> {
 
 #[test]
 fn a_resumed_run_repeats_the_uninterrupted_loss_curve_and_its_checkpoint_loads() {
-    let data = temp("data");
+    let data = posediff_fixtures::temp_dir("train-data");
     write_dataset(
         &data,
         &DatasetSpec {
@@ -97,7 +106,10 @@ fn a_resumed_run_repeats_the_uninterrupted_loss_curve_and_its_checkpoint_loads()
         },
     )
     .unwrap();
-    let (a, b) = (temp("a"), temp("b"));
+    let (a, b) = (
+        posediff_fixtures::temp_dir("train-a"),
+        posediff_fixtures::temp_dir("train-b"),
+    );
     let straight = run(&data, &a, None);
     let resumed = run(&data, &b, Some(2));
     assert_eq!(straight.len(), 4);
@@ -150,7 +162,7 @@ fn a_resumed_run_repeats_the_uninterrupted_loss_curve_and_its_checkpoint_loads()
 
 #[test]
 fn a_fresh_unfrozen_run_trains_the_backbone_on_augmented_batches() {
-    let data = temp("data-unfrozen");
+    let data = posediff_fixtures::temp_dir("train-data-unfrozen");
     write_dataset(
         &data,
         &DatasetSpec {
@@ -163,7 +175,7 @@ fn a_fresh_unfrozen_run_trains_the_backbone_on_augmented_batches() {
         },
     )
     .unwrap();
-    let out = temp("unfrozen");
+    let out = posediff_fixtures::temp_dir("train-unfrozen");
     let device = Device::Cpu;
     let cfg = TrainConfig {
         iterations: 2,
@@ -172,14 +184,17 @@ fn a_fresh_unfrozen_run_trains_the_backbone_on_augmented_batches() {
         batch_repeat: 1,
         ..config()
     };
-    let mut trainer = Trainer::open(None, &out, cfg, false, false, &device).unwrap();
+    let start = Start::New {
+        init: None,
+        config: cfg,
+        mode: TrainMode::Full,
+    };
+    let mut trainer = Trainer::open(&out, start, &device).unwrap();
+    assert!(matches!(trainer.frame_input(), FrameInput::Augmented));
+    let categories = ["synthetic".to_owned()];
     let seqs = load_training_data(
-        &data,
-        &data,
-        &["synthetic".to_owned()],
-        "train",
-        5,
-        None,
+        &train_data(&data, &categories),
+        trainer.frame_input(),
         &device,
         |_, _| {},
     )
