@@ -62,7 +62,9 @@ impl Method for Posediffusion {
         self.label.clone()
     }
     fn estimate(&self, images: &[PathBuf], _ground_truth: &[Pose]) -> Result<Vec<Option<Pose>>> {
-        let e = self.estimator.estimate(images, None)?;
+        let e = self
+            .estimator
+            .estimate(crate::EstimateInput::new(images), &mut crate::Silent)?;
         Ok(e.samples[0]
             .iter()
             .map(|c| Some(c.camera.cam_from_world))

@@ -40,4 +40,7 @@ pub mod train;
 pub mod viewer;
 
 pub use error::{PosediffError, Result};
-pub use pipeline::{Estimate, EstimateConfig, Estimator, GgsHook, Progress, Silent, StageTimes};
+pub use pipeline::{
+    Estimate, EstimateConfig, EstimateInput, Estimator, GgsHook, Progress, SamplingInput, Silent,
+    StageTimes,
+};

@@ -236,6 +236,54 @@ impl MeanHook for GgsHook<'_> {
     }
 }
 
+/// What [`Estimator::sample_encodings`] samples from.
+#[derive(Debug, Clone, Copy)]
+pub struct SamplingInput<'a> {
+    /// Preprocessed images `(N, 3, 224, 224)` in `[0, 1]`.
+    pub images: &'a Tensor,
+    /// GGS on these matches (224-crop pixels) on the last steps.
+    pub matches: Option<&'a MatchSet>,
+    /// Known focal lengths per image (224-crop pixels): GGS keeps them.
+    pub focal: Option<&'a [[f64; 2]]>,
+    /// Start from these encodings `(N, 9)` noised to this step (`posediff_diffusion::
+    /// sample_from`) instead of pure noise.
+    pub init: Option<(&'a Tensor, usize)>,
+}
+
+impl<'a> SamplingInput<'a> {
+    /// `images`, from pure noise, without GGS.
+    pub fn new(images: &'a Tensor) -> Self {
+        Self {
+            images,
+            matches: None,
+            focal: None,
+            init: None,
+        }
+    }
+}
+
+/// What [`Estimator::estimate`] estimates.
+#[derive(Debug, Clone, Copy)]
+pub struct EstimateInput<'a> {
+    /// The image files.
+    pub images: &'a [PathBuf],
+    /// The folder the images' names are relative to.
+    pub root: Option<&'a Path>,
+    /// Initial cameras (one per image) and the step they are noised to.
+    pub init: Option<(&'a [Camera], usize)>,
+}
+
+impl<'a> EstimateInput<'a> {
+    /// `images`, named by their paths, from pure noise.
+    pub fn new(images: &'a [PathBuf]) -> Self {
+        Self {
+            images,
+            root: None,
+            init: None,
+        }
+    }
+}
+
 /// A loaded model and its settings.
 #[derive(Debug)]
 pub struct Estimator {
@@ -281,53 +329,24 @@ impl Estimator {
         }
     }
 
-    /// Samples encodings `(samples, N, 9)` for preprocessed images `(N, 3, 224, 224)` in `[0,1]`,
-    /// with GGS on `matches` (224-crop pixels) when given.
+    /// Samples encodings `(samples, N, 9)` (see [`SamplingInput`]), reporting the stages
+    /// "features" and "sampling" to `progress`.
     ///
     /// # Errors
-    /// Shape, model or GGS errors.
+    /// Shape, model or GGS errors; a start step outside the schedule.
     pub fn sample_encodings(
         &self,
-        images: &Tensor,
-        matches: Option<&MatchSet>,
-        noise: &mut dyn NoiseSource,
-        times: &mut StageTimes,
-    ) -> Result<Tensor> {
-        self.sample_encodings_with(images, matches, noise, times, &mut Silent)
-    }
-
-    /// [`Self::sample_encodings`] reporting to `progress` (stages "features" and "sampling").
-    ///
-    /// # Errors
-    /// As [`Self::sample_encodings`].
-    pub fn sample_encodings_with(
-        &self,
-        images: &Tensor,
-        matches: Option<&MatchSet>,
+        input: SamplingInput<'_>,
         noise: &mut dyn NoiseSource,
         times: &mut StageTimes,
         progress: &mut dyn Progress,
     ) -> Result<Tensor> {
-        self.sample_encodings_from(images, matches, None, None, noise, times, progress)
-    }
-
-    /// [`Self::sample_encodings_with`] started from initial encodings `(N, 9)` noised to step
-    /// `start_step` (reverse diffusion from there; see `posediff_diffusion::sample_from`), or
-    /// from pure noise when `init` is `None`.
-    ///
-    /// # Errors
-    /// As [`Self::sample_encodings`]; a start step outside the schedule.
-    #[allow(clippy::too_many_arguments)] // the pieces of one sampling run
-    pub fn sample_encodings_from(
-        &self,
-        images: &Tensor,
-        matches: Option<&MatchSet>,
-        focal: Option<&[[f64; 2]]>,
-        init: Option<(&Tensor, usize)>,
-        noise: &mut dyn NoiseSource,
-        times: &mut StageTimes,
-        progress: &mut dyn Progress,
-    ) -> Result<Tensor> {
+        let SamplingInput {
+            images,
+            matches,
+            focal,
+            init,
+        } = input;
         progress.start("features", 0);
         let start = Instant::now();
         let n = images.dim(0)?;
@@ -403,43 +422,22 @@ impl Estimator {
         Ok(out)
     }
 
-    /// Estimates the cameras of `images` (at least two files); names are relative to `root`.
+    /// Estimates the cameras of [`EstimateInput::images`] (at least two files), reporting its
+    /// stages ("images", "matching", "features", "sampling") to `progress`. With
+    /// [`EstimateInput::init`] the reverse diffusion starts from those cameras (one per image,
+    /// original pixels, any world frame) noised to the start step instead of from pure noise;
+    /// they are taken into the model's frame as in training: each into its 224 crop, then the
+    /// official normalisation (camera 0's PyTorch3D frame, optical-axis scale).
     ///
     /// # Errors
-    /// Too few or unreadable images, matching, model or GGS errors.
-    pub fn estimate(&self, images: &[PathBuf], root: Option<&Path>) -> Result<Estimate> {
-        self.estimate_with(images, root, &mut Silent)
-    }
-
-    /// [`Self::estimate`] reporting its stages ("images", "matching", "features", "sampling") to
-    /// `progress`.
-    ///
-    /// # Errors
-    /// As [`Self::estimate`].
-    pub fn estimate_with(
+    /// Too few or unreadable images, matching, model or GGS errors; initial cameras of the
+    /// wrong count or that cannot be normalised; a start step outside the schedule.
+    pub fn estimate(
         &self,
-        images: &[PathBuf],
-        root: Option<&Path>,
+        input: EstimateInput<'_>,
         progress: &mut dyn Progress,
     ) -> Result<Estimate> {
-        self.estimate_from(images, root, None, progress)
-    }
-
-    /// [`Self::estimate_with`] starting the reverse diffusion from initial cameras (one per
-    /// image, original pixels, any world frame) noised to `start_step` instead of from pure
-    /// noise. The cameras are taken into the model's frame as in training: each into its 224
-    /// crop, then the official normalisation (camera 0's PyTorch3D frame, optical-axis scale).
-    ///
-    /// # Errors
-    /// As [`Self::estimate`]; initial cameras of the wrong count or that cannot be normalised;
-    /// a start step outside the schedule.
-    pub fn estimate_from(
-        &self,
-        images: &[PathBuf],
-        root: Option<&Path>,
-        init: Option<(&[Camera], usize)>,
-        progress: &mut dyn Progress,
-    ) -> Result<Estimate> {
+        let EstimateInput { images, root, init } = input;
         if let Some((cams, _)) = init
             && cams.len() != images.len()
         {
@@ -515,11 +513,13 @@ impl Estimator {
             .as_ref()
             .map(|k| known_focal_entries(k, &loaded))
             .transpose()?;
-        let encodings = self.sample_encodings_from(
-            &tensor,
-            match_set.as_ref(),
-            focal_entries.as_deref(),
-            init_tensor.as_ref().map(|(t, s)| (t, *s)),
+        let encodings = self.sample_encodings(
+            SamplingInput {
+                images: &tensor,
+                matches: match_set.as_ref(),
+                focal: focal_entries.as_deref(),
+                init: init_tensor.as_ref().map(|(t, s)| (t, *s)),
+            },
             &mut noise,
             &mut times,
             progress,

@@ -24,7 +24,7 @@ use crate::geometric::{
 };
 use crate::loader::{check_images, image_files};
 use crate::outputs::{InputImages, OutputOptions, Written, write_outputs};
-use crate::pipeline::{Estimator, Progress, relative_name};
+use crate::pipeline::{EstimateInput, Estimator, Progress, relative_name};
 use crate::reconstruction::Reconstruction;
 use crate::records::{Matched, match_by_name};
 use crate::run_report::{
@@ -541,10 +541,12 @@ fn network_run(
     };
     config.matching.features.detector = options.detector;
     let estimator = net.estimator.with_config(config);
-    let estimate = estimator.estimate_from(
-        files,
-        inputs.images.folder.as_deref(),
-        init_cameras.as_deref().map(|c| (c, options.start_step)),
+    let estimate = estimator.estimate(
+        EstimateInput {
+            images: files,
+            root: inputs.images.folder.as_deref(),
+            init: init_cameras.as_deref().map(|c| (c, options.start_step)),
+        },
         progress,
     )?;
     let mut first = estimate.samples[0].clone();

@@ -9,7 +9,7 @@ use candle_core::{DType, Device};
 use nalgebra::{Rotation3, Vector3};
 use posediff::export::read_cameras_json;
 use posediff::geometric::KnownIntrinsics;
-use posediff::{EstimateConfig, Estimator, Silent};
+use posediff::{EstimateConfig, EstimateInput, Estimator, Silent};
 use posediff_diffusion::PoseDiffusionModel;
 use posediff_fixtures::shared_path;
 use posediff_geometry::epipolar::relative_pose;
@@ -56,7 +56,13 @@ fn step_zero_returns_the_initial_cameras_in_any_world_frame() {
     let (images, gt) = fountain(4);
     let est = estimator(KnownIntrinsics::Unknown);
     let a = est
-        .estimate_from(&images, None, Some((&gt, 0)), &mut Silent)
+        .estimate(
+            EstimateInput {
+                init: Some((&gt, 0)),
+                ..EstimateInput::new(&images)
+            },
+            &mut Silent,
+        )
         .unwrap();
     let a: Vec<Camera> = a.samples[0].iter().map(|c| c.camera).collect();
     // One denoising step at β₀ = 1e-4 moves the encoding by √β₀·(ε − ε̂) ≈ 0.01·(a few) with
@@ -75,7 +81,13 @@ fn step_zero_returns_the_initial_cameras_in_any_world_frame() {
     };
     let moved: Vec<Camera> = gt.iter().map(|c| sim.transform_camera(c)).collect();
     let b = est
-        .estimate_from(&images, None, Some((&moved, 0)), &mut Silent)
+        .estimate(
+            EstimateInput {
+                init: Some((&moved, 0)),
+                ..EstimateInput::new(&images)
+            },
+            &mut Silent,
+        )
         .unwrap();
     let b: Vec<Camera> = b.samples[0].iter().map(|c| c.camera).collect();
     assert!(worst_relative_rotation(&a, &b) < 1e-3);
@@ -86,23 +98,47 @@ fn a_late_start_forgets_the_initial_cameras() {
     let (images, gt) = fountain(3);
     let est = estimator(KnownIntrinsics::Unknown);
     let early = est
-        .estimate_from(&images, None, Some((&gt, 0)), &mut Silent)
+        .estimate(
+            EstimateInput {
+                init: Some((&gt, 0)),
+                ..EstimateInput::new(&images)
+            },
+            &mut Silent,
+        )
         .unwrap();
     let late = est
-        .estimate_from(&images, None, Some((&gt, 99)), &mut Silent)
+        .estimate(
+            EstimateInput {
+                init: Some((&gt, 99)),
+                ..EstimateInput::new(&images)
+            },
+            &mut Silent,
+        )
         .unwrap();
     let early: Vec<Camera> = early.samples[0].iter().map(|c| c.camera).collect();
     let late: Vec<Camera> = late.samples[0].iter().map(|c| c.camera).collect();
     // Random weights: from step 99 the result is the random model's, far from the start.
     assert!(worst_relative_rotation(&late, &gt) > 5.0 * worst_relative_rotation(&early, &gt));
     assert!(
-        est.estimate_from(&images, None, Some((&gt, 100)), &mut Silent)
-            .is_err(),
+        est.estimate(
+            EstimateInput {
+                init: Some((&gt, 100)),
+                ..EstimateInput::new(&images)
+            },
+            &mut Silent,
+        )
+        .is_err(),
         "start step outside the 100-step schedule"
     );
     assert!(
-        est.estimate_from(&images, None, Some((&gt[..2], 0)), &mut Silent)
-            .is_err(),
+        est.estimate(
+            EstimateInput {
+                init: Some((&gt[..2], 0)),
+                ..EstimateInput::new(&images)
+            },
+            &mut Silent,
+        )
+        .is_err(),
         "one initial camera per image"
     );
 }
@@ -111,7 +147,9 @@ fn a_late_start_forgets_the_initial_cameras() {
 fn known_focal_is_returned_exactly() {
     let (images, gt) = fountain(3);
     let est = estimator(KnownIntrinsics::FocalPx(900.0));
-    let e = est.estimate(&images, None).unwrap();
+    let e = est
+        .estimate(EstimateInput::new(&images), &mut Silent)
+        .unwrap();
     for c in &e.samples[0] {
         assert_eq!(c.camera.intrinsics.fx(), 900.0);
         assert_eq!(c.camera.intrinsics.fy(), 900.0);

@@ -9,7 +9,7 @@ use std::process::Command;
 
 use candle_core::{DType, Device, IndexOp};
 use posediff::export::{Pytorch3dRecord, read_cameras_json, read_colmap_cameras, read_nerfstudio};
-use posediff::{EstimateConfig, Estimator, StageTimes};
+use posediff::{EstimateConfig, EstimateInput, Estimator, SamplingInput, Silent, StageTimes};
 use posediff_diffusion::{PoseDiffusionModel, ReplayNoise};
 use posediff_fixtures::tensors::{tensor, values};
 use posediff_fixtures::{SafetensorsFixture, assert_close, shared_path};
@@ -33,10 +33,10 @@ fn pipeline_reproduces_the_official_end_to_end_sample() {
     let mut times = StageTimes::default();
     let x = estimator
         .sample_encodings(
-            &tensor(&io, "images"),
-            None,
+            SamplingInput::new(&tensor(&io, "images")),
             &mut ReplayNoise::new(draws),
             &mut times,
+            &mut Silent,
         )
         .unwrap();
     let cams: Vec<_> = values(&x)
@@ -250,7 +250,9 @@ fn progress_reports_every_stage_and_every_sampling_step() {
         shared_path("data/strecha_fountainP11/images/0001.jpg"),
     ];
     let mut rec = Recorder::default();
-    let estimate = estimator.estimate_with(&images, None, &mut rec).unwrap();
+    let estimate = estimator
+        .estimate(EstimateInput::new(&images), &mut rec)
+        .unwrap();
     let names: Vec<&str> = rec.stages.iter().map(|s| s.0.as_str()).collect();
     assert_eq!(names, ["images", "matching", "features", "sampling"]);
     assert_eq!(rec.stages[3].1, 100);

@@ -9,7 +9,7 @@ use posediff::train::{
     FrameInput, LogRow, Split, Start, TrainConfig, TrainData, TrainMode, Trainer,
     load_training_data, read_log,
 };
-use posediff::{EstimateConfig, Estimator};
+use posediff::{EstimateConfig, EstimateInput, Estimator, Silent};
 use posediff_geometry::ImageSize;
 use posediff_synth::{DatasetSpec, write_dataset};
 
@@ -141,7 +141,9 @@ fn a_resumed_run_repeats_the_uninterrupted_loss_curve_and_its_checkpoint_loads()
     let images: Vec<PathBuf> = (0..3)
         .map(|i| dir.join(format!("frame{i:06}.png")))
         .collect();
-    let e = estimator.estimate(&images, None).unwrap();
+    let e = estimator
+        .estimate(EstimateInput::new(&images), &mut Silent)
+        .unwrap();
     assert_eq!(e.samples[0].len(), 3);
     // Training moved the denoiser: the saved weights differ from the initial ones.
     let before =
