@@ -174,9 +174,8 @@ pub struct GeometricReport {
     pub estimated: Vec<usize>,
     /// The others and why.
     pub not_estimated: Vec<NotEstimatedImage>,
-    /// Where the focal came from: "self-calibration", "homographies", "given",
-    /// "initial cameras".
-    pub focal_source: String,
+    /// Where the focal came from.
+    pub focal_source: FocalOrigin,
     /// `φ = f / max(W, H)` before refinement.
     pub focal_factor_initial: f64,
     /// `φ` after refinement.
@@ -239,7 +238,7 @@ impl GeometricReport {
                 reason: reason.as_str().into(),
             })
             .collect();
-        self.focal_source = m.focal_source.as_str().into();
+        self.focal_source = m.focal_source.into();
         self.focal_factor_initial = m.focal_factor_initial;
         self.focal_factor = m.focal_factor;
         let r = &m.rotation_averaging;
@@ -283,6 +282,33 @@ impl GeometricReport {
         self.times.initialisation =
             s.pair_geometry + s.focal + s.two_view + s.averaging + s.refinement;
         self.times.refinement = s.bundle;
+    }
+}
+
+/// Where the focal of a geometric estimate came from (run.json's `focal_source`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum FocalOrigin {
+    /// Known intrinsics were given.
+    #[default]
+    Given,
+    /// Self-calibration from pairwise fundamental matrices.
+    SelfCalibration,
+    /// Rotation homographies (no pair with parallax).
+    Homographies,
+    /// The mean focal of the initial cameras (`--init cameras.json`).
+    #[serde(rename = "initial cameras")]
+    InitialCameras,
+}
+
+impl From<posediff_sfm::report::FocalSource> for FocalOrigin {
+    fn from(s: posediff_sfm::report::FocalSource) -> Self {
+        use posediff_sfm::report::FocalSource;
+        match s {
+            FocalSource::Given => Self::Given,
+            FocalSource::SelfCalibration => Self::SelfCalibration,
+            FocalSource::Homographies => Self::Homographies,
+        }
     }
 }
 
@@ -446,11 +472,10 @@ pub fn refine_given_cameras(
         pairs_matched: pairs.len(),
         pairs_with_matches: pairs.iter().filter(|p| !p.is_empty()).count(),
         focal_source: if known_phi.is_some() {
-            "given"
+            FocalOrigin::Given
         } else {
-            "initial cameras"
-        }
-        .into(),
+            FocalOrigin::InitialCameras
+        },
         focal_factor_initial: phi,
         ..GeometricReport::default()
     };

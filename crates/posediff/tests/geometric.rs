@@ -94,7 +94,10 @@ fn a_known_focal_is_kept_and_used() {
         ..GeometricConfig::default()
     };
     let e = estimate_geometric(&images[..4], &config).unwrap();
-    assert_eq!(e.report.focal_source, "given");
+    assert_eq!(
+        e.report.focal_source,
+        posediff::geometric::FocalOrigin::Given
+    );
     let est: Vec<Camera> = e.cameras.iter().map(|c| c.unwrap()).collect();
     for c in &est {
         assert_eq!(c.intrinsics.fx(), truth);
