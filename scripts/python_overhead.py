@@ -2,7 +2,7 @@
 repository root with the release binary built and the release wheel installed."""
 import time, subprocess, shutil, statistics, sys
 t0=time.perf_counter(); import posediff; t_import=time.perf_counter()-t0
-sets={'temple':'/work/shared/data/middlebury_templeSR/images','apple':'/work/shared/data/co3d_apple_posediffusion/images'}
+sets={'temple':'../shared/data/middlebury_templeSR/images','apple':'../shared/data/co3d_apple_posediffusion/images'}
 for name,folder in sets.items():
     cli=[];py=[];est=[]
     for k in range(3):
