@@ -149,6 +149,20 @@ fn vector_from_py<const N: usize>(a: &PyReadonlyArray1<'_, f64>, what: &str) -> 
     Ok(out)
 }
 
+/// One camera as numpy arrays: `K` (3×3), `R` (3×3), `t` (3,).
+type Krt<'py> = (
+    Bound<'py, PyArray2<f64>>,
+    Bound<'py, PyArray2<f64>>,
+    Bound<'py, PyArray1<f64>>,
+);
+
+/// N cameras stacked: `K` (N, 3, 3), `R` (N, 3, 3), `t` (N, 3).
+type KrtStack<'py> = (
+    Bound<'py, PyArray3<f64>>,
+    Bound<'py, PyArray3<f64>>,
+    Bound<'py, PyArray2<f64>>,
+);
+
 /// PyTorch3D's `image_size`: `(height, width)`.
 fn size_from_hw(image_size: (u32, u32)) -> PyResult<ImageSize> {
     let (h, w) = image_size;
@@ -878,7 +892,7 @@ fn opencv_to_pytorch3d<'py>(
 /// pixels, as PyTorch3D's `opencv_from_cameras_projection`. `image_size` is
 /// `(height, width)`.
 #[pyfunction]
-#[allow(clippy::type_complexity, non_snake_case)] // (K, R, t); PyTorch3D's names R, T
+#[allow(non_snake_case)] // PyTorch3D's names R, T
 fn pytorch3d_to_opencv<'py>(
     py: Python<'py>,
     R: PyReadonlyArray2<'py, f64>,
@@ -886,11 +900,7 @@ fn pytorch3d_to_opencv<'py>(
     focal_length: PyReadonlyArray1<'py, f64>,
     principal_point: PyReadonlyArray1<'py, f64>,
     image_size: (u32, u32),
-) -> PyResult<(
-    Bound<'py, PyArray2<f64>>,
-    Bound<'py, PyArray2<f64>>,
-    Bound<'py, PyArray1<f64>>,
-)> {
+) -> PyResult<Krt<'py>> {
     let (r, t) = (R, T);
     let size = size_from_hw(image_size)?;
     let p = Pytorch3dCamera {
@@ -910,15 +920,7 @@ fn pytorch3d_to_opencv<'py>(
     Ok(camera_arrays(py, &cam))
 }
 
-#[allow(clippy::type_complexity)] // (K, R, t)
-fn camera_arrays<'py>(
-    py: Python<'py>,
-    cam: &Camera,
-) -> (
-    Bound<'py, PyArray2<f64>>,
-    Bound<'py, PyArray2<f64>>,
-    Bound<'py, PyArray1<f64>>,
-) {
+fn camera_arrays<'py>(py: Python<'py>, cam: &Camera) -> Krt<'py> {
     (
         matrix_to_py(py, &cam.intrinsics.matrix()),
         matrix_to_py(py, &cam.cam_from_world.rotation),
@@ -931,16 +933,11 @@ fn camera_arrays<'py>(
 /// (N, 3, 3), (N, 3, 3), (N, 3) float64. This is the official `pose_encoding_to_camera`
 /// followed by `opencv_from_cameras_projection` (focal clamped to [0.1, 20] NDC as there).
 #[pyfunction]
-#[allow(clippy::type_complexity)] // (K, R, t)
 fn pose_encoding_to_cameras<'py>(
     py: Python<'py>,
     encoding: PyReadonlyArray2<'py, f64>,
     image_size: (u32, u32),
-) -> PyResult<(
-    Bound<'py, PyArray3<f64>>,
-    Bound<'py, PyArray3<f64>>,
-    Bound<'py, PyArray2<f64>>,
-)> {
+) -> PyResult<KrtStack<'py>> {
     let size = size_from_hw(image_size)?;
     let v = encoding.as_array();
     if v.ndim() != 2 || v.shape()[1] != 9 {
