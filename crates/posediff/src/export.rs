@@ -496,19 +496,23 @@ pub struct Pytorch3dRecord {
     pub camera: Pytorch3dParams,
 }
 
-/// Writes `pytorch3d.json`: each camera mapped into the 224 crop of its image, then converted
-/// exactly as PyTorch3D's `cameras_from_opencv_projection`.
+/// Writes `pytorch3d.json`: each estimated camera mapped into the 224 crop of its image (the
+/// loader's crop, `CenterCrop::official`, a function of the image size alone), then converted
+/// exactly as PyTorch3D's `cameras_from_opencv_projection`. Images without a camera are left
+/// out.
 ///
 /// # Errors
 /// I/O errors.
-pub fn write_pytorch3d(
-    path: &Path,
-    cameras: &[(NamedCamera, posediff_geometry::CenterCrop)],
-) -> Result<()> {
-    let records = cameras
+pub fn write_pytorch3d(path: &Path, images: &[ImageCamera]) -> Result<()> {
+    let records = images
         .iter()
-        .map(|(c, crop)| {
-            let model = crop.camera_to_model(&c.camera)?;
+        .filter_map(|e| e.camera.map(|c| (e, c)))
+        .map(|(c, camera)| {
+            let crop = posediff_geometry::CenterCrop::official(
+                camera.image_size,
+                posediff_geometry::MODEL_INPUT_SIDE,
+            );
+            let model = crop.camera_to_model(&camera)?;
             let p = Pytorch3dCamera::from_opencv(&model);
             Ok(Pytorch3dRecord {
                 image: c.image.clone(),

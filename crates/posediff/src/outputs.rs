@@ -15,7 +15,6 @@
 
 use std::path::{Path, PathBuf};
 
-use posediff_geometry::{CenterCrop, MODEL_INPUT_SIDE};
 use rayon::prelude::*;
 
 use crate::colmap::{ColmapFormat, ColmapModel};
@@ -324,14 +323,7 @@ pub fn write_outputs(
         files.push("transforms.json".into());
     }
     if options.pytorch3d {
-        let with_crops: Vec<_> = crate::export::ImageCamera::estimated(&entries)
-            .into_iter()
-            .map(|c| {
-                let crop = CenterCrop::official(c.camera.image_size, MODEL_INPUT_SIDE);
-                (c, crop)
-            })
-            .collect();
-        write_pytorch3d(&out.join("pytorch3d.json"), &with_crops)?;
+        write_pytorch3d(&out.join("pytorch3d.json"), &entries)?;
         files.push("pytorch3d.json".into());
     }
     if options.view {

@@ -8,7 +8,7 @@ use candle_core::{DType, Device, Tensor};
 use posediff_diffusion::sampler::MeanHook;
 use posediff_diffusion::{NoiseSource, PoseDiffusionModel, SeededNoise, sample, sample_from};
 use posediff_geometry::{
-    Camera, CenterCrop, ImageSize, Intrinsics, MODEL_INPUT_SIDE, PoseEncoding, QuaternionSign,
+    Camera, ImageSize, Intrinsics, MODEL_INPUT_SIDE, PoseEncoding, QuaternionSign,
 };
 use posediff_guidance::{GgsConfig, GgsSolver, MatchSet};
 use posediff_matching::{MatchConfig, PairMatches, match_images};
@@ -69,8 +69,6 @@ pub struct StageTimes {
 pub struct Estimate {
     /// Per sample, one camera per image (original pixels, OpenCV convention), in image order.
     pub samples: Vec<Vec<NamedCamera>>,
-    /// The crop of each image (for `pytorch3d.json`).
-    pub crops: Vec<CenterCrop>,
     /// Per matched pair: `(first, second, matches)`.
     pub matches_per_pair: Vec<(usize, usize, usize)>,
     /// The matches of every pair (original pixels, keypoint ids); empty without GGS.
@@ -553,7 +551,6 @@ impl Estimator {
             .collect::<Result<Vec<_>>>()?;
         Ok(Estimate {
             samples,
-            crops: loaded.iter().map(|l| l.crop).collect(),
             matches_per_pair,
             pairs: all_pairs,
             times,

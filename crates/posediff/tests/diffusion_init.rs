@@ -51,19 +51,27 @@ fn worst_relative_rotation(a: &[Camera], b: &[Camera]) -> f64 {
     worst
 }
 
+/// The estimate started from `cameras` noised to `step`.
+fn from_init(
+    est: &Estimator,
+    images: &[PathBuf],
+    cameras: &[Camera],
+    step: usize,
+) -> posediff::Result<posediff::Estimate> {
+    est.estimate(
+        EstimateInput {
+            init: Some((cameras, step)),
+            ..EstimateInput::new(images)
+        },
+        &mut Silent,
+    )
+}
+
 #[test]
 fn step_zero_returns_the_initial_cameras_in_any_world_frame() {
     let (images, gt) = fountain(4);
     let est = estimator(KnownIntrinsics::Unknown);
-    let a = est
-        .estimate(
-            EstimateInput {
-                init: Some((&gt, 0)),
-                ..EstimateInput::new(&images)
-            },
-            &mut Silent,
-        )
-        .unwrap();
+    let a = from_init(&est, &images, &gt, 0).unwrap();
     let a: Vec<Camera> = a.samples[0].iter().map(|c| c.camera).collect();
     // One denoising step at β₀ = 1e-4 moves the encoding by √β₀·(ε − ε̂) ≈ 0.01·(a few) with
     // random weights: several degrees at most (the exact round trip is tested below).
@@ -80,15 +88,7 @@ fn step_zero_returns_the_initial_cameras_in_any_world_frame() {
         scale: 4.5,
     };
     let moved: Vec<Camera> = gt.iter().map(|c| sim.transform_camera(c)).collect();
-    let b = est
-        .estimate(
-            EstimateInput {
-                init: Some((&moved, 0)),
-                ..EstimateInput::new(&images)
-            },
-            &mut Silent,
-        )
-        .unwrap();
+    let b = from_init(&est, &images, &moved, 0).unwrap();
     let b: Vec<Camera> = b.samples[0].iter().map(|c| c.camera).collect();
     assert!(worst_relative_rotation(&a, &b) < 1e-3);
 }
@@ -97,48 +97,18 @@ fn step_zero_returns_the_initial_cameras_in_any_world_frame() {
 fn a_late_start_forgets_the_initial_cameras() {
     let (images, gt) = fountain(3);
     let est = estimator(KnownIntrinsics::Unknown);
-    let early = est
-        .estimate(
-            EstimateInput {
-                init: Some((&gt, 0)),
-                ..EstimateInput::new(&images)
-            },
-            &mut Silent,
-        )
-        .unwrap();
-    let late = est
-        .estimate(
-            EstimateInput {
-                init: Some((&gt, 99)),
-                ..EstimateInput::new(&images)
-            },
-            &mut Silent,
-        )
-        .unwrap();
+    let early = from_init(&est, &images, &gt, 0).unwrap();
+    let late = from_init(&est, &images, &gt, 99).unwrap();
     let early: Vec<Camera> = early.samples[0].iter().map(|c| c.camera).collect();
     let late: Vec<Camera> = late.samples[0].iter().map(|c| c.camera).collect();
     // Random weights: from step 99 the result is the random model's, far from the start.
     assert!(worst_relative_rotation(&late, &gt) > 5.0 * worst_relative_rotation(&early, &gt));
     assert!(
-        est.estimate(
-            EstimateInput {
-                init: Some((&gt, 100)),
-                ..EstimateInput::new(&images)
-            },
-            &mut Silent,
-        )
-        .is_err(),
+        from_init(&est, &images, &gt, 100).is_err(),
         "start step outside the 100-step schedule"
     );
     assert!(
-        est.estimate(
-            EstimateInput {
-                init: Some((&gt[..2], 0)),
-                ..EstimateInput::new(&images)
-            },
-            &mut Silent,
-        )
-        .is_err(),
+        from_init(&est, &images, &gt[..2], 0).is_err(),
         "one initial camera per image"
     );
 }

@@ -14,7 +14,7 @@ use posediff::export::{
 };
 use posediff::reconstruction::Reconstruction;
 use posediff_fixtures::shared_path;
-use posediff_geometry::{Camera, CenterCrop, ImageSize, Intrinsics, Pose, Quaternion};
+use posediff_geometry::{Camera, ImageSize, Intrinsics, Pose, Quaternion};
 use posediff_sfm::points::PointOptions;
 
 fn apple() -> (Vec<NamedCamera>, serde_json::Value) {
@@ -199,11 +199,7 @@ fn pytorch3d_json_matches_the_official_conventions() {
     // whose NDC unit, half the shorter side, is the crop's too).
     let (cams, raw) = apple();
     let dir = posediff_fixtures::temp_dir("export-p3d");
-    let with_crops: Vec<(NamedCamera, CenterCrop)> = cams
-        .iter()
-        .map(|c| (c.clone(), CenterCrop::official(c.camera.image_size, 224)))
-        .collect();
-    write_pytorch3d(&dir.join("pytorch3d.json"), &with_crops).unwrap();
+    write_pytorch3d(&dir.join("pytorch3d.json"), &image_cameras(&cams)).unwrap();
     let records: Vec<Pytorch3dRecord> =
         serde_json::from_str(&std::fs::read_to_string(dir.join("pytorch3d.json")).unwrap())
             .unwrap();
