@@ -1,7 +1,7 @@
 //! `posediff._native`: the extension module under the Python package `posediff`
 //! (`python/posediff/__init__.py` re-exports it and adds tqdm progress).
 //!
-//! Every estimation goes through [`posediff::run::run`], the function the CLI calls, so the
+//! Every estimation goes through [`posediff::estimate::run::run`], the function the CLI calls, so the
 //! files `Reconstruction.write` writes are the CLI's byte for byte. The GIL is released
 //! while it runs; progress comes back through a Python callable, called with the GIL held.
 //! Cameras speak OpenCV (`x_cam = R x_world + t`, pixels); the PyTorch3D conversions are the
@@ -14,12 +14,12 @@ use numpy::PyReadonlyArray3;
 use numpy::ndarray::{Array1, Array2, Array3};
 use numpy::{IntoPyArray, PyArray1, PyArray2, PyArray3, PyReadonlyArray1, PyReadonlyArray2};
 use posediff::PosediffError;
-use posediff::colmap::ColmapFormat;
-use posediff::export::ImageCamera;
-use posediff::outputs::{ImagesMode, OutputOptions, prepare_output_dir};
-use posediff::run::{
+use posediff::estimate::run::{
     InitSource, Inputs, IntrinsicsSource, Network, RefineMode, Run, RunOptions, load_estimator, run,
 };
+use posediff::io::colmap::ColmapFormat;
+use posediff::io::export::ImageCamera;
+use posediff::io::outputs::{ImagesMode, OutputOptions, prepare_output_dir};
 use posediff::{Estimator, Progress};
 use posediff_geometry::pytorch3d::{NdcIntrinsics, Pytorch3dCamera};
 use posediff_geometry::{Camera, ImageSize, Intrinsics, Pose, PoseEncoding};
@@ -421,7 +421,9 @@ const DEFAULT_FORMATS: [&str; 4] = ["cameras", "colmap", "nerfstudio", "pytorch3
 /// Per image, the mapper's reason for leaving it out (the network estimates every image).
 fn not_estimated_reasons(run: &Run) -> Vec<Option<String>> {
     let mut reasons = vec![None; run.reconstruction.images.len()];
-    if let posediff::run_report::MethodReport::Geometric { report, .. } = &run.report.method {
+    if let posediff::estimate::run_report::MethodReport::Geometric { report, .. } =
+        &run.report.method
+    {
         for n in &report.not_estimated {
             if let Some(slot) = reasons.get_mut(n.image) {
                 *slot = Some(n.reason.clone());
@@ -509,7 +511,7 @@ fn resolve_images(
     let folder = dir.path().to_owned();
     py.detach(|| -> posediff::Result<()> {
         for ((w, h, rgb), name) in arrays.iter().zip(&names) {
-            posediff::loader::write_rgb_png(&folder.join(name), *w, *h, rgb)?;
+            posediff::io::loader::write_rgb_png(&folder.join(name), *w, *h, rgb)?;
         }
         Ok(())
     })
@@ -578,7 +580,11 @@ fn call_options(options: Option<&Bound<'_, PyDict>>) -> PyResult<Call> {
         .filter(|v| !v.is_none());
     let intrinsics = intrinsics.as_ref();
     let init: Option<PathBuf> = option(options, "init", None)?;
-    let start_step: usize = option(options, "start_step", posediff::run::DEFAULT_START_STEP)?;
+    let start_step: usize = option(
+        options,
+        "start_step",
+        posediff::estimate::run::DEFAULT_START_STEP,
+    )?;
     let refine: String = option(options, "refine", "converge".to_owned())?;
     let refine = refine.as_str();
     let matcher: String = option(options, "matcher", "sift".to_owned())?;
@@ -789,7 +795,7 @@ fn estimate(
 /// The cameras of a cameras.json (posediff's or the shared sets' schema), in file order.
 #[pyfunction]
 fn read_cameras(path: PathBuf) -> PyResult<Vec<PyCamera>> {
-    let entries = posediff::export::read_cameras_json_partial(&path).map_err(py_err)?;
+    let entries = posediff::io::export::read_cameras_json_partial(&path).map_err(py_err)?;
     Ok(entries
         .iter()
         .map(|e| PyCamera::from_entry(e, Some("not estimated".into())))
@@ -803,7 +809,7 @@ fn read_image<'py>(py: Python<'py>, path: PathBuf) -> PyResult<Bound<'py, PyArra
         return Err(py_err(PosediffError::NotFound(path)));
     }
     let (size, rgb) = py
-        .detach(|| posediff::loader::read_rgb(&path))
+        .detach(|| posediff::io::loader::read_rgb(&path))
         .map_err(py_err)?;
     let a = Array3::from_shape_vec((size.height() as usize, size.width() as usize, 3), rgb)
         .map_err(|e| Error::new_err(format!("{}: {e}", path.display())))?;
@@ -830,14 +836,14 @@ fn score<'py>(
             .map(|i| i.camera.clone())
             .collect()
     } else if let Ok(path) = pred.extract::<PathBuf>() {
-        posediff::export::read_cameras_json_partial(&path).map_err(py_err)?
+        posediff::io::export::read_cameras_json_partial(&path).map_err(py_err)?
     } else {
         return Err(value_err(
             "pred must be a Reconstruction or the path of a cameras.json",
         ));
     };
     let names: Vec<String> = entries.iter().map(|e| e.image.clone()).collect();
-    let truth = posediff::records::ground_truth_for(&names, &gt, "pred").map_err(py_err)?;
+    let truth = posediff::io::records::ground_truth_for(&names, &gt, "pred").map_err(py_err)?;
     let poses: Vec<Option<Pose>> = entries
         .iter()
         .map(|e| e.camera.map(|c| c.cam_from_world))

@@ -18,7 +18,7 @@ use std::process::Command;
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
-use posediff::geometric::{GeometricConfig, estimate_from_matches};
+use posediff::estimate::geometric::{GeometricConfig, estimate_from_matches};
 use posediff_matching::{PairSelection, extract_all, match_pairs, select_pairs};
 use posediff_synth::scene::PathKind;
 use posediff_synth::{DatasetSpec, parse_size, write_dataset};
@@ -39,7 +39,7 @@ fn peak_rss_mb() -> f64 {
 
 /// One case, in this process: `--case IMAGES GT OUT.json PAIRS`.
 fn run_case(images_dir: &Path, gt: &Path, out: &Path, pairs: &str) -> Result<()> {
-    let images = posediff::loader::image_files(images_dir)?;
+    let images = posediff::io::loader::image_files(images_dir)?;
     let n = images.len();
     let config = GeometricConfig {
         pairs: pairs.parse::<PairSelection>().map_err(anyhow::Error::msg)?,
@@ -75,7 +75,7 @@ fn run_case(images_dir: &Path, gt: &Path, out: &Path, pairs: &str) -> Result<()>
     ));
     stages.push(("bundle adjustment", t.refinement, rss));
     let seconds = total.elapsed().as_secs_f64();
-    let truth = posediff::export::read_cameras_json(gt)?;
+    let truth = posediff::io::export::read_cameras_json(gt)?;
     let gt_cams: Vec<_> = truth.iter().map(|c| c.camera).collect();
     let pred: Vec<_> = estimate
         .cameras

@@ -6,8 +6,8 @@
 use std::path::Path;
 
 use nalgebra::Point2;
-use posediff::co3d::load_annotations;
-use posediff::export::read_cameras_json;
+use posediff::io::co3d::load_annotations;
+use posediff::io::export::read_cameras_json;
 use posediff_geometry::epipolar::sampson_error;
 use posediff_geometry::{Camera, ImageSize, fundamental_from_cameras};
 use posediff_matching::{MatchConfig, match_images};
@@ -67,7 +67,7 @@ fn both_layouts_reproject_rendered_points_onto_their_pixels() {
             let size = truth.image_size;
             let from_co3d = annotated.frames[i].pytorch3d().to_opencv(size).unwrap();
             assert_eq!(
-                posediff::co3d::frame_path(&out, &annotated.frames[i]),
+                posediff::io::co3d::frame_path(&out, &annotated.frames[i]),
                 dir.join(&json[i].image)
             );
             for camera in [&json[i].camera, &from_co3d] {

@@ -5,8 +5,8 @@
 use std::path::PathBuf;
 
 use anyhow::Context;
-use posediff::export::read_cameras_json;
-use posediff::geometric::{GeometricConfig, estimate_geometric};
+use posediff::estimate::geometric::{GeometricConfig, estimate_geometric};
+use posediff::io::export::read_cameras_json;
 
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
@@ -48,7 +48,7 @@ fn main() -> anyhow::Result<()> {
         config.mapper.bundle = None;
     }
     if let Some(v) = env("FOCAL") {
-        config.intrinsics = posediff::geometric::KnownIntrinsics::FocalPx(v);
+        config.intrinsics = posediff::estimate::geometric::KnownIntrinsics::FocalPx(v);
     }
     let e = estimate_geometric(&images, &config)?;
     for (k, c) in e.cameras.iter().enumerate() {

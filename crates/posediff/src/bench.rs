@@ -20,9 +20,9 @@ use posediff_metrics::{
 };
 use serde::{Deserialize, Serialize};
 
-use crate::co3d::{load_annotations, official_frame_ids, usable_sequences};
 use crate::error::{PosediffError, Result};
-use crate::export::read_cameras_json;
+use crate::io::co3d::{load_annotations, official_frame_ids, usable_sequences};
+use crate::io::export::read_cameras_json;
 
 /// Something that estimates cameras for image files.
 pub trait Method {
@@ -72,11 +72,11 @@ impl Method for Posediffusion {
     }
 }
 
-/// Cameras without a checkpoint ([`crate::geometric`]).
+/// Cameras without a checkpoint ([`crate::estimate::geometric`]).
 #[derive(Debug, Clone, Default)]
 pub struct Geometric {
     /// Settings.
-    pub config: crate::geometric::GeometricConfig,
+    pub config: crate::estimate::geometric::GeometricConfig,
 }
 
 impl Method for Geometric {
@@ -84,7 +84,7 @@ impl Method for Geometric {
         "posediff geometric (no checkpoint)".into()
     }
     fn estimate(&self, images: &[PathBuf], _ground_truth: &[Pose]) -> Result<Vec<Option<Pose>>> {
-        match crate::geometric::estimate_geometric(images, &self.config) {
+        match crate::estimate::geometric::estimate_geometric(images, &self.config) {
             Ok(e) => Ok(e
                 .cameras
                 .iter()

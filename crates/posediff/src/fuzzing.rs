@@ -6,7 +6,7 @@
 
 use std::path::PathBuf;
 
-use crate::colmap::{ColmapFormat, ColmapModel};
+use crate::io::colmap::{ColmapFormat, ColmapModel};
 
 /// The readers that have a fuzz target.
 pub const TARGETS: [&str; 6] = [
@@ -67,7 +67,7 @@ pub fn checkpoint(data: &[u8]) {
 /// cameras.json: whatever parses is a set of finite cameras.
 pub fn cameras_json(data: &[u8]) {
     let path = file_with("cameras.json", data);
-    if let Ok(entries) = crate::export::read_cameras_json_partial(&path) {
+    if let Ok(entries) = crate::io::export::read_cameras_json_partial(&path) {
         for e in entries {
             if let Some(c) = e.camera {
                 assert!(c.cam_from_world.ensure_finite().is_ok(), "non-finite pose");
@@ -133,7 +133,7 @@ fn round_trip(model: crate::Result<ColmapModel>, format: ColmapFormat) {
 /// CO3D `.jgz` annotations (gzip JSON).
 pub fn co3d_annotations(data: &[u8]) {
     let path = file_with("annotations.jgz", data);
-    if let Ok(sequences) = crate::co3d::load_annotations(&path) {
+    if let Ok(sequences) = crate::io::co3d::load_annotations(&path) {
         for s in &sequences {
             for f in &s.frames {
                 let _ = f.cam_from_world();
@@ -145,9 +145,9 @@ pub fn co3d_annotations(data: &[u8]) {
 /// Image files: the structural check, then OpenCV's decoder on what passes.
 pub fn image(data: &[u8]) {
     let path = file_with("image.bin", data);
-    let (good, bad) = crate::loader::check_images(std::slice::from_ref(&path));
+    let (good, bad) = crate::io::loader::check_images(std::slice::from_ref(&path));
     assert_eq!(good.len() + bad.len(), 1);
     if !good.is_empty() {
-        let _ = crate::loader::read_rgb(&path);
+        let _ = crate::io::loader::read_rgb(&path);
     }
 }

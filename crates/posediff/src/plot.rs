@@ -12,7 +12,7 @@ use plotters::prelude::*;
 use posediff_geometry::{Camera, align_cameras_by_extrinsics};
 
 use crate::error::{PosediffError, Result};
-use crate::export::NamedCamera;
+use crate::io::export::NamedCamera;
 
 /// Where the label font is looked for.
 pub const FONT_PATHS: [&str; 2] = [
@@ -101,7 +101,7 @@ fn frustum(camera: &Camera, depth: f64) -> Vec<(Point3<f64>, Point3<f64>)> {
     segs
 }
 
-fn font_bytes() -> Result<&'static [u8]> {
+pub(crate) fn font_bytes() -> Result<&'static [u8]> {
     for p in FONT_PATHS {
         if let Ok(bytes) = std::fs::read(p) {
             return Ok(Box::leak(bytes.into_boxed_slice()));
@@ -116,7 +116,7 @@ fn font_bytes() -> Result<&'static [u8]> {
     ))
 }
 
-fn plot_error(path: &Path, e: impl std::fmt::Display) -> PosediffError {
+pub(crate) fn plot_error(path: &Path, e: impl std::fmt::Display) -> PosediffError {
     PosediffError::Write {
         path: path.to_owned(),
         source: std::io::Error::other(e.to_string()),
@@ -212,71 +212,4 @@ pub fn plot_cameras(
     }
     root.present().map_err(|e| plot_error(png, e))?;
     Ok(errors)
-}
-
-/// The training loss curve (log scale) with a 50-iteration running mean, and the learning rate.
-///
-/// # Errors
-/// No font, write errors; fewer than two rows draw nothing.
-pub fn plot_loss(png: &Path, rows: &[crate::train::LogRow]) -> Result<()> {
-    if rows.len() < 2 {
-        return Ok(());
-    }
-    plotters::style::register_font("sans-serif", FontStyle::Normal, font_bytes()?)
-        .map_err(|_| plot_error(png, "cannot load the font"))?;
-    let root = BitMapBackend::new(png, (1000, 500)).into_drawing_area();
-    root.fill(&WHITE).map_err(|e| plot_error(png, e))?;
-    let last = rows.last().map_or(1, |r| r.iteration + 1);
-    let (lo, hi) = rows
-        .iter()
-        .map(|r| r.loss)
-        .fold((f64::INFINITY, 0.0f64), |(a, b), v| (a.min(v), b.max(v)));
-    let mut chart = ChartBuilder::on(&root)
-        .caption("training loss (L1, ε-prediction)", ("sans-serif", 22))
-        .margin(10)
-        .x_label_area_size(35)
-        .y_label_area_size(60)
-        .build_cartesian_2d(0u64..last, (lo.max(1e-6) * 0.9..hi * 1.1).log_scale())
-        .map_err(|e| plot_error(png, e))?;
-    chart
-        .configure_mesh()
-        .x_desc("iteration")
-        .y_desc("loss")
-        .y_label_formatter(&|v| format!("{v:.2}"))
-        .draw()
-        .map_err(|e| plot_error(png, e))?;
-    chart
-        .draw_series(LineSeries::new(
-            rows.iter().map(|r| (r.iteration, r.loss)),
-            RGBColor(170, 190, 230),
-        ))
-        .map_err(|e| plot_error(png, e))?
-        .label("per iteration")
-        .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], RGBColor(170, 190, 230)));
-    let window = 50;
-    let smooth: Vec<(u64, f64)> = rows
-        .iter()
-        .enumerate()
-        .map(|(k, r)| {
-            let from = k.saturating_sub(window - 1);
-            let part = &rows[from..=k];
-            (
-                r.iteration,
-                part.iter().map(|x| x.loss).sum::<f64>() / part.len() as f64,
-            )
-        })
-        .collect();
-    chart
-        .draw_series(LineSeries::new(smooth, BLUE.stroke_width(2)))
-        .map_err(|e| plot_error(png, e))?
-        .label("mean of 50")
-        .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], BLUE.stroke_width(2)));
-    chart
-        .configure_series_labels()
-        .background_style(WHITE.mix(0.8))
-        .border_style(BLACK)
-        .draw()
-        .map_err(|e| plot_error(png, e))?;
-    root.present().map_err(|e| plot_error(png, e))?;
-    Ok(())
 }

@@ -12,7 +12,7 @@ use posediff_sfm::points::{PointOptions, PointsReport, triangulate_points};
 use rayon::prelude::*;
 
 use crate::error::{PosediffError, Result};
-use crate::export::ImageCamera;
+use crate::io::export::ImageCamera;
 
 /// One keypoint of an image that occurs in a verified match (OpenCV pixels), and the point it
 /// observes.

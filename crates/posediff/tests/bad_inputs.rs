@@ -808,8 +808,8 @@ fn every_real_image_passes_the_structural_check() {
         "strecha_fountainP11",
     ] {
         let files =
-            posediff::loader::image_files(&shared_path(&format!("data/{set}/images"))).unwrap();
-        let (good, bad) = posediff::loader::check_images(&files);
+            posediff::io::loader::image_files(&shared_path(&format!("data/{set}/images"))).unwrap();
+        let (good, bad) = posediff::io::loader::check_images(&files);
         assert!(bad.is_empty(), "{set}: {bad:?}");
         assert_eq!(good.len(), files.len());
     }

@@ -13,8 +13,8 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use posediff::colmap::{ColmapFormat, ColmapModel};
-use posediff::export::read_cameras_json_partial;
+use posediff::io::colmap::{ColmapFormat, ColmapModel};
+use posediff::io::export::read_cameras_json_partial;
 use posediff_fixtures::shared_path;
 
 fn workspace() -> PathBuf {
@@ -277,7 +277,7 @@ fn fountain_outputs_load_in_pycolmap_plyfile_chromium_and_import_colmap() {
 fn an_empty_page_draws_nothing_so_the_screenshot_check_can_fail() {
     let dir = posediff_fixtures::temp_dir("clients-blank");
     let page = dir.join("view.html");
-    let html = posediff::viewer::render(
+    let html = posediff::io::viewer::render(
         "blank",
         &posediff::reconstruction::Reconstruction::default(),
         &[],

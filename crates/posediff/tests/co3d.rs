@@ -5,11 +5,11 @@
 // Test helpers outside #[test] functions unwrap too: a failure is the test failing.
 #![allow(clippy::unwrap_used)]
 
-use posediff::co3d::{
+use posediff::io::co3d::{
     SEEN_CATEGORIES, UNSEEN_CATEGORIES, frame_path, load_annotations, normalized_ground_truth,
     official_frame_ids, usable_sequences,
 };
-use posediff::export::read_cameras_json;
+use posediff::io::export::read_cameras_json;
 use posediff_fixtures::shared_path;
 use posediff_metrics::numpy_rng::LegacyRandomState;
 

@@ -7,8 +7,8 @@ use std::path::PathBuf;
 
 use candle_core::{DType, Device};
 use nalgebra::{Rotation3, Vector3};
-use posediff::export::read_cameras_json;
-use posediff::geometric::KnownIntrinsics;
+use posediff::estimate::geometric::KnownIntrinsics;
+use posediff::io::export::read_cameras_json;
 use posediff::{EstimateConfig, EstimateInput, Estimator, Silent};
 use posediff_diffusion::PoseDiffusionModel;
 use posediff_fixtures::shared_path;
@@ -141,7 +141,7 @@ fn model_encodings_round_trip_exactly() {
         .zip(&crops)
         .map(|(c, crop)| crop.camera_to_model(c).unwrap())
         .collect();
-    let x = posediff::pipeline::model_encodings(&in_crops, &Device::Cpu).unwrap();
+    let x = posediff::estimate::estimator::model_encodings(&in_crops, &Device::Cpu).unwrap();
     let values: Vec<f32> = x.flatten_all().unwrap().to_vec1().unwrap();
     let size = posediff_geometry::ImageSize::new(224, 224).unwrap();
     let back: Vec<Camera> = values

@@ -8,7 +8,9 @@
 use std::process::Command;
 
 use candle_core::{DType, Device, IndexOp};
-use posediff::export::{Pytorch3dRecord, read_cameras_json, read_colmap_cameras, read_nerfstudio};
+use posediff::io::export::{
+    Pytorch3dRecord, read_cameras_json, read_colmap_cameras, read_nerfstudio,
+};
 use posediff::{EstimateConfig, EstimateInput, Estimator, SamplingInput, Silent, StageTimes};
 use posediff_diffusion::{PoseDiffusionModel, ReplayNoise};
 use posediff_fixtures::tensors::{tensor, values};

@@ -6,8 +6,8 @@
 #![allow(clippy::unwrap_used)]
 
 use nalgebra::{Matrix3, Point3, Vector3};
-use posediff::colmap::{ColmapFormat, ColmapModel};
-use posediff::export::{
+use posediff::io::colmap::{ColmapFormat, ColmapModel};
+use posediff::io::export::{
     ImageCamera, NamedCamera, NerfstudioCamera, NerfstudioTransforms, Pytorch3dRecord,
     nerfstudio_applied_transform, read_cameras_json, read_colmap_cameras, read_nerfstudio,
     read_ply, write_cameras_json, write_colmap, write_nerfstudio, write_ply, write_pytorch3d,

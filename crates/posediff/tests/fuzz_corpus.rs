@@ -46,16 +46,16 @@ fn the_seeds_parse() {
         let t = posediff_diffusion::checkpoint::read_tensors(&seed("checkpoint", name)).unwrap();
         assert_eq!(t.len(), 2, "{name}");
     }
-    let cams =
-        posediff::export::read_cameras_json_partial(&seed("cameras_json", "three.json")).unwrap();
+    let cams = posediff::io::export::read_cameras_json_partial(&seed("cameras_json", "three.json"))
+        .unwrap();
     assert_eq!(cams.len(), 3);
-    let co3d = posediff::co3d::load_annotations(&seed("co3d_annotations", "one.jgz")).unwrap();
+    let co3d = posediff::io::co3d::load_annotations(&seed("co3d_annotations", "one.jgz")).unwrap();
     assert_eq!(co3d[0].frames.len(), 2);
     let files: Vec<PathBuf> = ["small.jpg", "small.png", "progressive.jpg"]
         .iter()
         .map(|n| seed("image", n))
         .collect();
-    let (good, bad) = posediff::loader::check_images(&files);
+    let (good, bad) = posediff::io::loader::check_images(&files);
     assert_eq!(good.len(), 3, "{bad:?}");
     // The COLMAP seeds: split as the harnesses split them.
     let text = std::fs::read(seed("colmap_text", "model.txt")).unwrap();
@@ -67,7 +67,7 @@ fn the_seeds_parse() {
     {
         std::fs::write(dir.join(name), part).unwrap();
     }
-    let model = posediff::colmap::ColmapModel::read_text(&dir).unwrap();
+    let model = posediff::io::colmap::ColmapModel::read_text(&dir).unwrap();
     assert_eq!(
         (model.cameras.len(), model.images.len(), model.points.len()),
         (2, 2, 1)
@@ -80,7 +80,7 @@ fn the_seeds_parse() {
     {
         std::fs::write(dir.join(name), part).unwrap();
     }
-    let model = posediff::colmap::ColmapModel::read_binary(&dir).unwrap();
+    let model = posediff::io::colmap::ColmapModel::read_binary(&dir).unwrap();
     assert_eq!(
         (model.cameras.len(), model.images.len(), model.points.len()),
         (1, 1, 1)

@@ -13,10 +13,10 @@ use nalgebra::{Matrix3, Rotation3};
 use opencv::core::{Mat, Size};
 use opencv::prelude::*;
 use posediff::PosediffError;
-use posediff::export::{read_cameras_json, read_cameras_json_partial};
-use posediff::geometric::{
+use posediff::estimate::geometric::{
     GeometricConfig, KnownIntrinsics, estimate_geometric, refine_given_cameras,
 };
+use posediff::io::export::{read_cameras_json, read_cameras_json_partial};
 use posediff_fixtures::shared_path;
 use posediff_geometry::epipolar::relative_pose;
 use posediff_geometry::{Camera, Pose};
@@ -96,7 +96,7 @@ fn a_known_focal_is_kept_and_used() {
     let e = estimate_geometric(&images[..4], &config).unwrap();
     assert_eq!(
         e.report.focal_source,
-        posediff::geometric::FocalOrigin::Given
+        posediff::estimate::geometric::FocalOrigin::Given
     );
     let est: Vec<Camera> = e.cameras.iter().map(|c| c.unwrap()).collect();
     for c in &est {
@@ -451,10 +451,12 @@ fn a_colmap_model_imports_and_initialises_the_refinement() {
 fn the_official_ggs_schedule_is_an_option() {
     let (images, gt) = set("strecha_fountainP11");
     let config = GeometricConfig {
-        refinement: posediff::geometric::Refinement::Official(posediff_guidance::GgsConfig {
-            iter_num: 20,
-            ..posediff_guidance::GgsConfig::default()
-        }),
+        refinement: posediff::estimate::geometric::Refinement::Official(
+            posediff_guidance::GgsConfig {
+                iter_num: 20,
+                ..posediff_guidance::GgsConfig::default()
+            },
+        ),
         ..GeometricConfig::default()
     };
     let e = estimate_geometric(&images[..4], &config).unwrap();
@@ -558,7 +560,7 @@ fn the_bundle_refinement_pulls_given_cameras_to_the_truth() {
             / c.len() as f64
     };
     let scale0 = spread(&cams);
-    let r = posediff::geometric::bundle_refine_cameras(&mut cams, &pairs, false).unwrap();
+    let r = posediff::estimate::geometric::bundle_refine_cameras(&mut cams, &pairs, false).unwrap();
     let (rot, trans) = worst_pair_errors(&cams, gt);
     assert!(rot0 > 1.0, "the perturbation is visible: {rot0}°");
     assert!(

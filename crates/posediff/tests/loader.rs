@@ -8,7 +8,7 @@
 use opencv::core::{Mat, Vector};
 use opencv::prelude::*;
 use posediff::PosediffError;
-use posediff::loader::{image_files, load_images, preprocess_rgb};
+use posediff::io::loader::{image_files, load_images, preprocess_rgb};
 use posediff_fixtures::{SafetensorsFixture, assert_close, shared_path};
 use posediff_geometry::ImageSize;
 
@@ -111,12 +111,12 @@ fn rgb_written_as_png_reads_back_pixel_for_pixel() {
     let (name, w, h) = RAW[1];
     let rgb = raw(&fx, name);
     let path = dir.join("b.png");
-    posediff::loader::write_rgb_png(&path, w, h, &rgb).unwrap();
-    let (size, back) = posediff::loader::read_rgb(&path).unwrap();
+    posediff::io::loader::write_rgb_png(&path, w, h, &rgb).unwrap();
+    let (size, back) = posediff::io::loader::read_rgb(&path).unwrap();
     assert_eq!(size, ImageSize::new(w, h).unwrap());
     assert!(back == rgb, "pixels changed through the PNG");
     // A buffer of the wrong length is refused, naming both sizes.
-    let err = posediff::loader::write_rgb_png(&path, w, h + 1, &rgb).unwrap_err();
+    let err = posediff::io::loader::write_rgb_png(&path, w, h + 1, &rgb).unwrap_err();
     assert!(err.to_string().contains(&format!("{w}×{}", h + 1)), "{err}");
     std::fs::remove_dir_all(&dir).unwrap();
 }

@@ -5,12 +5,12 @@
 
 use std::path::Path;
 
-use posediff::export::{ImageCamera, NerfstudioTransforms, read_cameras_json_partial};
-use posediff::outputs::{
+use posediff::estimate::run_report::{MethodReport, RunReport};
+use posediff::io::export::{ImageCamera, NerfstudioTransforms, read_cameras_json_partial};
+use posediff::io::outputs::{
     ImagesMode, InputImages, OutputOptions, prepare_output_dir, write_outputs,
 };
 use posediff::reconstruction::Reconstruction;
-use posediff::run_report::{MethodReport, RunReport};
 use posediff_fixtures::shared_path;
 
 /// Three apple frames (copied into `dir/in`) and their ground-truth cameras.
@@ -44,7 +44,7 @@ fn report() -> RunReport {
     RunReport::new(
         Vec::new(),
         MethodReport::Geometric {
-            refine: posediff::run::RefineMode::None,
+            refine: posediff::estimate::run::RefineMode::None,
             report: Box::default(),
         },
     )

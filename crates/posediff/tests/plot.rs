@@ -6,7 +6,7 @@
 
 use nalgebra::Vector3;
 use opencv::prelude::*;
-use posediff::export::{NamedCamera, read_cameras_json, write_cameras_json};
+use posediff::io::export::{NamedCamera, read_cameras_json, write_cameras_json};
 use posediff::plot::plot_cameras;
 use posediff_fixtures::shared_path;
 use posediff_geometry::{Quaternion, Sim3};

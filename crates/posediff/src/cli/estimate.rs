@@ -5,13 +5,15 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, bail};
 use candle_core::Device;
 use clap::ValueEnum;
-use posediff::colmap::ColmapFormat;
-use posediff::outputs::{ImagesMode, OutputOptions, Written, prepare_output_dir, thumbnail_side};
-use posediff::reconstruction::Reconstruction;
-use posediff::run::{
+use posediff::estimate::run::{
     DEFAULT_START_STEP, InitSource, Inputs, IntrinsicsSource, Network, RefineMode, RunOptions,
     load_estimator, run,
 };
+use posediff::io::colmap::ColmapFormat;
+use posediff::io::outputs::{
+    ImagesMode, OutputOptions, Written, prepare_output_dir, thumbnail_side,
+};
+use posediff::reconstruction::Reconstruction;
 use posediff::{Progress, Silent};
 use posediff_matching::Detector;
 

@@ -2,9 +2,9 @@
 
 use std::path::PathBuf;
 
-use posediff::colmap::ColmapModel;
-use posediff::export::{ImageCamera, write_cameras_json_partial};
-use posediff::loader::image_files;
+use posediff::io::colmap::ColmapModel;
+use posediff::io::export::{ImageCamera, write_cameras_json_partial};
+use posediff::io::loader::image_files;
 
 /// Convert a COLMAP model (text or binary) to cameras.json, e.g. for
 /// `estimate --init`: with --images, one entry per image of that folder in its order
@@ -26,9 +26,11 @@ impl Args {
     pub fn run(self) -> anyhow::Result<()> {
         let Args { model, images, out } = self;
         let entries = match images {
-            Some(dir) => posediff::export::colmap_for_images(&model, &image_files(&dir)?, &dir)?,
+            Some(dir) => {
+                posediff::io::export::colmap_for_images(&model, &image_files(&dir)?, &dir)?
+            }
             None => {
-                let mut cams = posediff::export::read_colmap_cameras(&model)?;
+                let mut cams = posediff::io::export::read_colmap_cameras(&model)?;
                 cams.sort_by(|a, b| a.image.cmp(&b.image));
                 cams.into_iter()
                     .map(|c| ImageCamera {

@@ -15,7 +15,7 @@ use std::path::Path;
 use anyhow::Context;
 use clap::{Subcommand, ValueEnum};
 use posediff::Progress;
-use posediff::export::ImageCamera;
+use posediff::io::export::ImageCamera;
 
 /// Every command.
 #[derive(Subcommand)]
@@ -68,11 +68,11 @@ impl std::str::FromStr for Categories {
 
     fn from_str(s: &str) -> Result<Self, Self::Err> {
         let list: Vec<String> = match s {
-            "seen" => posediff::co3d::SEEN_CATEGORIES
+            "seen" => posediff::io::co3d::SEEN_CATEGORIES
                 .iter()
                 .map(|c| (*c).to_owned())
                 .collect(),
-            "unseen" => posediff::co3d::UNSEEN_CATEGORIES
+            "unseen" => posediff::io::co3d::UNSEEN_CATEGORIES
                 .iter()
                 .map(|c| (*c).to_owned())
                 .collect(),
@@ -164,7 +164,7 @@ fn truth_for(
     gt: &Path,
 ) -> anyhow::Result<Vec<posediff_geometry::Camera>> {
     let names: Vec<String> = est.iter().map(|e| e.image.clone()).collect();
-    Ok(posediff::records::ground_truth_for(
+    Ok(posediff::io::records::ground_truth_for(
         &names,
         gt,
         &cameras.display().to_string(),

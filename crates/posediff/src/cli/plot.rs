@@ -3,7 +3,7 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail};
-use posediff::export::{ImageCamera, NamedCamera, read_cameras_json_partial};
+use posediff::io::export::{ImageCamera, NamedCamera, read_cameras_json_partial};
 
 use super::truth_for;
 

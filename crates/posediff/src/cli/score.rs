@@ -3,7 +3,7 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
-use posediff::export::read_cameras_json_partial;
+use posediff::io::export::read_cameras_json_partial;
 
 use super::truth_for;
 

@@ -3,8 +3,8 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
-use posediff::colmap::ColmapModel;
-use posediff::export::read_cameras_json_partial;
+use posediff::io::colmap::ColmapModel;
+use posediff::io::export::read_cameras_json_partial;
 
 /// Write view.html (cameras with thumbnails, points, the aligned ground truth) for an
 /// output folder of `estimate`.
@@ -39,7 +39,7 @@ fn view(dir: &Path, gt: Option<&Path>, out: Option<&Path>) -> anyhow::Result<()>
         .map(|i| dir.join("images").join(&i.camera.image))
         .collect();
     let thumbs: Vec<Option<Vec<u8>>> = if files.iter().all(|f| f.is_file()) {
-        posediff::outputs::thumbnails(&recon, &files)?
+        posediff::io::outputs::thumbnails(&recon, &files)?
     } else {
         log::warn!(
             "{}/images does not hold the images: no thumbnails",
@@ -69,8 +69,8 @@ fn view(dir: &Path, gt: Option<&Path>, out: Option<&Path>) -> anyhow::Result<()>
             )
         }
     };
-    let title = posediff::outputs::set_title(Some(&dir.join("images")));
-    let html = posediff::viewer::render(&title, &recon, &thumbs, truth.as_deref())?;
+    let title = posediff::io::outputs::set_title(Some(&dir.join("images")));
+    let html = posediff::io::viewer::render(&title, &recon, &thumbs, truth.as_deref())?;
     let path = out.map_or_else(|| dir.join("view.html"), Path::to_path_buf);
     std::fs::write(&path, html).with_context(|| format!("writing {}", path.display()))?;
     println!("wrote {}", path.display());

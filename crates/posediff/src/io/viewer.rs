@@ -17,11 +17,11 @@ use crate::reconstruction::Reconstruction;
 
 /// three.js r170, `build/three.module.min.js` of the npm package `three@0.170.0`
 /// (`cargo xtask vendor-three` fetches it again and checks its digest).
-const THREE_JS: &str = include_str!("../assets/three/three.module.min.js");
+const THREE_JS: &str = include_str!("../../assets/three/three.module.min.js");
 /// three.js's licence, kept in the page.
-const THREE_LICENSE: &str = include_str!("../assets/three/LICENSE");
+const THREE_LICENSE: &str = include_str!("../../assets/three/LICENSE");
 /// The viewer's own script.
-const VIEWER_JS: &str = include_str!("../assets/viewer.js");
+const VIEWER_JS: &str = include_str!("../../assets/viewer.js");
 
 /// At most this many points go into the page (evenly subsampled beyond).
 pub const MAX_VIEWER_POINTS: usize = 300_000;
@@ -268,7 +268,7 @@ mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
 
-    use crate::export::ImageCamera;
+    use crate::io::export::ImageCamera;
     use nalgebra::Rotation3;
     use posediff_geometry::{ImageSize, Intrinsics, Pose};
 

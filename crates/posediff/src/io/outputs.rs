@@ -17,9 +17,9 @@ use std::path::{Path, PathBuf};
 
 use rayon::prelude::*;
 
-use crate::colmap::{ColmapFormat, ColmapModel};
 use crate::error::{PosediffError, Result};
-use crate::export::{
+use crate::io::colmap::{ColmapFormat, ColmapModel};
+use crate::io::export::{
     NerfstudioCamera, nerfstudio_applied_transform, write_cameras_json_partial, write_nerfstudio,
     write_ply, write_pytorch3d,
 };
@@ -185,7 +185,7 @@ fn names(inputs: &InputImages) -> Vec<String> {
     inputs
         .files
         .iter()
-        .map(|p| crate::pipeline::relative_name(p, inputs.folder.as_deref()))
+        .map(|p| crate::estimate::estimator::relative_name(p, inputs.folder.as_deref()))
         .collect()
 }
 
@@ -272,7 +272,7 @@ pub fn write_outputs(
     out: &Path,
     r: &Reconstruction,
     inputs: &InputImages,
-    run: &crate::run_report::RunReport,
+    run: &crate::estimate::run_report::RunReport,
     options: &OutputOptions,
     thumbnails_made: Option<&[Option<Vec<u8>>]>,
 ) -> Result<Written> {
@@ -332,7 +332,7 @@ pub fn write_outputs(
             None => thumbnails(r, &inputs.files)?,
         };
         let title = set_title(inputs.folder.as_deref());
-        let html = crate::viewer::render(&title, r, &thumbs, None)?;
+        let html = crate::io::viewer::render(&title, r, &thumbs, None)?;
         let path = out.join("view.html");
         std::fs::write(&path, html).map_err(|source| PosediffError::Write { path, source })?;
         files.push("view.html".into());

@@ -11,12 +11,17 @@
 //!
 //! With a frozen backbone the features of every frame are computed once (official centre crop,
 //! the test-time loader) and cached: the practical mode on a CPU. Otherwise every batch is read
-//! and augmented as the official dataset does ([`crate::augment`]: jittered square crops, colour
+//! and augmented as the official dataset does ([`crate::train::augment`]: jittered square crops, colour
 //! jitter per sequence) and the gradients reach the backbone.
 //!
 //! A checkpoint folder holds `model.safetensors` (official keys, schedule buffers included:
 //! `posediff estimate --weights` and PyTorch load it), `optimizer.safetensors` (AdamW moments),
 //! `trainer.json` (iteration, settings), `loss.csv` and `loss.png`.
+
+pub mod augment;
+pub mod log;
+
+pub use log::{LogRow, read_log, write_log};
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -31,11 +36,13 @@ use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, StandardNormal};
 use serde::{Deserialize, Serialize};
 
-use crate::augment::{AugmentConfig, SequenceColour, crop_and_resize, crop_camera, jittered_crop};
-use crate::co3d::{frame_path, load_annotations, usable_sequences};
 use crate::error::{PosediffError, Result};
-use crate::loader::{load_images, read_rgb};
-use crate::pipeline::normalised_encodings;
+use crate::estimate::estimator::normalised_encodings;
+use crate::io::co3d::{frame_path, load_annotations, usable_sequences};
+use crate::io::loader::{load_images, read_rgb};
+use crate::train::augment::{
+    AugmentConfig, SequenceColour, crop_and_resize, crop_camera, jittered_crop,
+};
 
 /// Training settings.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -356,21 +363,6 @@ fn image_batch(
     ))
 }
 
-/// One logged iteration.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct LogRow {
-    /// Iteration (0-based).
-    pub iteration: u64,
-    /// L1 loss.
-    pub loss: f64,
-    /// Learning rate used.
-    pub lr: f64,
-    /// Gradient norm before clipping.
-    pub grad_norm: f64,
-    /// Sets × frames in the batch (before the repeat).
-    pub images: usize,
-}
-
 /// What `trainer.json` holds.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct TrainerState {
@@ -613,51 +605,7 @@ impl Trainer {
         std::fs::write(self.out.join("trainer.json"), json)
             .map_err(|e| io_err(&self.out.join("trainer.json"), e))?;
         write_log(&self.out.join("loss.csv"), &self.log)?;
-        crate::plot::plot_loss(&self.out.join("loss.png"), &self.log)?;
+        log::plot_loss(&self.out.join("loss.png"), &self.log)?;
         Ok(())
     }
-}
-
-/// Writes the loss log as CSV.
-///
-/// # Errors
-/// I/O errors.
-pub fn write_log(path: &Path, rows: &[LogRow]) -> Result<()> {
-    let mut text = String::from("iteration,loss,lr,grad_norm,images\n");
-    for r in rows {
-        text.push_str(&format!(
-            "{},{:e},{:e},{:e},{}\n",
-            r.iteration, r.loss, r.lr, r.grad_norm, r.images
-        ));
-    }
-    std::fs::write(path, text).map_err(|e| io_err(path, e))
-}
-
-/// Reads a loss log written by [`write_log`].
-///
-/// # Errors
-/// Unreadable or malformed files.
-pub fn read_log(path: &Path) -> Result<Vec<LogRow>> {
-    let text = crate::error::read_text(path)?;
-    text.lines()
-        .skip(1)
-        .filter(|l| !l.trim().is_empty())
-        .map(|line| {
-            let f: Vec<&str> = line.split(',').collect();
-            let bad = || PosediffError::InvalidFile {
-                path: path.to_owned(),
-                reason: format!("malformed log line {line:?}"),
-            };
-            if f.len() != 5 {
-                return Err(bad());
-            }
-            Ok(LogRow {
-                iteration: f[0].parse().map_err(|_| bad())?,
-                loss: f[1].parse().map_err(|_| bad())?,
-                lr: f[2].parse().map_err(|_| bad())?,
-                grad_norm: f[3].parse().map_err(|_| bad())?,
-                images: f[4].parse().map_err(|_| bad())?,
-            })
-        })
-        .collect()
 }

@@ -17,20 +17,20 @@ use posediff_sfm::points::PointOptions;
 use serde::Serialize;
 
 use crate::error::{PosediffError, Result};
-use crate::export::{ImageCamera, read_cameras_json_partial};
-use crate::geometric::{
+use crate::estimate::estimator::{EstimateInput, Estimator, Progress, relative_name};
+use crate::estimate::geometric::{
     GeometricConfig, KnownIntrinsics, Refinement, bundle_refine_cameras, estimate_geometric,
     refine_given_cameras,
 };
-use crate::loader::{check_images, image_files};
-use crate::outputs::{InputImages, OutputOptions, Written, write_outputs};
-use crate::pipeline::{EstimateInput, Estimator, Progress, relative_name};
-use crate::reconstruction::Reconstruction;
-use crate::records::{Matched, match_by_name};
-use crate::run_report::{
+use crate::estimate::run_report::{
     MethodReport, NetworkReport, NetworkSeconds, PairCount, PointsSummary, RunReport, SampleSpread,
     SkippedImage,
 };
+use crate::io::export::{ImageCamera, read_cameras_json_partial};
+use crate::io::loader::{check_images, image_files};
+use crate::io::outputs::{InputImages, OutputOptions, Written, write_outputs};
+use crate::io::records::{Matched, match_by_name};
+use crate::reconstruction::Reconstruction;
 
 /// The input images, checked and named: the files in use, the folder their names are relative
 /// to, and the files left out.
@@ -320,8 +320,8 @@ pub struct Run {
 }
 
 impl Run {
-    /// Writes every output into `out` (see [`crate::outputs`]); `out` should have passed
-    /// [`crate::outputs::prepare_output_dir`].
+    /// Writes every output into `out` (see [`crate::io::outputs`]); `out` should have passed
+    /// [`crate::io::outputs::prepare_output_dir`].
     ///
     /// # Errors
     /// As [`write_outputs`].

@@ -150,7 +150,7 @@ pub fn ground_truth_for(
     gt: &Path,
     what: &str,
 ) -> crate::Result<Vec<posediff_geometry::Camera>> {
-    let truth = crate::export::read_cameras_json(gt)?;
+    let truth = crate::io::export::read_cameras_json(gt)?;
     match_by_name(
         names,
         truth

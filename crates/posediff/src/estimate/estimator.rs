@@ -14,9 +14,9 @@ use posediff_guidance::{GgsConfig, GgsSolver, MatchSet};
 use posediff_matching::{MatchConfig, PairMatches, match_images};
 
 use crate::error::{PosediffError, Result};
-use crate::export::NamedCamera;
-use crate::geometric::{KnownIntrinsics, resolve_intrinsics};
-use crate::loader::{LoadedImage, load_images};
+use crate::estimate::geometric::{KnownIntrinsics, resolve_intrinsics};
+use crate::io::export::NamedCamera;
+use crate::io::loader::{LoadedImage, load_images};
 
 /// Estimation settings; `Default` is the official demo's behaviour (one sample, GGS on).
 #[derive(Debug, Clone)]

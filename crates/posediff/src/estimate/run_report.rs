@@ -4,8 +4,8 @@ use std::path::PathBuf;
 
 use serde::Serialize;
 
-use crate::geometric::GeometricReport;
-use crate::outputs::Written;
+use crate::estimate::geometric::GeometricReport;
+use crate::io::outputs::Written;
 
 /// The version of run.json's layout; raised when a field changes meaning or goes.
 pub const RUN_REPORT_SCHEMA: u32 = 2;
@@ -17,7 +17,7 @@ pub enum MethodReport {
     /// Without a checkpoint: the mapper of `posediff-sfm`.
     Geometric {
         /// `--refine`.
-        refine: crate::run::RefineMode,
+        refine: crate::estimate::run::RefineMode,
         /// What each stage did.
         report: Box<GeometricReport>,
     },
@@ -39,7 +39,7 @@ pub struct NetworkReport {
     /// Whether GGS ran.
     pub ggs: bool,
     /// The hybrid bundle adjustment's report (`--refine bundle`).
-    pub bundle: Option<crate::geometric::BundleRefinement>,
+    pub bundle: Option<crate::estimate::geometric::BundleRefinement>,
     /// `cpu` or `cuda`.
     pub device: &'static str,
     /// Seconds per stage.
@@ -164,7 +164,7 @@ pub struct RunReport {
     pub points: Option<PointsSummary>,
     /// Things the user should know.
     pub warnings: Vec<String>,
-    /// What was written (filled by [`crate::outputs::write_outputs`]).
+    /// What was written (filled by [`crate::io::outputs::write_outputs`]).
     pub outputs: Option<Written>,
 }
 

@@ -17,7 +17,7 @@ use nalgebra::Vector3;
 use posediff_geometry::{Camera, ImageSize, Intrinsics, Pose, Quaternion, QuaternionSign};
 
 use crate::error::{PosediffError, Result, read_text};
-use crate::export::{ImageCamera, NamedCamera, PIXEL_CENTRE_OFFSET};
+use crate::io::export::{ImageCamera, NamedCamera, PIXEL_CENTRE_OFFSET};
 use crate::reconstruction::{ImageRecord, Keypoint, Reconstruction, ScenePoint, TrackElement};
 
 /// Text or binary model files.

@@ -3,7 +3,7 @@
 //! | file | convention |
 //! |---|---|
 //! | `cameras.json` | OpenCV: `x_cam = R x_world + t`, K in pixels of the original image, pixel centres at integers (the schema of `../shared/data/*/cameras.json`) |
-//! | COLMAP `sparse/0/{cameras,images,points3D}.{txt,bin}` | [`crate::colmap`]: one `PINHOLE` camera per distinct intrinsics; `QW QX QY QZ TX TY TZ` world-to-camera; pixel centres at `+0.5` |
+//! | COLMAP `sparse/0/{cameras,images,points3D}.{txt,bin}` | [`crate::io::colmap`]: one `PINHOLE` camera per distinct intrinsics; `QW QX QY QZ TX TY TZ` world-to-camera; pixel centres at `+0.5` |
 //! | nerfstudio `transforms.json` | as nerfstudio's COLMAP converter: the world changed by `applied_transform` (`y ← z`, `z ← −y`), `transform_matrix` camera-to-world with OpenGL camera axes (x right, y up, z backwards), intrinsics at the top level when shared, pixel centres at `+0.5`, `ply_file_path` |
 //! | `sparse_pc.ply` | binary little-endian `float x y z`, `uchar red green blue`, in the world of `transforms.json` |
 //! | `pytorch3d.json` | what the official model returns: row-vector `R`, `T`, focal and principal point in NDC of the 224 crop |
@@ -20,8 +20,8 @@ use posediff_geometry::camera_json::{CameraRecord, Pytorch3dParams};
 use posediff_geometry::{Camera, ImageSize, Intrinsics, Pose, Pytorch3dCamera};
 use serde::{Deserialize, Serialize};
 
-use crate::colmap::{ColmapFormat, ColmapModel};
 use crate::error::{PosediffError, Result, read_text};
+use crate::io::colmap::{ColmapFormat, ColmapModel};
 use crate::reconstruction::{Reconstruction, ScenePoint};
 
 /// COLMAP's and nerfstudio's pixel centres sit half a pixel from OpenCV's.
@@ -524,7 +524,7 @@ pub fn write_pytorch3d(path: &Path, images: &[ImageCamera]) -> Result<()> {
 }
 
 /// The cameras of a COLMAP model for the images of a folder, in the folder's order, matched
-/// by name ([`crate::records`]): an image COLMAP did not register is not estimated.
+/// by name ([`crate::io::records`]): an image COLMAP did not register is not estimated.
 ///
 /// # Errors
 /// An unreadable model; a model none of whose images is in the folder, or whose images name
@@ -537,9 +537,9 @@ pub fn colmap_for_images(
     let cams = read_colmap_cameras(model)?;
     let names: Vec<String> = images
         .iter()
-        .map(|p| crate::pipeline::relative_name(p, Some(root)))
+        .map(|p| crate::estimate::estimator::relative_name(p, Some(root)))
         .collect();
-    let matched = crate::records::match_by_name(
+    let matched = crate::io::records::match_by_name(
         &names,
         cams.into_iter()
             .map(|c| (c.image.clone(), c.camera))

@@ -1,0 +1,18 @@
+//! Everything read from or written to disk: the images, per-image records, and each export
+//! format, all from the one [`crate::reconstruction::Reconstruction`].
+//!
+//! - [`loader`]: the official image loader (sorted files, centre crop, 224 px), PNG writing.
+//! - [`records`]: per-image records matched to the images by name, never by position.
+//! - [`export`]: cameras.json, nerfstudio (+ PLY) and PyTorch3D writers and readers.
+//! - [`colmap`]: COLMAP sparse models, text and binary, with points.
+//! - [`co3d`]: CO3Dv2 annotations and the official test protocol's frame choice.
+//! - [`outputs`]: the output folder (COLMAP sparse/0, images, nerfstudio, PLY, viewer).
+//! - [`viewer`]: view.html, a self-contained three.js page.
+
+pub mod co3d;
+pub mod colmap;
+pub mod export;
+pub mod loader;
+pub mod outputs;
+pub mod records;
+pub mod viewer;
