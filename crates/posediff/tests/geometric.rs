@@ -5,6 +5,7 @@
 // Test helpers outside #[test] functions unwrap too: a failure is the test failing.
 #![allow(clippy::unwrap_used)]
 
+use posediff::estimate::run_report::Warning;
 use std::ffi::OsString;
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -187,7 +188,17 @@ fn a_second_group_is_reported_not_estimated() {
     let e = estimate_geometric(&images, &GeometricConfig::default()).unwrap();
     assert_eq!(e.report.estimated, vec![0, 2, 4]);
     assert!(e.cameras[1].is_none() && e.cameras[3].is_none());
-    assert!(e.warnings.iter().any(|w| w.contains("not estimated")));
+    assert!(
+        e.warnings
+            .contains(&Warning::NotEstimated { count: 2, of: 5 }),
+        "{:?}",
+        e.warnings
+    );
+    assert!(
+        e.warnings
+            .iter()
+            .any(|w| w.to_string().contains("not estimated"))
+    );
     let est: Vec<Camera> = [0, 2, 4].iter().map(|&i| e.cameras[i].unwrap()).collect();
     let (rot, trans) = worst_pair_errors(&est, &fountain_gt[2..5]);
     assert!(rot < 2.0 && trans < 3.0, "worst pair: {rot}° / {trans}°");
@@ -279,7 +290,10 @@ fn pure_rotation_gives_one_centre_and_the_rotations() {
         .collect();
     let e = estimate_geometric(&files, &GeometricConfig::default()).unwrap();
     assert!(
-        e.warnings.iter().any(|w| w.contains("pure rotation")),
+        e.warnings.contains(&Warning::NoParallax)
+            && e.warnings
+                .iter()
+                .any(|w| w.to_string().contains("pure rotation")),
         "{:?}",
         e.warnings
     );

@@ -76,7 +76,7 @@ pub struct Estimate {
     /// Stage timings.
     pub times: StageTimes,
     /// Things the user should know (e.g. GGS skipped).
-    pub warnings: Vec<String>,
+    pub warnings: Vec<crate::estimate::run_report::Warning>,
 }
 
 /// Progress of an estimation, stage by stage (the CLI draws bars; the default does nothing).
@@ -486,7 +486,7 @@ impl Estimator {
             all_pairs = pairs;
             if set.is_empty() {
                 log::warn!("GGS skipped: no image pair has verified matches");
-                warnings.push("GGS skipped: no image pair has verified matches".to_owned());
+                warnings.push(crate::estimate::run_report::Warning::GgsSkipped);
                 None
             } else {
                 Some(set)

@@ -29,6 +29,7 @@ use posediff_sfm::{
 };
 
 use crate::error::{PosediffError, Result};
+use crate::estimate::run_report::Warning;
 
 pub use posediff_sfm::intrinsics::{focal_scale, image_centre};
 
@@ -326,7 +327,7 @@ pub struct GeometricEstimate {
     /// Statistics.
     pub report: GeometricReport,
     /// Things the user should know.
-    pub warnings: Vec<String>,
+    pub warnings: Vec<Warning>,
 }
 
 /// OpenCV two-view geometry for the mapper.
@@ -589,18 +590,14 @@ pub fn estimate_from_matches(
     report.record_mapper(&reconstruction.report);
     let mut warnings = Vec::new();
     if reconstruction.report.no_parallax {
-        warnings.push(
-            "no pair has measurable parallax (pure rotation or identical images): all camera \
-             centres coincide"
-                .into(),
-        );
+        warnings.push(Warning::NoParallax);
     }
     let not_estimated = reconstruction.report.not_estimated.len();
     if not_estimated > 0 {
-        warnings.push(format!(
-            "{not_estimated} of {n} images share no usable matches with the largest group and are \
-             not estimated"
-        ));
+        warnings.push(Warning::NotEstimated {
+            count: not_estimated,
+            of: n,
+        });
     }
     let mut cameras = reconstruction
         .cameras

@@ -24,7 +24,7 @@ use crate::estimate::geometric::{
 };
 use crate::estimate::run_report::{
     MethodReport, NetworkReport, NetworkSeconds, PairCount, PointsSummary, RunReport, SampleSpread,
-    SkippedImage,
+    SkippedImage, Warning,
 };
 use crate::io::export::{ImageCamera, read_cameras_json_partial};
 use crate::io::loader::{check_images, image_files};
@@ -403,10 +403,7 @@ pub fn run(
             if !matched.images_without_record.is_empty()
                 || !matched.records_without_image.is_empty()
             {
-                warnings.push(format!(
-                    "{} (images without an initial camera start uninitialised)",
-                    matched.mismatch("--init", path)
-                ));
+                warnings.push(Warning::InitMismatch(matched.mismatch("--init", path)));
             }
             let cams: Vec<Option<Camera>> = matched
                 .per_image
@@ -493,7 +490,7 @@ fn network_run(
     known: &KnownIntrinsics,
     geometric: &GeometricConfig,
     init: Option<Init>,
-    warnings: &mut Vec<String>,
+    warnings: &mut Vec<Warning>,
     progress: &mut dyn Progress,
 ) -> Result<(Vec<ImageCamera>, Vec<PairMatches>, RunReport)> {
     let names = &inputs.names;
@@ -524,9 +521,8 @@ fn network_run(
                 .map(|(n, _)| n.as_str())
                 .collect();
             if !missing.is_empty() {
-                warnings.push(format!(
-                    "no initial camera for {}: the diffusion starts them at the first estimated camera",
-                    missing.join(", ")
+                warnings.push(Warning::NoInitialCamera(
+                    missing.iter().map(|m| (*m).to_owned()).collect(),
                 ));
             }
             Some(given.iter().map(|c| c.unwrap_or(fallback)).collect())
@@ -579,9 +575,7 @@ fn network_run(
         .collect();
     warnings.extend(estimate.warnings.iter().cloned());
     if estimate.pairs.iter().all(|p| p.is_empty()) {
-        warnings.push(
-            "no verified matches (GGS off skips matching): the COLMAP model has no points".into(),
-        );
+        warnings.push(Warning::NoVerifiedMatches);
     }
     let t = &estimate.times;
     let sample_spread = first

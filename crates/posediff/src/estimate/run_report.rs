@@ -76,6 +76,66 @@ pub struct SampleSpread {
     pub center_distance_max: f64,
 }
 
+/// Something a run did that the user should know of (written to run.json and the log as its
+/// message).
+#[derive(Debug, Clone, PartialEq, Eq)]
+#[non_exhaustive]
+pub enum Warning {
+    /// No pair has parallax: every camera centre is the same.
+    NoParallax,
+    /// Images outside the largest group of images that share matches.
+    NotEstimated {
+        /// How many.
+        count: usize,
+        /// Of how many images.
+        of: usize,
+    },
+    /// GGS did not run: no pair has verified matches.
+    GgsSkipped,
+    /// No verified matches at all (matching off or none found): no points.
+    NoVerifiedMatches,
+    /// An `--init` file and the images do not pair up completely (the mismatch, listed).
+    InitMismatch(String),
+    /// Images the initial estimate has no camera for (the diffusion starts them at the first
+    /// estimated camera).
+    NoInitialCamera(Vec<String>),
+}
+
+impl std::fmt::Display for Warning {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::NoParallax => f.write_str(
+                "no pair has measurable parallax (pure rotation or identical images): all camera \
+                 centres coincide",
+            ),
+            Self::NotEstimated { count, of } => write!(
+                f,
+                "{count} of {of} images share no usable matches with the largest group and are \
+                 not estimated"
+            ),
+            Self::GgsSkipped => f.write_str("GGS skipped: no image pair has verified matches"),
+            Self::NoVerifiedMatches => f.write_str(
+                "no verified matches (GGS off skips matching): the COLMAP model has no points",
+            ),
+            Self::InitMismatch(m) => write!(
+                f,
+                "{m} (images without an initial camera start uninitialised)"
+            ),
+            Self::NoInitialCamera(images) => write!(
+                f,
+                "no initial camera for {}: the diffusion starts them at the first estimated camera",
+                images.join(", ")
+            ),
+        }
+    }
+}
+
+impl Serialize for Warning {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> std::result::Result<S::Ok, S::Error> {
+        s.collect_str(self)
+    }
+}
+
 /// Verified matches of one pair.
 #[derive(Debug, Clone, Copy, Serialize)]
 pub struct PairCount {
@@ -163,7 +223,7 @@ pub struct RunReport {
     /// The points of the exports (filled when they are triangulated).
     pub points: Option<PointsSummary>,
     /// Things the user should know.
-    pub warnings: Vec<String>,
+    pub warnings: Vec<Warning>,
     /// What was written (filled by [`crate::io::outputs::write_outputs`]).
     pub outputs: Option<Written>,
 }
