@@ -157,6 +157,15 @@ impl Pose {
         }
     }
 
+    /// The pose of a camera with world-to-camera rotation `R` whose centre is `C` in the
+    /// world: `t = −R C`.
+    pub fn from_rotation_centre(rotation: Matrix3<f64>, centre: Vector3<f64>) -> Self {
+        Self {
+            rotation,
+            translation: -(rotation * centre),
+        }
+    }
+
     /// Builds a pose from `R` and `t`.
     pub const fn new(rotation: Matrix3<f64>, translation: Vector3<f64>) -> Self {
         Self {
@@ -263,6 +272,22 @@ impl Camera {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_pose_from_rotation_and_centre_has_that_centre() {
+        let r = crate::Quaternion::new(0.9, 0.1, -0.3, 0.2)
+            .to_rotation_matrix()
+            .unwrap_or_else(|_| Matrix3::identity());
+        let c = Vector3::new(1.5, -2.0, 0.25);
+        let pose = Pose::from_rotation_centre(r, c);
+        let cam = Camera::new(
+            Intrinsics::new(500.0, 500.0, 320.0, 240.0).unwrap_or_else(|_| unreachable!()),
+            pose,
+            ImageSize::new(640, 480).unwrap_or_else(|_| unreachable!()),
+        );
+        assert!((cam.center().coords - c).norm() < 1e-12);
+        assert_eq!(pose.rotation, r);
+    }
 
     fn camera() -> Camera {
         let r = crate::Quaternion::new(0.9, 0.1, -0.3, 0.2)

@@ -193,7 +193,7 @@ mod tests {
         let r = Matrix3::from_rows(&[x.transpose(), y.transpose(), z.transpose()]);
         Camera::new(
             Intrinsics::new(200.0, 200.0, 100.0, 100.0).unwrap(),
-            Pose::new(r, -(r * center.coords)),
+            Pose::from_rotation_centre(r, center.coords),
             ImageSize::new(200, 200).unwrap(),
         )
     }

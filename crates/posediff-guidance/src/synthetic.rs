@@ -46,7 +46,7 @@ fn look_at(center: Vector3<f64>) -> Pose {
     let x = Vector3::z().cross(&z).normalize();
     let y = z.cross(&x);
     let r = Matrix3::from_rows(&[x.transpose(), y.transpose(), z.transpose()]);
-    Pose::new(r, -(r * center))
+    Pose::from_rotation_centre(r, center)
 }
 
 /// A ring of `n_frames` cameras (radius 3, varying height), `matches_per_pair` projected points

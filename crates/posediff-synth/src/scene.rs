@@ -409,7 +409,7 @@ pub fn look_at(centre: Vector3<f64>, target: Vector3<f64>, roll: f64) -> Pose {
     let y = z.cross(&x);
     let r = Matrix3::from_rows(&[x.transpose(), y.transpose(), z.transpose()]);
     let r = Rotation3::from_axis_angle(&Vector3::z_axis(), roll).matrix() * r;
-    Pose::new(r, -(r * centre))
+    Pose::from_rotation_centre(r, centre)
 }
 
 /// Cameras of one sequence: a fly-around (radius, elevation, start angle, speed and direction

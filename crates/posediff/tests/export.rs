@@ -106,7 +106,7 @@ fn hand_checked_colmap_and_nerfstudio_values() {
     let c = Vector3::new(1.0, 2.0, -5.0);
     let cam = Camera::new(
         Intrinsics::new(500.0, 510.0, 319.5, 239.5).unwrap(),
-        Pose::new(r, -(r * c)),
+        Pose::from_rotation_centre(r, c),
         ImageSize::new(640, 480).unwrap(),
     );
     let axis = cam.optical_axis();

@@ -121,7 +121,7 @@ fn given_cameras_are_refined_towards_the_truth() {
             let extra = Rotation3::from_euler_angles(0.02 * i as f64, -0.03, 0.01);
             let centre = c.center().coords + nalgebra::Vector3::new(0.05, -0.04, 0.03) * i as f64;
             let r = extra.matrix() * c.cam_from_world.rotation;
-            c.cam_from_world = Pose::new(r, -(r * centre));
+            c.cam_from_world = Pose::from_rotation_centre(r, centre);
             c.intrinsics = posediff_geometry::Intrinsics::new(
                 c.intrinsics.fx() * 1.05,
                 c.intrinsics.fy() * 1.05,
@@ -554,7 +554,7 @@ fn the_bundle_refinement_pulls_given_cameras_to_the_truth() {
                 let centre =
                     c.center().coords + nalgebra::Vector3::new(0.02, -0.01, 0.015) * i as f64;
                 let r = extra.matrix() * c.cam_from_world.rotation;
-                c.cam_from_world = Pose::new(r, -(r * centre));
+                c.cam_from_world = Pose::from_rotation_centre(r, centre);
             }
             c.intrinsics = posediff_geometry::Intrinsics::new(
                 c.intrinsics.fx() * 1.04,

@@ -788,7 +788,7 @@ pub fn bundle_refine_cameras(
         let Some(p) = p else { continue };
         let center = origin + (p.center - origin) * rescale;
         let r = *p.rotation.matrix();
-        c.cam_from_world = Pose::new(r, -(r * center));
+        c.cam_from_world = Pose::from_rotation_centre(r, center);
         if !known_intrinsics {
             let k = c.intrinsics;
             c.intrinsics = Intrinsics::new(k.fx() * phi, k.fy() * phi, k.cx(), k.cy())?;

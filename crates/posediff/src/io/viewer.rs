@@ -172,7 +172,7 @@ pub fn render(
             let rotation: Matrix3<f64> = g.cam_from_world.rotation * rot.transpose();
             let moved = Camera::new(
                 g.intrinsics,
-                posediff_geometry::Pose::new(rotation, -(rotation * centre)),
+                posediff_geometry::Pose::from_rotation_centre(rotation, centre),
                 g.image_size,
             );
             // The angle of R_est · q · R_gtᵀ, i.e. between R_gt and R_est · q.
@@ -286,7 +286,7 @@ mod tests {
                 let centre = Vector3::new(3.0 * a.sin(), 0.3 * a, -3.0 * a.cos());
                 Camera::new(
                     Intrinsics::new(400.0, 400.0, 159.5, 119.5).unwrap(),
-                    Pose::new(r, -(r * centre)),
+                    Pose::from_rotation_centre(r, centre),
                     ImageSize::new(320, 240).unwrap(),
                 )
             })
@@ -315,7 +315,11 @@ mod tests {
         let moved = |c: &Camera| {
             let centre = s * (q * c.center().coords) + t;
             let rot = c.cam_from_world.rotation * q.transpose();
-            Camera::new(c.intrinsics, Pose::new(rot, -(rot * centre)), c.image_size)
+            Camera::new(
+                c.intrinsics,
+                Pose::from_rotation_centre(rot, centre),
+                c.image_size,
+            )
         };
         let mut gt: Vec<Option<Camera>> = cams.iter().map(|c| Some(moved(c))).collect();
         let page = render("t", &r, &vec![None; cams.len()], Some(&gt)).unwrap();
@@ -331,7 +335,7 @@ mod tests {
         let rot = turn * g.cam_from_world.rotation;
         gt[2] = Some(Camera::new(
             g.intrinsics,
-            Pose::new(rot, -(rot * g.center().coords)),
+            Pose::from_rotation_centre(rot, g.center().coords),
             g.image_size,
         ));
         gt[4] = None;
