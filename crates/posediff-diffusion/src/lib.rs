@@ -10,6 +10,7 @@
 #![deny(missing_docs)]
 #![forbid(unsafe_code)]
 
+pub mod activation;
 pub mod checkpoint;
 pub mod denoiser;
 pub mod error;

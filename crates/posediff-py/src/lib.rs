@@ -283,7 +283,7 @@ impl PyCamera {
 struct PyReconstruction {
     run: Run,
     /// Images given as arrays live here as PNG files while the result lives.
-    _arrays: Option<tempfile::TempDir>,
+    _arrays: Option<ArrayDir>,
 }
 
 #[pymethods]
@@ -438,13 +438,44 @@ fn not_estimated_reasons(run: &Run) -> Vec<Option<String>> {
     reasons
 }
 
+/// A folder of its own in the system's temporary folder, removed when dropped: where images
+/// given as arrays live as PNG files while their result lives (a few lines instead of the
+/// `tempfile` crate, whose `getrandom` features would make the wheel rebuild candle).
+struct ArrayDir(PathBuf);
+
+impl ArrayDir {
+    fn new() -> std::io::Result<Self> {
+        static NEXT: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+        let base = std::env::temp_dir();
+        loop {
+            let k = NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            let dir = base.join(format!("posediff-arrays-{}-{k}", std::process::id()));
+            match std::fs::create_dir(&dir) {
+                Ok(()) => return Ok(Self(dir)),
+                Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => continue,
+                Err(e) => return Err(e),
+            }
+        }
+    }
+
+    fn path(&self) -> &Path {
+        &self.0
+    }
+}
+
+impl Drop for ArrayDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
 /// The images argument: a folder, one file, a list of paths, or a list of H×W×3 uint8 arrays
 /// (written losslessly as PNG files, named `names` or `image_000.png`, ...).
 fn resolve_images(
     images: &Bound<'_, PyAny>,
     names: Option<Vec<String>>,
     skip_bad_images: bool,
-) -> PyResult<(Inputs, Option<tempfile::TempDir>)> {
+) -> PyResult<(Inputs, Option<ArrayDir>)> {
     if let Ok(one) = images.extract::<PathBuf>() {
         return Ok((
             Inputs::resolve(&[one], skip_bad_images).map_err(py_err)?,
@@ -503,9 +534,7 @@ fn resolve_images(
             )));
         }
     }
-    let dir = tempfile::Builder::new()
-        .prefix("posediff-arrays-")
-        .tempdir()
+    let dir = ArrayDir::new()
         .map_err(|e| Error::new_err(format!("a temporary folder for the arrays: {e}")))?;
     let py = images.py();
     let folder = dir.path().to_owned();
