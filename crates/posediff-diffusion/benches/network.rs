@@ -55,11 +55,51 @@ fn denoiser_step(c: &mut Criterion) {
     group.finish();
 }
 
+/// The ViT MLP's GELU on one image's hidden activations (197 tokens × 1536) and on four:
+/// posediff's F32 op against candle's `gelu_erf`.
+fn gelu(c: &mut Criterion) {
+    let mut group = c.benchmark_group("gelu_erf");
+    for n in [1, 4] {
+        let Ok(x) = Tensor::randn(0f32, 1f32, (n, 197, 1536), &Device::Cpu) else {
+            panic!("input");
+        };
+        group.bench_function(BenchmarkId::new("posediff", n), |b| {
+            b.iter(|| match posediff_diffusion::activation::gelu_erf(&x) {
+                Ok(y) => y,
+                Err(e) => panic!("{e}"),
+            });
+        });
+        group.bench_function(BenchmarkId::new("posediff_in_place", n), |b| {
+            b.iter(|| {
+                match posediff_diffusion::activation::gelu_erf_owned(
+                    x.copy().unwrap_or_else(|e| panic!("{e}")),
+                ) {
+                    Ok(y) => y,
+                    Err(e) => panic!("{e}"),
+                }
+            });
+        });
+        group.bench_function(BenchmarkId::new("copy_only", n), |b| {
+            b.iter(|| match x.copy() {
+                Ok(y) => y,
+                Err(e) => panic!("{e}"),
+            });
+        });
+        group.bench_function(BenchmarkId::new("candle", n), |b| {
+            b.iter(|| match x.gelu_erf() {
+                Ok(y) => y,
+                Err(e) => panic!("{e}"),
+            });
+        });
+    }
+    group.finish();
+}
+
 // criterion_group! generates an undocumented public function.
 #[allow(missing_docs)]
 mod group {
     use super::*;
-    criterion_group!(benches, backbone, denoiser_step);
+    criterion_group!(benches, backbone, denoiser_step, gelu);
 }
 use group::benches;
 criterion_main!(benches);

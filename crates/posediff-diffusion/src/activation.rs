@@ -6,7 +6,7 @@
 //! `|x| < 3.8325`, ±1 beyond; a few float ulps), branch-free so the loop vectorises. F64 (the
 //! parity tests), other devices and tracked tensors keep candle's op.
 
-use candle_core::{CpuStorage, CustomOp1, DType, Layout, Shape, Tensor};
+use candle_core::{CpuStorage, CustomOp1, DType, InplaceOp1, Layout, Shape, Tensor};
 
 use crate::error::Result;
 
@@ -31,11 +31,12 @@ const BETA: [f32; 5] = [
     -1.42647390514189e-02_f64 as f32,
 ];
 
-/// `erf(x)` for f32 in a few ulps.
+/// Beyond `|z|` = 3.8325 erf rounds to ±1 in float; the rational form is evaluated inside.
+const EDGE: f32 = 3.832_507;
+
+/// `erf(z)` for f32 in a few ulps, without branches (the select compiles to a blend).
 #[inline(always)]
 fn erf_f32(z: f32) -> f32 {
-    // Beyond |z| = 3.8325 erf rounds to ±1 in float; the rational form is evaluated inside.
-    const EDGE: f32 = 3.832_507;
     let x = z.clamp(-EDGE, EDGE);
     let x2 = x * x;
     let mut p = ALPHA[0];
@@ -47,7 +48,11 @@ fn erf_f32(z: f32) -> f32 {
         q = q * x2 + b;
     }
     let inside = (x * p / q).clamp(-1.0, 1.0);
-    if z.abs() >= EDGE { z.signum() } else { inside }
+    if z.abs() >= EDGE {
+        1.0f32.copysign(z)
+    } else {
+        inside
+    }
 }
 
 /// `x · (1 + erf(x/√2)) / 2`.
@@ -55,6 +60,42 @@ fn erf_f32(z: f32) -> f32 {
 fn gelu_f32(x: f32) -> f32 {
     0.5 * x * (1.0 + erf_f32(x * std::f32::consts::FRAC_1_SQRT_2))
 }
+
+/// GELU of `values` in place, eight lanes at a time (fixed-size blocks the compiler turns into
+/// SIMD), the remainder one by one.
+fn gelu_slice(values: &mut [f32]) {
+    const LANES: usize = 8;
+    let mut blocks = values.chunks_exact_mut(LANES);
+    for b in &mut blocks {
+        let mut block = [0f32; LANES];
+        block.copy_from_slice(b);
+        for v in &mut block {
+            *v = gelu_f32(*v);
+        }
+        b.copy_from_slice(&block);
+    }
+    for v in blocks.into_remainder() {
+        *v = gelu_f32(*v);
+    }
+}
+
+/// [`gelu_slice`] on the threads candle uses (one below [`PARALLEL_MIN`] elements).
+fn gelu_parallel(values: &mut [f32]) {
+    let threads = candle_core::utils::get_num_threads().max(1);
+    if threads == 1 || values.len() < PARALLEL_MIN {
+        gelu_slice(values);
+        return;
+    }
+    let chunk = values.len().div_ceil(threads);
+    std::thread::scope(|s| {
+        for part in values.chunks_mut(chunk) {
+            s.spawn(move || gelu_slice(part));
+        }
+    });
+}
+
+/// Elements below which one thread does the whole tensor.
+const PARALLEL_MIN: usize = 1 << 16;
 
 /// The custom op: F32 on the CPU.
 struct GeluErfF32;
@@ -73,9 +114,42 @@ impl CustomOp1 for GeluErfF32 {
         else {
             candle_core::bail!("gelu-erf-f32 takes a contiguous F32 tensor");
         };
-        let out: Vec<f32> = data[start..end].iter().map(|&x| gelu_f32(x)).collect();
+        let mut out = data[start..end].to_vec();
+        gelu_parallel(&mut out);
         Ok((CpuStorage::F32(out), layout.shape().clone()))
     }
+}
+
+/// The in-place op: F32 on the CPU, contiguous storage of its own.
+struct GeluErfF32InPlace;
+
+impl InplaceOp1 for GeluErfF32InPlace {
+    fn name(&self) -> &'static str {
+        "gelu-erf-f32-in-place"
+    }
+
+    fn cpu_fwd(&self, storage: &mut CpuStorage, layout: &Layout) -> candle_core::Result<()> {
+        let (CpuStorage::F32(data), Some((start, end))) = (storage, layout.contiguous_offsets())
+        else {
+            candle_core::bail!("gelu-erf-f32-in-place takes a contiguous F32 tensor");
+        };
+        gelu_parallel(&mut data[start..end]);
+        Ok(())
+    }
+}
+
+/// The exact GELU of a freshly computed `x`, overwriting it where the fast path applies (F32,
+/// CPU, contiguous, untracked), so no output is allocated: for intermediate results nothing
+/// else holds, such as a linear layer's output. Otherwise as [`gelu_erf`].
+///
+/// # Errors
+/// Tensor errors.
+pub fn gelu_erf_owned(x: Tensor) -> Result<Tensor> {
+    if x.dtype() == DType::F32 && x.device().is_cpu() && !x.track_op() && x.is_contiguous() {
+        x.inplace_op1(&GeluErfF32InPlace)?;
+        return Ok(x);
+    }
+    gelu_erf(&x)
 }
 
 /// The exact GELU of `x` (see the module documentation for which path runs).
@@ -119,6 +193,22 @@ mod tests {
             worst = worst.max(err);
         }
         assert!(worst > 0.0, "the fast path did not run");
+        Ok(())
+    }
+
+    #[test]
+    fn the_in_place_path_equals_the_allocating_one() -> Result<()> {
+        let x = Tensor::randn(0f32, 2f32, (3, 197, 1536), &Device::Cpu)?;
+        let expected: Vec<f32> = gelu_erf(&x)?.flatten_all()?.to_vec1()?;
+        let fresh = (&x * 1.0)?;
+        let got: Vec<f32> = gelu_erf_owned(fresh)?.flatten_all()?.to_vec1()?;
+        assert_eq!(got, expected);
+        // F64 takes candle's op.
+        let d = x.to_dtype(DType::F64)?;
+        assert_eq!(
+            gelu_erf_owned(d.clone())?.flatten_all()?.to_vec1::<f64>()?,
+            d.gelu_erf()?.flatten_all()?.to_vec1::<f64>()?
+        );
         Ok(())
     }
 

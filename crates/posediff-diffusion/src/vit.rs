@@ -99,7 +99,7 @@ impl Block {
     /// `x + attn(LN1(x))`, then `+ fc2(GELU(fc1(LN2(x))))`.
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         let x = (x + self.attn.forward(&self.norm1.forward(x)?)?)?;
-        let h = crate::activation::gelu_erf(&self.fc1.forward(&self.norm2.forward(&x)?)?)?;
+        let h = crate::activation::gelu_erf_owned(self.fc1.forward(&self.norm2.forward(&x)?)?)?;
         Ok((&x + self.fc2.forward(&h)?)?)
     }
 }
