@@ -360,6 +360,12 @@ impl PyReconstruction {
             },
             images: match images {
                 None if self._arrays.is_some() => ImagesMode::Copy,
+                Some("link") if self._arrays.is_some() => {
+                    return Err(value_err(
+                        "images given as arrays live in a temporary folder that goes with the \
+                         result: write them with images=\"copy\" (the default for arrays) or \"none\"",
+                    ));
+                }
                 None | Some("link") => ImagesMode::Link,
                 Some("copy") => ImagesMode::Copy,
                 Some("none") => ImagesMode::None,

@@ -79,6 +79,8 @@ def test_arrays_give_the_files_results(tmp_path: Path) -> None:
     assert posediff.read_image(images / files[3].name).tobytes() == arrays[3].tobytes()
     unnamed = posediff.estimate(arrays[:4], progress=False)
     assert [c.name for c in unnamed.cameras] == [f"image_{i:03}.png" for i in range(4)]
+    with pytest.raises(ValueError, match="temporary folder"):
+        unnamed.write(tmp_path / "linked", images="link")
     # The arrays' PNG files live exactly as long as their result.
     folder = Path(unnamed.report["images"][0]).parent
     assert folder.is_dir() and folder.name.startswith("posediff-arrays-")

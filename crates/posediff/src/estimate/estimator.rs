@@ -8,7 +8,7 @@ use candle_core::{DType, Device, Tensor};
 use posediff_diffusion::sampler::MeanHook;
 use posediff_diffusion::{NoiseSource, PoseDiffusionModel, SeededNoise, sample, sample_from};
 use posediff_geometry::{
-    Camera, ImageSize, Intrinsics, MODEL_INPUT_SIDE, PoseEncoding, QuaternionSign,
+    Camera, CenterCrop, ImageSize, Intrinsics, MODEL_INPUT_SIDE, PoseEncoding, QuaternionSign,
 };
 use posediff_guidance::{GgsConfig, GgsSolver, MatchSet};
 use posediff_matching::{MatchConfig, PairMatches, match_images};
@@ -475,7 +475,8 @@ impl Estimator {
             times.matching = start.elapsed().as_secs_f64();
             progress.finish();
             matches_per_pair = pairs.iter().map(|p| (p.first, p.second, p.len())).collect();
-            let set = model_frame_matches(&pairs, &loaded)?;
+            let crops: Vec<Option<CenterCrop>> = loaded.iter().map(|l| Some(l.crop)).collect();
+            let set = model_frame_matches(&pairs, &crops)?;
             log::info!(
                 "matching: {} pairs, {} with matches, {} matches in {:.2} s",
                 pairs.len(),
@@ -614,18 +615,40 @@ pub fn relative_name(path: &Path, root: Option<&Path>) -> String {
         .into_owned()
 }
 
-/// Matches in original pixels → the 224-crop frame of each image, as a GGS match set.
+/// Matches in original pixels → the 224-crop frame of each image, as a GGS match set over the
+/// images that have a crop (`crops[i]`: image `i`'s crop, `None` to leave it out). The set's
+/// frame `k` is the `k`-th image with a crop; pairs touching an image without one are
+/// skipped.
 ///
 /// # Errors
 /// Invalid pairs.
-pub fn model_frame_matches(pairs: &[PairMatches], images: &[LoadedImage]) -> Result<MatchSet> {
-    let (mut kp1, mut kp2, mut frames) = (Vec::new(), Vec::new(), Vec::new());
-    for p in pairs {
-        for (a, b) in p.kp1.iter().zip(&p.kp2) {
-            kp1.push(images[p.first].crop.to_model(*a));
-            kp2.push(images[p.second].crop.to_model(*b));
-            frames.push((p.first, p.second));
+pub fn model_frame_matches(
+    pairs: &[PairMatches],
+    crops: &[Option<CenterCrop>],
+) -> Result<MatchSet> {
+    let mut frame_of = vec![None; crops.len()];
+    let mut members = 0;
+    for (slot, crop) in frame_of.iter_mut().zip(crops) {
+        if crop.is_some() {
+            *slot = Some(members);
+            members += 1;
         }
     }
-    Ok(MatchSet::new(images.len(), &kp1, &kp2, &frames)?)
+    let (mut kp1, mut kp2, mut frames) = (Vec::new(), Vec::new(), Vec::new());
+    for p in pairs {
+        let (Some(Some(a)), Some(Some(b)), Some(Some(ca)), Some(Some(cb))) = (
+            frame_of.get(p.first),
+            frame_of.get(p.second),
+            crops.get(p.first),
+            crops.get(p.second),
+        ) else {
+            continue;
+        };
+        for (x, y) in p.kp1.iter().zip(&p.kp2) {
+            kp1.push(ca.to_model(*x));
+            kp2.push(cb.to_model(*y));
+            frames.push((*a, *b));
+        }
+    }
+    Ok(MatchSet::new(members, &kp1, &kp2, &frames)?)
 }

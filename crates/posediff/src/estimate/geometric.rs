@@ -13,7 +13,7 @@ use nalgebra::{Matrix3, Rotation3};
 use posediff_geometry::{
     Camera, CenterCrop, ImageSize, Intrinsics, MODEL_INPUT_SIDE, Pose, PoseEncoding, QuaternionSign,
 };
-use posediff_guidance::{GgsConfig, GgsSolver, MatchSet};
+use posediff_guidance::{GgsConfig, GgsSolver};
 use posediff_matching::two_view::{
     fundamental_least_squares, homography_fit, relative_pose_with_homography,
 };
@@ -652,28 +652,11 @@ pub fn official_ggs(
     if members.len() < 2 {
         return Ok(());
     }
-    let local = |i: usize| members.binary_search(&i).ok();
     let crops: Vec<Option<CenterCrop>> = cameras
         .iter()
         .map(|c| c.map(|c| CenterCrop::official(c.image_size, MODEL_INPUT_SIDE)))
         .collect();
-    let (mut kp1, mut kp2, mut frames) = (Vec::new(), Vec::new(), Vec::new());
-    for p in pairs {
-        let (Some(a), Some(b), Some(ca), Some(cb)) = (
-            local(p.first),
-            local(p.second),
-            crops[p.first],
-            crops[p.second],
-        ) else {
-            continue;
-        };
-        for (x, y) in p.kp1.iter().zip(&p.kp2) {
-            kp1.push(ca.to_model(*x));
-            kp2.push(cb.to_model(*y));
-            frames.push((a, b));
-        }
-    }
-    let set = MatchSet::new(members.len(), &kp1, &kp2, &frames)?;
+    let set = crate::estimate::estimator::model_frame_matches(pairs, &crops)?;
     let mut encodings = members
         .iter()
         .map(|&i| match (cameras[i], crops[i]) {
