@@ -455,21 +455,35 @@ fn setup() -> Result<()> {
     client_venv()
 }
 
-/// The fuzz targets (`fuzz/Cargo.toml`; the same names as `posediff::fuzzing::TARGETS`).
-const FUZZ_TARGETS: [&str; 6] = [
-    "checkpoint",
-    "cameras_json",
-    "colmap_text",
-    "colmap_binary",
-    "co3d_annotations",
-    "image",
-];
+/// The fuzz targets: the `[[bin]]` names of `fuzz/Cargo.toml`, which cargo-fuzz builds (the
+/// corpus test checks they are `posediff::fuzzing::TARGETS`).
+fn fuzz_targets() -> Result<Vec<String>> {
+    let path = workspace_root().join("fuzz/Cargo.toml");
+    let text =
+        std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+    Ok(bin_names(&text))
+}
+
+/// The `name` of each `[[bin]]` table of a Cargo manifest.
+fn bin_names(manifest: &str) -> Vec<String> {
+    let mut names = Vec::new();
+    let mut in_bin = false;
+    for line in manifest.lines().map(str::trim) {
+        if line.starts_with('[') {
+            in_bin = line == "[[bin]]";
+        } else if in_bin && let Some(value) = line.strip_prefix("name") {
+            let value = value.trim_start().trim_start_matches('=').trim();
+            names.push(value.trim_matches('"').to_owned());
+        }
+    }
+    names
+}
 
 /// Runs each fuzz target for `--seconds` on its corpus (new inputs are added to it) and
 /// writes what libFuzzer reported: executions, coverage, corpus size, crashes.
 fn fuzz(args: &[String]) -> Result<()> {
     let mut seconds = 600u64;
-    let mut targets: Vec<String> = FUZZ_TARGETS.iter().map(|t| (*t).to_owned()).collect();
+    let mut targets = fuzz_targets()?;
     let mut it = args.iter();
     while let Some(a) = it.next() {
         match a.as_str() {
@@ -824,4 +838,20 @@ fn deps_check() -> Result<()> {
     }
     eprintln!("dependency invariants hold");
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_fuzz_targets_are_read_from_the_fuzz_manifest() {
+        let manifest = "[package]\nname = \"fuzz\"\n\n[[bin]]\nname = \"a\"\npath = \"a.rs\"\n\n[dependencies]\nname = \"no\"\n\n[[bin]]\nname = \"b\"\n";
+        assert_eq!(bin_names(manifest), ["a", "b"]);
+        let real = fuzz_targets().unwrap_or_default();
+        assert!(
+            real.len() >= 6 && real.iter().any(|t| t == "image"),
+            "{real:?}"
+        );
+    }
 }

@@ -665,10 +665,7 @@ fn call_options(options: Option<&Bound<'_, PyDict>>) -> PyResult<Call> {
         }
     };
     let options = RunOptions {
-        init: init.map(|p| match p.to_str() {
-            Some("geometric") => InitSource::Geometric,
-            _ => InitSource::File(p),
-        }),
+        init: init.map(InitSource::from),
         start_step,
         intrinsics,
         refine: match refine {

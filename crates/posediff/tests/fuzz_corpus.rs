@@ -23,6 +23,26 @@ fn inputs(kind: &str, target: &str) -> Vec<PathBuf> {
 }
 
 #[test]
+fn the_harnesses_are_the_fuzz_targets_cargo_fuzz_builds() {
+    // The `[[bin]]` names of fuzz/Cargo.toml (what `cargo xtask fuzz` runs) are the targets the
+    // harnesses serve.
+    let manifest = std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../fuzz/Cargo.toml"),
+    )
+    .unwrap();
+    let mut bins = Vec::new();
+    let mut in_bin = false;
+    for line in manifest.lines().map(str::trim) {
+        if line.starts_with('[') {
+            in_bin = line == "[[bin]]";
+        } else if in_bin && line.starts_with("name") {
+            bins.push(line.split('"').nth(1).unwrap().to_owned());
+        }
+    }
+    assert_eq!(bins, posediff::fuzzing::TARGETS);
+}
+
+#[test]
 fn every_corpus_input_passes_its_harness() {
     for target in posediff::fuzzing::TARGETS {
         let seeds = inputs("seeds", target);

@@ -144,10 +144,18 @@ impl std::str::FromStr for InitSource {
     type Err = std::convert::Infallible;
 
     fn from_str(s: &str) -> std::result::Result<Self, Self::Err> {
-        Ok(match s {
-            "geometric" => Self::Geometric,
-            path => Self::File(PathBuf::from(path)),
-        })
+        Ok(Self::from(PathBuf::from(s)))
+    }
+}
+
+impl From<PathBuf> for InitSource {
+    /// `geometric`, or the path of a cameras.json.
+    fn from(p: PathBuf) -> Self {
+        if p.as_os_str() == "geometric" {
+            Self::Geometric
+        } else {
+            Self::File(p)
+        }
     }
 }
 

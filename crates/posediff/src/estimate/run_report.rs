@@ -115,7 +115,8 @@ impl std::fmt::Display for Warning {
             ),
             Self::GgsSkipped => f.write_str("GGS skipped: no image pair has verified matches"),
             Self::NoVerifiedMatches => f.write_str(
-                "no verified matches (GGS off skips matching): the COLMAP model has no points",
+                "no verified matches (none were found, or GGS was off, which skips matching): the \
+                 COLMAP model has no points",
             ),
             Self::InitMismatch(m) => write!(
                 f,
