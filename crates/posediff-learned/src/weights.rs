@@ -207,3 +207,34 @@ mod tests {
         assert!(e.contains(&dir.display().to_string()), "{e}");
     }
 }
+
+#[cfg(test)]
+mod conversion_tests {
+    use super::*;
+
+    /// `.pth` → safetensors keeps every tensor, bit for bit.
+    #[test]
+    fn conversion_keeps_every_tensor() -> anyhow::Result<()> {
+        let src = posediff_fixtures::fixture_path("torch/small_state_dict.pth");
+        let dir = posediff_fixtures::temp_dir("learned-convert");
+        let dst = dir.join("small.safetensors");
+        let n = convert_to_safetensors(&src, &dst)?;
+        let a = StateDict::read(&src, "test")?;
+        let b = StateDict::read(&dst, "test")?;
+        assert_eq!(n, a.len());
+        assert_eq!(a.len(), b.len());
+        assert!(!a.is_empty());
+        for (k, t) in &a.tensors {
+            let u = &b.tensors[k];
+            assert_eq!(t.dims(), u.dims(), "{k}");
+            assert_eq!(t.dtype(), u.dtype(), "{k}");
+            let (x, y) = (
+                t.flatten_all()?.to_dtype(DType::F64)?.to_vec1::<f64>()?,
+                u.flatten_all()?.to_dtype(DType::F64)?.to_vec1::<f64>()?,
+            );
+            assert_eq!(x, y, "{k}");
+        }
+        std::fs::remove_dir_all(&dir)?;
+        Ok(())
+    }
+}

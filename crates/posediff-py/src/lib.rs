@@ -564,13 +564,14 @@ struct Call {
 }
 
 /// The options `estimate` takes as keywords (the CLI's flags).
-const OPTION_NAMES: [&str; 12] = [
+const OPTION_NAMES: [&str; 13] = [
     "focal_px",
     "intrinsics",
     "init",
     "start_step",
     "refine",
     "matcher",
+    "weights_dir",
     "pairs",
     "samples",
     "seed",
@@ -682,15 +683,8 @@ fn call_options(options: Option<&Bound<'_, PyDict>>) -> PyResult<Call> {
         pairs: pairs
             .parse()
             .map_err(|e| value_err(format!("pairs {pairs:?}: {e}")))?,
-        detector: match matcher {
-            "sift" => posediff_matching::Detector::Sift,
-            "orb" => posediff_matching::Detector::Orb,
-            other => {
-                return Err(value_err(format!(
-                    "matcher must be \"sift\" or \"orb\", got {other:?}"
-                )));
-            }
-        },
+        matcher: matcher.parse().map_err(py_err)?,
+        weights_dir: option::<Option<PathBuf>>(options, "weights_dir", None)?,
         seed,
         samples,
         ggs,

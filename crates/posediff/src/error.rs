@@ -79,6 +79,9 @@ pub enum PosediffError {
     /// Matching failed.
     #[error(transparent)]
     Matching(#[from] posediff_matching::MatchingError),
+    /// The learned matcher failed (weights, shapes).
+    #[error(transparent)]
+    Learned(Box<posediff_learned::LearnedError>),
     /// GGS failed.
     #[error(transparent)]
     Guidance(#[from] posediff_guidance::GuidanceError),
@@ -91,6 +94,12 @@ pub enum PosediffError {
     /// JSON could not be written.
     #[error("JSON: {0}")]
     Json(#[from] serde_json::Error),
+}
+
+impl From<posediff_learned::LearnedError> for PosediffError {
+    fn from(e: posediff_learned::LearnedError) -> Self {
+        Self::Learned(Box::new(e))
+    }
 }
 
 impl PosediffError {

@@ -15,6 +15,7 @@
 #![forbid(unsafe_code)]
 
 pub mod bench;
+pub mod correspondences;
 pub mod error;
 pub mod estimate;
 pub mod fuzzing;

@@ -20,6 +20,12 @@ struct Cli {
     command: cli::Command,
 }
 
+/// mimalloc keeps freed pages for reuse: the networks allocate and free tensors of tens of
+/// megabytes per layer, which glibc's allocator hands back to the kernel each time (measured:
+/// 2.1 million page faults and a third of the run in the kernel for one LightGlue pair).
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 fn main() -> ExitCode {
     // Logs go to stderr; `RUST_LOG=info` shows the stages, warnings are on by default.
     env_logger::Builder::from_env(env_logger::Env::default().default_filter_or("warn")).init();

@@ -68,6 +68,7 @@ class EstimateOptions(TypedDict, total=False):
     start_step: int
     refine: str
     matcher: str
+    weights_dir: "Union[str, PathLike[str]]"
     pairs: str
     samples: int
     seed: int
@@ -120,7 +121,8 @@ def estimate(images: Any, *, weights: Any = None, device: str = "cpu",
     cameras. Options, as the CLI's flags: ``focal_px``, ``intrinsics`` (a cameras.json path or
     an (N, 3, 3) array), ``init`` (``"geometric"`` or a cameras.json), ``start_step``,
     ``refine`` (``"converge"``, ``"bundle"``, ``"official"``, ``"none"``), ``matcher``
-    (``"sift"``, ``"orb"``), ``pairs`` (``"auto"``, ``"exhaustive"``, ``"sequential:K"``,
+    (``"sift"``, ``"orb"``, ``"aliked-lightglue"``), ``weights_dir`` (the learned matcher's
+    weights, from ``cargo xtask weights``), ``pairs`` (``"auto"``, ``"exhaustive"``, ``"sequential:K"``,
     ``"retrieval:K"``), ``samples``, ``seed``, ``ggs``, ``device`` (``"cpu"``, ``"cuda"``),
     ``skip_bad_images``. ``progress``: ``True`` for tqdm bars when tqdm is installed, ``False``,
     or a callable ``(stage, done, total, finished)``.

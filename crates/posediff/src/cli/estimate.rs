@@ -5,6 +5,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, bail};
 use candle_core::Device;
 use clap::ValueEnum;
+use posediff::correspondences::MatcherChoice;
 use posediff::estimate::run::{
     DEFAULT_START_STEP, InitSource, Inputs, IntrinsicsSource, Network, RefineMode, RunOptions,
     load_estimator, run,
@@ -15,14 +16,18 @@ use posediff::io::outputs::{
 };
 use posediff::reconstruction::Reconstruction;
 use posediff::{Progress, Silent};
-use posediff_matching::Detector;
 
 use super::{Bars, DeviceArg};
 
 #[derive(Clone, Copy, ValueEnum)]
 enum Matcher {
+    /// OpenCV SIFT, mutual nearest neighbours with Lowe's ratio.
     Sift,
+    /// OpenCV ORB (binary descriptors).
     Orb,
+    /// ALIKED keypoints matched by LightGlue (released weights: `cargo xtask weights`).
+    #[value(name = "aliked-lightglue")]
+    AlikedLightglue,
 }
 
 /// How checkpoint-free cameras are refined.
@@ -89,9 +94,13 @@ pub struct Args {
     /// Skip geometry-guided sampling (and matching).
     #[arg(long)]
     no_ggs: bool,
-    /// Keypoint detector for GGS matches.
+    /// Keypoints and matches of both paths (GGS and the checkpoint-free mapper).
     #[arg(long, value_enum, default_value = "sift")]
     matcher: Matcher,
+    /// Folder of the learned matcher's weights (default: $POSEDIFF_WEIGHTS_DIR, else
+    /// ~/.cache/posediff/weights).
+    #[arg(long)]
+    weights_dir: Option<PathBuf>,
     /// Where the network runs.
     #[arg(long, value_enum, default_value = "cpu")]
     device: DeviceArg,
@@ -218,10 +227,12 @@ impl Args {
                 RefineArg::None => RefineMode::None,
             },
             pairs: self.pairs.clone(),
-            detector: match self.matcher {
-                Matcher::Sift => Detector::Sift,
-                Matcher::Orb => Detector::Orb,
+            matcher: match self.matcher {
+                Matcher::Sift => MatcherChoice::Sift,
+                Matcher::Orb => MatcherChoice::Orb,
+                Matcher::AlikedLightglue => MatcherChoice::AlikedLightGlue,
             },
+            weights_dir: self.weights_dir.clone(),
             seed: self.seed,
             samples: self.samples,
             ggs: !self.no_ggs,

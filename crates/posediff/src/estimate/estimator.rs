@@ -11,7 +11,7 @@ use posediff_geometry::{
     Camera, CenterCrop, ImageSize, Intrinsics, MODEL_INPUT_SIDE, PoseEncoding, QuaternionSign,
 };
 use posediff_guidance::{GgsConfig, GgsSolver, MatchSet};
-use posediff_matching::{MatchConfig, PairMatches, match_images};
+use posediff_matching::{MatchConfig, PairMatches};
 
 use crate::error::{PosediffError, Result};
 use crate::estimate::geometric::{KnownIntrinsics, resolve_intrinsics};
@@ -34,6 +34,8 @@ pub struct EstimateConfig {
     /// Known intrinsics: GGS keeps the focal at them (its focal phases are skipped) and the
     /// returned cameras carry them.
     pub intrinsics: KnownIntrinsics,
+    /// The learned matcher for GGS, when the run uses it instead of OpenCV's.
+    pub learned: Option<crate::correspondences::SharedLearned>,
 }
 
 impl Default for EstimateConfig {
@@ -45,6 +47,7 @@ impl Default for EstimateConfig {
             ggs_config: GgsConfig::default(),
             matching: MatchConfig::default(),
             intrinsics: KnownIntrinsics::Unknown,
+            learned: None,
         }
     }
 }
@@ -471,7 +474,12 @@ impl Estimator {
         let match_set = if self.config.ggs {
             progress.start("matching", 0);
             let start = Instant::now();
-            let (_, pairs) = match_images(images, None, &self.config.matching)?;
+            let (_, pairs) = crate::correspondences::match_images(
+                images,
+                None,
+                &self.config.matching,
+                self.config.learned.as_ref(),
+            )?;
             times.matching = start.elapsed().as_secs_f64();
             progress.finish();
             matches_per_pair = pairs.iter().map(|p| (p.first, p.second, p.len())).collect();

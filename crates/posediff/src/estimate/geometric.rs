@@ -17,9 +17,7 @@ use posediff_guidance::{GgsConfig, GgsSolver};
 use posediff_matching::two_view::{
     fundamental_least_squares, homography_fit, relative_pose_with_homography,
 };
-use posediff_matching::{
-    MatchConfig, PairMatches, PairSelection, TwoViewConfig, extract_all, match_pairs, select_pairs,
-};
+use posediff_matching::{MatchConfig, PairMatches, PairSelection, TwoViewConfig, select_pairs};
 use posediff_sfm::bundle::{BundleOptions, Point, bundle_adjust};
 use posediff_sfm::mapper::{RelativePose, TwoViewSolver};
 use posediff_sfm::sampson_refine::{SampsonRefineOptions, SampsonRefineReport, refine_sampson};
@@ -28,6 +26,7 @@ use posediff_sfm::{
     CameraPose, GlobalMapper, ImageIntrinsics, MapperOptions, MapperReport, SfmError,
 };
 
+use crate::correspondences::{SharedLearned, extract_all, match_pairs};
 use crate::error::{PosediffError, Result};
 use crate::estimate::run_report::Warning;
 
@@ -72,6 +71,8 @@ pub struct GeometricConfig {
     pub mapper: MapperOptions,
     /// Refinement.
     pub refinement: Refinement,
+    /// The learned matcher, when the run uses it instead of OpenCV's.
+    pub learned: Option<SharedLearned>,
 }
 
 impl Default for GeometricConfig {
@@ -86,6 +87,7 @@ impl Default for GeometricConfig {
             intrinsics: KnownIntrinsics::Unknown,
             mapper: MapperOptions::default(),
             refinement: Refinement::Converge(SampsonRefineOptions::default()),
+            learned: None,
         }
     }
 }
@@ -403,7 +405,8 @@ fn match_all(
         });
     }
     let clock = Instant::now();
-    let features = extract_all(images, &config.matching)?;
+    let learned = config.learned.as_ref();
+    let features = extract_all(images, &config.matching, learned)?;
     let extraction = clock.elapsed().as_secs_f64();
     let clock = Instant::now();
     let n = images.len();
@@ -416,7 +419,7 @@ fn match_all(
         .collect();
     let selection = clock.elapsed().as_secs_f64();
     let clock = Instant::now();
-    let pairs = match_pairs(&features, &pair_list, &config.matching)?;
+    let pairs = match_pairs(&features, &pair_list, &config.matching, learned)?;
     let sizes = features.iter().map(|f| f.image_size).collect();
     Ok((
         sizes,

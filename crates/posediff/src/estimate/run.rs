@@ -12,10 +12,11 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use posediff_geometry::{Camera, PairMatches};
-use posediff_matching::{Detector, PairSelection};
+use posediff_matching::PairSelection;
 use posediff_sfm::points::PointOptions;
 use serde::Serialize;
 
+use crate::correspondences::{LearnedMatcher, MatcherChoice, SharedLearned, learned_weight_files};
 use crate::error::{PosediffError, Result};
 use crate::estimate::estimator::{EstimateInput, Estimator, Progress, relative_name};
 use crate::estimate::geometric::{
@@ -211,8 +212,10 @@ pub struct RunOptions {
     pub refine: RefineMode,
     /// Which pairs the checkpoint-free path matches.
     pub pairs: PairSelection,
-    /// Keypoint detector.
-    pub detector: Detector,
+    /// The matcher of both paths.
+    pub matcher: MatcherChoice,
+    /// Where the learned matcher's weights are (`None`: [`posediff_learned::weights::default_dir`]).
+    pub weights_dir: Option<PathBuf>,
     /// Seed of the sampler.
     pub seed: u64,
     /// Samples per image set.
@@ -232,7 +235,8 @@ impl Default for RunOptions {
             intrinsics: IntrinsicsSource::Estimate,
             refine: RefineMode::Converge,
             pairs: PairSelection::Auto,
-            detector: Detector::Sift,
+            matcher: MatcherChoice::Sift,
+            weights_dir: None,
             seed: 0,
             samples: 1,
             ggs: true,
@@ -278,7 +282,31 @@ impl RunOptions {
         {
             return Err(PosediffError::NotFound(p.clone()));
         }
+        if self.matcher == MatcherChoice::AlikedLightGlue {
+            learned_weight_files(&self.learned_weights_dir())?;
+        }
         Ok(())
+    }
+
+    /// The folder the learned matcher's weights are read from.
+    pub fn learned_weights_dir(&self) -> PathBuf {
+        self.weights_dir
+            .clone()
+            .unwrap_or_else(posediff_learned::weights::default_dir)
+    }
+
+    /// The learned matcher when the options ask for it, loaded once.
+    ///
+    /// # Errors
+    /// Missing or malformed weights.
+    pub fn load_learned(&self) -> Result<Option<SharedLearned>> {
+        if self.matcher != MatcherChoice::AlikedLightGlue {
+            return Ok(None);
+        }
+        let dir = self.learned_weights_dir();
+        Ok(Some(SharedLearned(std::sync::Arc::new(
+            LearnedMatcher::load(&dir)?,
+        ))))
     }
 
     fn geometric_config(&self, intrinsics: &KnownIntrinsics) -> GeometricConfig {
@@ -296,7 +324,7 @@ impl RunOptions {
             },
             ..GeometricConfig::default()
         };
-        config.matching.features.detector = self.detector;
+        config.matching.features.detector = self.matcher.detector();
         config
     }
 }
@@ -427,7 +455,11 @@ pub fn run(
             Some(Init::Given(cams))
         }
     };
-    let geometric = options.geometric_config(&known);
+    let mut geometric = options.geometric_config(&known);
+    let needs_matches = network.is_none() || options.ggs;
+    if needs_matches {
+        geometric.learned = options.load_learned()?;
+    }
     let (entries, pairs, mut report) = match network {
         None => {
             progress.start("geometry", 0);
@@ -473,6 +505,7 @@ pub fn run(
         log::warn!("{w}");
     }
     report.init = options.init.as_ref().map(ToString::to_string);
+    report.matcher = needs_matches.then(|| options.matcher.as_str());
     report.skipped_images = inputs.skipped.clone();
     report.warnings = warnings;
     let point_options = PointOptions::default();
@@ -543,7 +576,8 @@ fn network_run(
         intrinsics: known.clone(),
         ..net.estimator.config().clone()
     };
-    config.matching.features.detector = options.detector;
+    config.matching.features.detector = options.matcher.detector();
+    config.learned = geometric.learned.clone();
     let estimator = net.estimator.with_config(config);
     let estimate = estimator.estimate(
         EstimateInput {

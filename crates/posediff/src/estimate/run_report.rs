@@ -216,6 +216,8 @@ pub struct RunReport {
     pub skipped_images: Vec<SkippedImage>,
     /// `--init` as given.
     pub init: Option<String>,
+    /// The matcher of the correspondences (`None` when none were needed: `--no-ggs`).
+    pub matcher: Option<&'static str>,
     /// How the cameras were estimated.
     #[serde(flatten)]
     pub method: MethodReport,
@@ -238,6 +240,7 @@ impl RunReport {
             images,
             skipped_images: Vec::new(),
             init: None,
+            matcher: None,
             method,
             matches_per_pair: Vec::new(),
             points: None,

@@ -1,0 +1,338 @@
+//! Which matcher finds the correspondences, for both paths (GGS and the checkpoint-free
+//! mapper): OpenCV's SIFT or ORB with mutual nearest neighbours (`posediff-matching`), or ALIKED
+//! keypoints matched by LightGlue (`posediff-learned`). Either way the keypoints are in pixels
+//! of the original image and every pair goes through the same MAGSAC verification and
+//! minimum of verified matches ([`MatchConfig::verification`], [`MatchConfig::min_verified`]).
+//!
+//! The learned matcher follows the reference pipeline: each image resized (OpenCV INTER_AREA) to
+//! a long side of [`LEARNED_IMAGE_SIDE`], ALIKED's top [`LEARNED_MAX_KEYPOINTS`] (detection
+//! threshold 0, so weak texture still gets keypoints), LightGlue with its early exit and point
+//! pruning per selected pair, keypoints mapped back to the original pixels.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use candle_core::Device;
+use opencv::core::{Mat, Size};
+use opencv::prelude::*;
+use posediff_geometry::{ImageSize, PairMatches};
+use posediff_learned::{
+    Aliked, AlikedConfig, LightGlue, LightGlueConfig, MatcherInput, RgbImage, WeightSet,
+};
+use posediff_matching::features::to_original_pixels;
+use posediff_matching::{Descriptors, ImageFeatures, MatchConfig, verified_inliers};
+use rayon::prelude::*;
+
+use crate::error::{PosediffError, Result};
+
+/// Long side the learned matcher resizes every image to (the reference setting).
+pub const LEARNED_IMAGE_SIDE: u32 = 1024;
+/// ALIKED keypoints per image (the reference setting measured in `docs/BENCHMARKS.md`).
+pub const LEARNED_MAX_KEYPOINTS: usize = 2048;
+
+/// The matcher of a run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum MatcherChoice {
+    /// OpenCV SIFT, mutual nearest neighbours with Lowe's ratio.
+    #[default]
+    Sift,
+    /// OpenCV ORB, Hamming mutual nearest neighbours.
+    Orb,
+    /// ALIKED n16 keypoints, LightGlue matches.
+    AlikedLightGlue,
+}
+
+impl MatcherChoice {
+    /// The name on the command line and in run.json.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Sift => "sift",
+            Self::Orb => "orb",
+            Self::AlikedLightGlue => "aliked-lightglue",
+        }
+    }
+
+    /// The OpenCV detector of this choice (SIFT for the learned one, unused there).
+    pub fn detector(self) -> posediff_matching::Detector {
+        match self {
+            Self::Orb => posediff_matching::Detector::Orb,
+            _ => posediff_matching::Detector::Sift,
+        }
+    }
+}
+
+impl std::fmt::Display for MatcherChoice {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+impl std::str::FromStr for MatcherChoice {
+    type Err = PosediffError;
+
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "sift" => Ok(Self::Sift),
+            "orb" => Ok(Self::Orb),
+            "aliked-lightglue" => Ok(Self::AlikedLightGlue),
+            other => Err(PosediffError::InvalidArgument(format!(
+                "matcher must be sift, orb or aliked-lightglue, got {other:?}"
+            ))),
+        }
+    }
+}
+
+/// ALIKED + LightGlue with their released weights, loaded once.
+#[derive(Debug)]
+pub struct LearnedMatcher {
+    aliked: Aliked,
+    lightglue: LightGlue,
+    /// Detection settings.
+    pub aliked_config: AlikedConfig,
+    /// Matching settings.
+    pub lightglue_config: LightGlueConfig,
+    /// Long side the images are resized to.
+    pub image_side: u32,
+}
+
+/// The weight files of the learned matcher in `dir`, checked to exist (before any image is
+/// read).
+///
+/// # Errors
+/// A missing file, with the command that fetches it.
+pub fn learned_weight_files(dir: &Path) -> Result<(PathBuf, PathBuf)> {
+    Ok((
+        WeightSet::AlikedN16.locate(dir)?,
+        WeightSet::AlikedLightGlue.locate(dir)?,
+    ))
+}
+
+impl LearnedMatcher {
+    /// Loads the weights from `dir` (see [`posediff_learned::weights`]) onto the CPU.
+    ///
+    /// # Errors
+    /// Missing or malformed weight files.
+    pub fn load(dir: &Path) -> Result<Self> {
+        let (aliked, lightglue) = learned_weight_files(dir)?;
+        Ok(Self {
+            aliked: Aliked::load(&aliked, &Device::Cpu)?,
+            lightglue: LightGlue::load(&lightglue, &Device::Cpu)?,
+            aliked_config: AlikedConfig {
+                max_keypoints: LEARNED_MAX_KEYPOINTS,
+                ..AlikedConfig::default()
+            },
+            lightglue_config: LightGlueConfig::default(),
+            image_side: LEARNED_IMAGE_SIDE,
+        })
+    }
+
+    /// ALIKED keypoints and descriptors of one image, in its original pixels.
+    ///
+    /// # Errors
+    /// Unreadable images (named), network errors.
+    pub fn extract(&self, path: &Path) -> Result<ImageFeatures> {
+        let bgr = posediff_matching::image_check::decode(path, opencv::imgcodecs::IMREAD_COLOR)?;
+        let (w, h) = (bgr.cols(), bgr.rows());
+        let image_size = ImageSize::new(w as u32, h as u32)?;
+        let s = f64::from(self.image_side) / f64::from(w.max(h));
+        let (nw, nh) = (
+            (f64::from(w) * s).round() as i32,
+            (f64::from(h) * s).round() as i32,
+        );
+        let mut resized = Mat::default();
+        opencv::imgproc::resize(
+            &bgr,
+            &mut resized,
+            Size::new(nw, nh),
+            0.0,
+            0.0,
+            opencv::imgproc::INTER_AREA,
+        )?;
+        let mut rgb = Mat::default();
+        opencv::imgproc::cvt_color_def(&resized, &mut rgb, opencv::imgproc::COLOR_BGR2RGB)?;
+        let rgb = if rgb.is_continuous() {
+            rgb
+        } else {
+            rgb.try_clone()?
+        };
+        let image = RgbImage {
+            width: nw as usize,
+            height: nh as usize,
+            data: rgb.data_bytes()?,
+        };
+        let kp = self
+            .aliked
+            .extract(&image, &self.aliked_config)
+            .map_err(|e| PosediffError::Context {
+                what: format!("ALIKED on {}", path.display()),
+                source: Box::new(e.into()),
+            })?;
+        let scale = [f64::from(nw) / f64::from(w), f64::from(nh) / f64::from(h)];
+        Ok(ImageFeatures {
+            image_size,
+            keypoints: kp
+                .positions
+                .iter()
+                .map(|p| to_original_pixels([f64::from(p[0]), f64::from(p[1])], scale))
+                .collect(),
+            descriptors: Descriptors::Float {
+                data: kp.descriptors,
+                dim: kp.dim,
+            },
+        })
+    }
+
+    /// LightGlue on one pair, then the verification of `config`.
+    ///
+    /// # Errors
+    /// Features that are not ALIKED's; OpenCV errors in the verification.
+    pub fn match_pair(
+        &self,
+        a: &ImageFeatures,
+        b: &ImageFeatures,
+        first: usize,
+        second: usize,
+        config: &MatchConfig,
+    ) -> Result<PairMatches> {
+        let positions = |f: &ImageFeatures| -> Vec<[f32; 2]> {
+            f.keypoints
+                .iter()
+                .map(|k| [k[0] as f32, k[1] as f32])
+                .collect()
+        };
+        let desc = |f: &ImageFeatures| -> Result<Vec<f32>> {
+            match &f.descriptors {
+                Descriptors::Float { data, dim } if *dim == self.lightglue.input_dim() => {
+                    Ok(data.clone())
+                }
+                _ => Err(PosediffError::InvalidArgument(
+                    "LightGlue needs ALIKED's 128-d float descriptors".into(),
+                )),
+            }
+        };
+        let size = |f: &ImageFeatures| [f.image_size.width() as f32, f.image_size.height() as f32];
+        let (pa, pb) = (positions(a), positions(b));
+        let (da, db) = (desc(a)?, desc(b)?);
+        let m = self.lightglue.match_pair(
+            &MatcherInput {
+                positions: &pa,
+                descriptors: &da,
+                image_size: size(a),
+            },
+            &MatcherInput {
+                positions: &pb,
+                descriptors: &db,
+                image_size: size(b),
+            },
+            &self.lightglue_config,
+        )?;
+        let id = |i: usize| u32::try_from(i).unwrap_or(u32::MAX);
+        let raw = PairMatches {
+            first,
+            second,
+            kp1: m.matches.iter().map(|&(i, _)| a.keypoints[i]).collect(),
+            kp2: m.matches.iter().map(|&(_, j)| b.keypoints[j]).collect(),
+            idx1: m.matches.iter().map(|&(i, _)| id(i)).collect(),
+            idx2: m.matches.iter().map(|&(_, j)| id(j)).collect(),
+        };
+        let Some(v) = &config.verification else {
+            return Ok(raw);
+        };
+        let mut keep = verified_inliers(&raw.kp1, &raw.kp2, v)?;
+        if keep.len() < config.min_verified {
+            keep.clear();
+        }
+        Ok(raw.select(&keep))
+    }
+}
+
+/// A loaded learned matcher shared by the configurations that use it (equal when it is the same
+/// load).
+#[derive(Debug, Clone)]
+pub struct SharedLearned(pub Arc<LearnedMatcher>);
+
+impl PartialEq for SharedLearned {
+    fn eq(&self, other: &Self) -> bool {
+        Arc::ptr_eq(&self.0, &other.0)
+    }
+}
+
+/// Features of every image with the configured matcher (`learned` when given, else OpenCV).
+///
+/// # Errors
+/// Fewer than two images, unreadable images (named), extraction errors.
+pub fn extract_all(
+    images: &[PathBuf],
+    config: &MatchConfig,
+    learned: Option<&SharedLearned>,
+) -> Result<Vec<ImageFeatures>> {
+    let Some(l) = learned else {
+        return Ok(posediff_matching::extract_all(images, config)?);
+    };
+    if images.len() < 2 {
+        return Err(PosediffError::TooFewImages {
+            needed: 2,
+            got: images.len(),
+        });
+    }
+    // One image at a time: the network already uses every core.
+    images.iter().map(|p| l.0.extract(p)).collect()
+}
+
+/// Matches `pairs` with the configured matcher.
+///
+/// # Errors
+/// Invalid pairs, matching errors.
+pub fn match_pairs(
+    features: &[ImageFeatures],
+    pairs: &[(usize, usize)],
+    config: &MatchConfig,
+    learned: Option<&SharedLearned>,
+) -> Result<Vec<PairMatches>> {
+    let Some(l) = learned else {
+        return Ok(posediff_matching::match_pairs(features, pairs, config)?);
+    };
+    check_pairs(features.len(), pairs)?;
+    pairs
+        .par_iter()
+        .map(|&(i, j)| l.0.match_pair(&features[i], &features[j], i, j, config))
+        .collect()
+}
+
+/// Features of every image, then the matches of `pairs` (all `i < j` when `None`).
+///
+/// # Errors
+/// As [`extract_all`] and [`match_pairs`].
+pub fn match_images(
+    images: &[PathBuf],
+    pairs: Option<&[(usize, usize)]>,
+    config: &MatchConfig,
+    learned: Option<&SharedLearned>,
+) -> Result<(Vec<ImageFeatures>, Vec<PairMatches>)> {
+    let all;
+    let pairs = match pairs {
+        Some(p) => p,
+        None => {
+            all = posediff_matching::exhaustive_pairs(images.len());
+            &all
+        }
+    };
+    // The cheap check before the extraction.
+    check_pairs(images.len(), pairs)?;
+    let features = extract_all(images, config, learned)?;
+    let matches = match_pairs(&features, pairs, config, learned)?;
+    Ok((features, matches))
+}
+
+/// Every pair names two different images of `n`.
+fn check_pairs(n: usize, pairs: &[(usize, usize)]) -> Result<()> {
+    match pairs.iter().find(|&&(a, b)| a >= n || b >= n || a == b) {
+        Some(&(first, second)) => Err(posediff_matching::MatchingError::InvalidPair {
+            first,
+            second,
+            n_images: n,
+        }
+        .into()),
+        None => Ok(()),
+    }
+}
