@@ -19,6 +19,7 @@ pub mod norm;
 pub mod resize;
 pub mod sampler;
 pub mod schedule;
+pub mod softmax;
 pub mod train;
 pub mod vit;
 

@@ -53,12 +53,22 @@ impl LayerNorm {
     }
 }
 
-/// Softmax over the last dimension: candle's fused kernel, or (it has no backward pass) the
-/// composed, differentiable one when gradients are tracked.
+/// Softmax over the last dimension: the vectorised F32 kernel of [`crate::softmax`] on the CPU,
+/// else candle's fused kernel, or (it has no backward pass) the composed, differentiable one
+/// when gradients are tracked.
 ///
 /// # Errors
 /// Tensor errors.
 pub fn softmax_last_dim(x: &Tensor) -> Result<Tensor> {
+    crate::softmax::softmax_last_dim(x)
+}
+
+/// candle's softmax: its fused kernel, or the composed, differentiable one when gradients are
+/// tracked.
+///
+/// # Errors
+/// Tensor errors.
+pub fn softmax_last_dim_candle(x: &Tensor) -> Result<Tensor> {
     Ok(if x.track_op() {
         candle_nn::ops::softmax(x, D::Minus1)?
     } else {

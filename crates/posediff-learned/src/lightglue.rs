@@ -21,7 +21,8 @@ use std::path::Path;
 use candle_core::{D, Device, IndexOp, Tensor};
 use candle_nn::VarBuilder;
 use posediff_diffusion::activation::gelu_erf_owned;
-use posediff_diffusion::norm::{LayerNorm, softmax_last_dim};
+use posediff_diffusion::norm::LayerNorm;
+use posediff_diffusion::softmax::softmax_last_dim_owned;
 
 use crate::error::{LearnedError, Result};
 use crate::weights::StateDict;
@@ -180,14 +181,14 @@ fn attention(q: &Tensor, k: &Tensor, v: &Tensor) -> Result<Tensor> {
     let kt = k.t()?;
     let rows = (ATTENTION_BLOCK / (h * n).max(1)).max(1);
     if rows >= m {
-        return Ok(softmax_last_dim(&q.matmul(&kt)?)?.matmul(v)?);
+        return Ok(softmax_last_dim_owned(q.matmul(&kt)?)?.matmul(v)?);
     }
     let blocks = (0..m)
         .step_by(rows)
         .map(|start| {
             let len = rows.min(m - start);
             let s = q.narrow(1, start, len)?.matmul(&kt)?;
-            Ok(softmax_last_dim(&s)?.matmul(v)?)
+            Ok(softmax_last_dim_owned(s)?.matmul(v)?)
         })
         .collect::<Result<Vec<_>>>()?;
     Ok(Tensor::cat(&blocks, 1)?)
