@@ -71,7 +71,7 @@ const HEAVY_CRATES: [&str; 6] = ["candle-core", "candle-nn", "opencv", "faer", "
 /// import the geometry and metrics crates alone; guidance (GGS) may use rayon, never faer or
 /// the tensor or image back ends; the mapper (sfm) is faer + rayon, never candle or OpenCV (it
 /// takes matches and a two-view solver from its caller).
-const FORBIDDEN: [(&str, &[&str]); 5] = [
+const FORBIDDEN: [(&str, &[&str]); 7] = [
     ("posediff-geometry", &HEAVY_CRATES),
     ("posediff-metrics", &HEAVY_CRATES),
     (
@@ -86,10 +86,14 @@ const FORBIDDEN: [(&str, &[&str]); 5] = [
         "posediff-sfm",
         &["candle-core", "candle-nn", "opencv", "tch"],
     ),
+    // The OpenCV matcher builds without candle; the learned one without OpenCV (it takes
+    // decoded pixels).
+    ("posediff-matching", &["candle-core", "candle-nn", "tch"]),
+    ("posediff-learned", &["opencv", "tch"]),
 ];
 
 /// Per crate: the workspace crates it may depend on.
-const ALLOWED_WORKSPACE_DEPS: [(&str, &[&str]); 7] = [
+const ALLOWED_WORKSPACE_DEPS: [(&str, &[&str]); 8] = [
     ("posediff-sfm", &["posediff-geometry"]),
     ("posediff-synth", &["posediff-geometry"]),
     ("posediff-geometry", &[]),
@@ -97,6 +101,7 @@ const ALLOWED_WORKSPACE_DEPS: [(&str, &[&str]); 7] = [
     ("posediff-guidance", &["posediff-geometry"]),
     ("posediff-diffusion", &["posediff-geometry"]),
     ("posediff-matching", &["posediff-geometry"]),
+    ("posediff-learned", &["posediff-diffusion"]),
 ];
 
 /// The one cargo profile CI builds.

@@ -23,7 +23,7 @@ const P: [f32; 6] = [
     8.333_452e-3,
     4.166_579_6e-2,
     1.666_666_5e-1,
-    5.000_000_1e-1,
+    0.5,
 ];
 /// Below this `exp` underflows to the smallest normal range; inputs are clamped to it.
 const MIN_X: f32 = -87.336_55;
@@ -229,7 +229,9 @@ mod tests {
             let truth: Vec<f64> = xs
                 .chunks(row)
                 .flat_map(|r| {
-                    let m = r.iter().fold(f64::NEG_INFINITY, |a, &b| a.max(f64::from(b)));
+                    let m = r
+                        .iter()
+                        .fold(f64::NEG_INFINITY, |a, &b| a.max(f64::from(b)));
                     let e: Vec<f64> = r.iter().map(|&v| (f64::from(v) - m).exp()).collect();
                     let s: f64 = e.iter().sum();
                     e.into_iter().map(move |v| v / s)

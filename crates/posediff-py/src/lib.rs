@@ -45,6 +45,11 @@ fn py_err(e: PosediffError) -> PyErr {
         PosediffError::Read { source, .. } if source.kind() == std::io::ErrorKind::NotFound => {
             PyFileNotFoundError::new_err(message)
         }
+        PosediffError::Learned(l)
+            if matches!(**l, posediff_learned::LearnedError::MissingWeights { .. }) =>
+        {
+            PyFileNotFoundError::new_err(message)
+        }
         PosediffError::InvalidArgument(_)
         | PosediffError::InvalidFile { .. }
         | PosediffError::NoImages(_)

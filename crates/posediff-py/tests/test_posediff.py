@@ -159,6 +159,12 @@ def test_bad_inputs_raise_the_right_exceptions(tmp_path: Path) -> None:
         posediff.estimate(tmp_path / "nope", progress=False)
     with pytest.raises(ValueError, match="need at least 2 images"):
         posediff.estimate([temple[0]], progress=False)
+    with pytest.raises(FileNotFoundError, match="cargo xtask weights"):
+        posediff.estimate(
+            temple, matcher="aliked-lightglue", weights_dir=tmp_path / "none", progress=False
+        )
+    with pytest.raises(ValueError, match="aliked-lightglue"):
+        posediff.estimate(temple, matcher="superglue", progress=False)
     with pytest.raises(ValueError, match="refine must be"):
         posediff.estimate(temple, refine="fast", progress=False)
     with pytest.raises(ValueError, match="H×W×3"):

@@ -77,11 +77,15 @@ impl Method for Posediffusion {
 pub struct Geometric {
     /// Settings.
     pub config: crate::estimate::geometric::GeometricConfig,
+    /// The name in reports (default: "posediff geometric (no checkpoint)").
+    pub label: Option<String>,
 }
 
 impl Method for Geometric {
     fn name(&self) -> String {
-        "posediff geometric (no checkpoint)".into()
+        self.label
+            .clone()
+            .unwrap_or_else(|| "posediff geometric (no checkpoint)".into())
     }
     fn estimate(&self, images: &[PathBuf], _ground_truth: &[Pose]) -> Result<Vec<Option<Pose>>> {
         match crate::estimate::geometric::estimate_geometric(images, &self.config) {
@@ -206,10 +210,33 @@ pub fn score_set(
 /// # Errors
 /// Unreadable files; a method error on a subset counts all its cameras as failed instead.
 pub fn bench_real(data: &Path, subsets_json: &Path, method: &dyn Method) -> Result<Vec<RealRow>> {
+    bench_real_sets(data, subsets_json, method, None)
+}
+
+/// As [`bench_real`], on the sets named in `sets` only (all when `None`).
+///
+/// # Errors
+/// As [`bench_real`]; a named set that subsets.json does not have.
+pub fn bench_real_sets(
+    data: &Path,
+    subsets_json: &Path,
+    method: &dyn Method,
+    sets: Option<&[String]>,
+) -> Result<Vec<RealRow>> {
     let text = crate::error::read_text(subsets_json)?;
     let file: SubsetFile = serde_json::from_str(&text).map_err(|e| read_err(subsets_json, e))?;
+    if let Some(unknown) = sets
+        .unwrap_or_default()
+        .iter()
+        .find(|s| !file.datasets.contains_key(s.as_str()))
+    {
+        return Err(read_err(subsets_json, format!("no set {unknown}")));
+    }
     let mut rows = Vec::new();
     for (set, spec) in &file.datasets {
+        if sets.is_some_and(|list| !list.iter().any(|s| s == set)) {
+            continue;
+        }
         let dir = data.join(set);
         let cams = read_cameras_json(&dir.join("cameras.json"))?;
         let by_name: BTreeMap<&str, &Camera> =

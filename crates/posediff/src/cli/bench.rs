@@ -7,7 +7,9 @@ use candle_core::Device;
 use clap::ValueEnum;
 use posediff::{EstimateConfig, Estimator};
 
-use super::{Categories, command_line};
+use posediff::correspondences::MatcherChoice;
+
+use super::{Categories, Matcher, command_line};
 
 /// What a benchmark scores.
 #[derive(Clone, Copy, ValueEnum)]
@@ -35,6 +37,16 @@ pub struct RealArgs {
     /// What to score (default: posediffusion with --weights, else geometric).
     #[arg(long, value_enum)]
     method: Option<BenchMethod>,
+    /// Correspondences of the geometric method.
+    #[arg(long, value_enum, default_value = "sift")]
+    matcher: Matcher,
+    /// Folder of the learned matcher's weights (default: $POSEDIFF_WEIGHTS_DIR, else
+    /// ~/.cache/posediff/weights).
+    #[arg(long)]
+    weights_dir: Option<PathBuf>,
+    /// Only these sets of subsets.json (comma-separated; default all).
+    #[arg(long, value_delimiter = ',')]
+    sets: Option<Vec<String>>,
     /// Report path (JSON; the Markdown table is written beside it).
     #[arg(long)]
     out: PathBuf,
@@ -48,10 +60,31 @@ impl RealArgs {
             subsets,
             weights,
             method,
+            matcher,
+            weights_dir,
+            sets,
             out,
         } = self;
-        let method = bench_method(method, weights.as_deref(), false)?;
-        let rows = posediff::bench::bench_real(&data, &subsets, method.as_ref())?;
+        let mut method = bench_method(method, weights.as_deref(), false)?;
+        let choice: MatcherChoice = matcher.into();
+        if choice != MatcherChoice::Sift {
+            let options = posediff::estimate::run::RunOptions {
+                matcher: choice,
+                weights_dir,
+                ..posediff::estimate::run::RunOptions::default()
+            };
+            let mut config = posediff::estimate::geometric::GeometricConfig {
+                learned: options.load_learned()?,
+                ..Default::default()
+            };
+            config.matching.features.detector = choice.detector();
+            method = Box::new(posediff::bench::Geometric {
+                config,
+                label: Some(format!("posediff geometric ({choice})")),
+            });
+        }
+        let rows =
+            posediff::bench::bench_real_sets(&data, &subsets, method.as_ref(), sets.as_deref())?;
         let md = posediff::bench::real_markdown(&method.name(), &rows);
         write_report(
             &out,

@@ -5,7 +5,6 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, bail};
 use candle_core::Device;
 use clap::ValueEnum;
-use posediff::correspondences::MatcherChoice;
 use posediff::estimate::run::{
     DEFAULT_START_STEP, InitSource, Inputs, IntrinsicsSource, Network, RefineMode, RunOptions,
     load_estimator, run,
@@ -17,18 +16,7 @@ use posediff::io::outputs::{
 use posediff::reconstruction::Reconstruction;
 use posediff::{Progress, Silent};
 
-use super::{Bars, DeviceArg};
-
-#[derive(Clone, Copy, ValueEnum)]
-enum Matcher {
-    /// OpenCV SIFT, mutual nearest neighbours with Lowe's ratio.
-    Sift,
-    /// OpenCV ORB (binary descriptors).
-    Orb,
-    /// ALIKED keypoints matched by LightGlue (released weights: `cargo xtask weights`).
-    #[value(name = "aliked-lightglue")]
-    AlikedLightglue,
-}
+use super::{Bars, DeviceArg, Matcher};
 
 /// How checkpoint-free cameras are refined.
 #[derive(Clone, Copy, ValueEnum)]
@@ -227,11 +215,7 @@ impl Args {
                 RefineArg::None => RefineMode::None,
             },
             pairs: self.pairs.clone(),
-            matcher: match self.matcher {
-                Matcher::Sift => MatcherChoice::Sift,
-                Matcher::Orb => MatcherChoice::Orb,
-                Matcher::AlikedLightglue => MatcherChoice::AlikedLightGlue,
-            },
+            matcher: self.matcher.into(),
             weights_dir: self.weights_dir.clone(),
             seed: self.seed,
             samples: self.samples,

@@ -90,6 +90,28 @@ impl std::str::FromStr for Categories {
 }
 
 /// Where the network runs.
+/// `--matcher`.
+#[derive(Clone, Copy, ValueEnum)]
+pub enum Matcher {
+    /// OpenCV SIFT, mutual nearest neighbours with Lowe's ratio.
+    Sift,
+    /// OpenCV ORB (binary descriptors).
+    Orb,
+    /// ALIKED keypoints matched by LightGlue (released weights: `cargo xtask weights`).
+    #[value(name = "aliked-lightglue")]
+    AlikedLightglue,
+}
+
+impl From<Matcher> for posediff::correspondences::MatcherChoice {
+    fn from(m: Matcher) -> Self {
+        match m {
+            Matcher::Sift => Self::Sift,
+            Matcher::Orb => Self::Orb,
+            Matcher::AlikedLightglue => Self::AlikedLightGlue,
+        }
+    }
+}
+
 #[derive(Clone, Copy, ValueEnum)]
 pub enum DeviceArg {
     Cpu,

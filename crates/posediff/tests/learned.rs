@@ -1,0 +1,169 @@
+//! `--matcher aliked-lightglue` end to end: the released weights (fetched by `cargo xtask
+//! weights` into `target/weights/`, or `$POSEDIFF_WEIGHTS_DIR`), real images, the CLI.
+
+// Test helpers unwrap too: a failure is the test failing.
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use std::ffi::OsString;
+use std::path::PathBuf;
+use std::process::Command;
+
+use posediff::correspondences::{LearnedMatcher, MatcherChoice, SharedLearned, match_images};
+use posediff_fixtures::{shared_path, workspace_root};
+use posediff_matching::MatchConfig;
+
+fn weights_dir() -> PathBuf {
+    std::env::var_os("POSEDIFF_WEIGHTS_DIR")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| workspace_root().join("target/weights"))
+}
+
+fn apple(n: usize) -> Vec<PathBuf> {
+    let dir = shared_path("data/co3d_apple_posediffusion/images");
+    let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
+    files.sort();
+    files.truncate(n);
+    files
+}
+
+#[test]
+fn matcher_names_round_trip() {
+    for m in [
+        MatcherChoice::Sift,
+        MatcherChoice::Orb,
+        MatcherChoice::AlikedLightGlue,
+    ] {
+        assert_eq!(m.as_str().parse::<MatcherChoice>().unwrap(), m);
+    }
+    let e = "superglue"
+        .parse::<MatcherChoice>()
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("aliked-lightglue"), "{e}");
+}
+
+/// Neighbouring apple frames: keypoints in the original pixels, verified matches that the
+/// ground-truth epipolar geometry agrees with.
+#[test]
+fn learned_matches_of_neighbouring_frames_are_verified_and_in_original_pixels() {
+    let learned = SharedLearned(std::sync::Arc::new(
+        LearnedMatcher::load(&weights_dir()).unwrap_or_else(|e| panic!("{e}")),
+    ));
+    let images = apple(2);
+    let (features, pairs) =
+        match_images(&images, None, &MatchConfig::default(), Some(&learned)).unwrap();
+    assert_eq!(features.len(), 2);
+    for f in &features {
+        assert_eq!(
+            f.keypoints.len(),
+            posediff::correspondences::LEARNED_MAX_KEYPOINTS
+        );
+        let (w, h) = (
+            f64::from(f.image_size.width()),
+            f64::from(f.image_size.height()),
+        );
+        assert!(
+            f.keypoints
+                .iter()
+                .all(|k| k[0] >= -0.5 && k[1] >= -0.5 && k[0] <= w - 0.5 && k[1] <= h - 0.5)
+        );
+        // The keypoints spread over the image (original pixels, not the 1024 px copy).
+        let max_y = f.keypoints.iter().map(|k| k[1]).fold(0.0, f64::max);
+        assert!(max_y > 0.6 * h, "max y {max_y} of {h}");
+    }
+    let p = &pairs[0];
+    assert!(p.len() >= 100, "{} verified matches", p.len());
+    // Against the ground truth: the Sampson distances of the matches under the true F.
+    let gt = posediff::io::export::read_cameras_json(&shared_path(
+        "data/co3d_apple_posediffusion/cameras.json",
+    ))
+    .unwrap();
+    let cam = |path: &PathBuf| {
+        let name = path.file_name().unwrap().to_string_lossy().into_owned();
+        gt.iter()
+            .find(|c| c.image.ends_with(&name))
+            .map(|c| c.camera)
+            .unwrap()
+    };
+    let (a, b) = (cam(&images[0]), cam(&images[1]));
+    let f = posediff_geometry::epipolar::fundamental_from_cameras(&a, &b);
+    let good = p
+        .kp1
+        .iter()
+        .zip(&p.kp2)
+        .filter(|(x, y)| {
+            let (x, y) = (
+                nalgebra::Point2::new(x[0], x[1]),
+                nalgebra::Point2::new(y[0], y[1]),
+            );
+            posediff_geometry::epipolar::sampson_error(&f, &x, &y).is_ok_and(|e| e < 4.0)
+        })
+        .count();
+    assert!(
+        good as f64 >= 0.95 * p.len() as f64,
+        "{good} of {} within 4 px² of the true epipolar geometry",
+        p.len()
+    );
+}
+
+#[test]
+fn missing_weights_fail_before_any_image_is_read_and_name_the_command() {
+    let dir = posediff_fixtures::temp_dir("learned-no-weights");
+    let r = Command::new(env!("CARGO_BIN_EXE_posediff"))
+        .args([
+            OsString::from("estimate"),
+            shared_path("data/co3d_apple_posediffusion/images").into(),
+            "--matcher".into(),
+            "aliked-lightglue".into(),
+            "--weights-dir".into(),
+            dir.join("nothing-here").into(),
+            "--out".into(),
+            dir.join("out").into(),
+        ])
+        .output()
+        .unwrap();
+    assert!(!r.status.success());
+    let err = String::from_utf8_lossy(&r.stderr);
+    assert!(err.contains("cargo xtask weights"), "{err}");
+    assert!(err.contains("aliked-n16"), "{err}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// Three frames through the CLI: every camera estimated, run.json names the matcher.
+#[test]
+fn the_cli_estimates_with_the_learned_matcher() {
+    let dir = posediff_fixtures::temp_dir("learned-cli");
+    let set = dir.join("set");
+    std::fs::create_dir_all(&set).unwrap();
+    for p in apple(3) {
+        std::fs::copy(&p, set.join(p.file_name().unwrap())).unwrap();
+    }
+    let out = dir.join("out");
+    let r = Command::new(env!("CARGO_BIN_EXE_posediff"))
+        .args([
+            OsString::from("estimate"),
+            set.into(),
+            "--matcher".into(),
+            "aliked-lightglue".into(),
+            "--weights-dir".into(),
+            weights_dir().into(),
+            "--out".into(),
+            out.clone().into(),
+            "--quiet".into(),
+            "--no-view".into(),
+        ])
+        .output()
+        .unwrap();
+    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    let run: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("run.json")).unwrap()).unwrap();
+    assert_eq!(run["matcher"], "aliked-lightglue");
+    let cams: Vec<serde_json::Value> =
+        serde_json::from_str(&std::fs::read_to_string(out.join("cameras.json")).unwrap()).unwrap();
+    assert_eq!(cams.len(), 3);
+    assert!(cams.iter().all(|c| c["estimated"] == true), "{cams:?}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
