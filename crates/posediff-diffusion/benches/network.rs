@@ -95,11 +95,38 @@ fn gelu(c: &mut Criterion) {
     group.finish();
 }
 
+/// Attention softmax: the ViT's (6 heads × 197 × 197, one image) and LightGlue's (4 heads ×
+/// 256 query rows × 2048 keys, one block): posediff's F32 kernel against candle's.
+fn softmax(c: &mut Criterion) {
+    let mut group = c.benchmark_group("softmax");
+    for (name, shape) in [
+        ("vit_6x197x197", (6, 197, 197)),
+        ("lightglue_4x256x2048", (4, 256, 2048)),
+    ] {
+        let Ok(x) = Tensor::randn(0f32, 3f32, shape, &Device::Cpu) else {
+            panic!("input");
+        };
+        group.bench_function(BenchmarkId::new("posediff", name), |b| {
+            b.iter(|| match posediff_diffusion::softmax::softmax_last_dim(&x) {
+                Ok(y) => y,
+                Err(e) => panic!("{e}"),
+            });
+        });
+        group.bench_function(BenchmarkId::new("candle", name), |b| {
+            b.iter(|| match candle_nn::ops::softmax_last_dim(&x) {
+                Ok(y) => y,
+                Err(e) => panic!("{e}"),
+            });
+        });
+    }
+    group.finish();
+}
+
 // criterion_group! generates an undocumented public function.
 #[allow(missing_docs)]
 mod group {
     use super::*;
-    criterion_group!(benches, backbone, denoiser_step, gelu);
+    criterion_group!(benches, backbone, denoiser_step, gelu, softmax);
 }
 use group::benches;
 criterion_main!(benches);
