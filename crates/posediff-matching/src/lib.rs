@@ -159,6 +159,15 @@ pub fn match_pair(
         idx1: idx.iter().map(|&(i, _)| keypoint_id(i)).collect(),
         idx2: idx.iter().map(|&(_, j)| keypoint_id(j)).collect(),
     };
+    verify(raw, config)
+}
+
+/// The verification of `config` on a pair's raw matches: the MAGSAC inliers, or none when
+/// they are fewer than `config.min_verified`; the raw matches without verification.
+///
+/// # Errors
+/// OpenCV errors.
+pub fn verify(raw: PairMatches, config: &MatchConfig) -> Result<PairMatches> {
     let Some(v) = &config.verification else {
         return Ok(raw);
     };
@@ -227,7 +236,10 @@ pub fn match_pairs(
 }
 
 /// Every pair names two different images of `n`.
-fn check_pairs(n: usize, pairs: &[(usize, usize)]) -> Result<()> {
+///
+/// # Errors
+/// [`MatchingError::InvalidPair`] naming the first that does not.
+pub fn check_pairs(n: usize, pairs: &[(usize, usize)]) -> Result<()> {
     match pairs.iter().find(|&&(a, b)| a >= n || b >= n || a == b) {
         Some(&(first, second)) => Err(MatchingError::InvalidPair {
             first,

@@ -50,14 +50,7 @@ fn main() -> Result<()> {
     let config = MatchConfig::default();
     let verified = raw
         .iter()
-        .map(|r| {
-            let v = config.verification.unwrap_or_default();
-            let mut keep = posediff_matching::verified_inliers(&r.kp1, &r.kp2, &v)?;
-            if keep.len() < config.min_verified {
-                keep.clear();
-            }
-            Ok(r.select(&keep))
-        })
+        .map(|r| Ok(posediff_matching::verify(r.clone(), &config)?))
         .collect::<Result<Vec<_>>>()?;
     println!("i j gt_angle raw inliers ratio good_fraction");
     for ((r, v), &(i, j)) in raw.iter().zip(&verified).zip(&pairs) {

@@ -20,7 +20,7 @@ use posediff_learned::{
     Aliked, AlikedConfig, LightGlue, LightGlueConfig, MatcherInput, RgbImage, WeightSet,
 };
 use posediff_matching::features::to_original_pixels;
-use posediff_matching::{Descriptors, ImageFeatures, MatchConfig, verified_inliers};
+use posediff_matching::{Descriptors, ImageFeatures, MatchConfig};
 use rayon::prelude::*;
 
 use crate::error::{PosediffError, Result};
@@ -235,14 +235,7 @@ impl LearnedMatcher {
             idx1: m.matches.iter().map(|&(i, _)| id(i)).collect(),
             idx2: m.matches.iter().map(|&(_, j)| id(j)).collect(),
         };
-        let Some(v) = &config.verification else {
-            return Ok(raw);
-        };
-        let mut keep = verified_inliers(&raw.kp1, &raw.kp2, v)?;
-        if keep.len() < config.min_verified {
-            keep.clear();
-        }
-        Ok(raw.select(&keep))
+        Ok(posediff_matching::verify(raw, config)?)
     }
 }
 
@@ -292,7 +285,7 @@ pub fn match_pairs(
     let Some(l) = learned else {
         return Ok(posediff_matching::match_pairs(features, pairs, config)?);
     };
-    check_pairs(features.len(), pairs)?;
+    posediff_matching::check_pairs(features.len(), pairs)?;
     pairs
         .par_iter()
         .map(|&(i, j)| l.0.match_pair(&features[i], &features[j], i, j, config))
@@ -318,21 +311,8 @@ pub fn match_images(
         }
     };
     // The cheap check before the extraction.
-    check_pairs(images.len(), pairs)?;
+    posediff_matching::check_pairs(images.len(), pairs)?;
     let features = extract_all(images, config, learned)?;
     let matches = match_pairs(&features, pairs, config, learned)?;
     Ok((features, matches))
-}
-
-/// Every pair names two different images of `n`.
-fn check_pairs(n: usize, pairs: &[(usize, usize)]) -> Result<()> {
-    match pairs.iter().find(|&&(a, b)| a >= n || b >= n || a == b) {
-        Some(&(first, second)) => Err(posediff_matching::MatchingError::InvalidPair {
-            first,
-            second,
-            n_images: n,
-        }
-        .into()),
-        None => Ok(()),
-    }
 }
