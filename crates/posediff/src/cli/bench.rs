@@ -65,24 +65,11 @@ impl RealArgs {
             sets,
             out,
         } = self;
-        let mut method = bench_method(method, weights.as_deref(), false)?;
-        let choice: MatcherChoice = matcher.into();
-        if choice != MatcherChoice::Sift {
-            let options = posediff::estimate::run::RunOptions {
-                matcher: choice,
-                weights_dir,
-                ..posediff::estimate::run::RunOptions::default()
-            };
-            let mut config = posediff::estimate::geometric::GeometricConfig {
-                learned: options.load_learned()?,
-                ..Default::default()
-            };
-            config.matching.features.detector = choice.detector();
-            method = Box::new(posediff::bench::Geometric {
-                config,
-                label: Some(format!("posediff geometric ({choice})")),
-            });
-        }
+        let method = with_matcher(
+            bench_method(method, weights.as_deref(), false)?,
+            matcher,
+            weights_dir,
+        )?;
         let rows =
             posediff::bench::bench_real_sets(&data, &subsets, method.as_ref(), sets.as_deref())?;
         let md = posediff::bench::real_markdown(&method.name(), &rows);
@@ -124,6 +111,13 @@ pub struct Co3dArgs {
     /// Skip GGS.
     #[arg(long)]
     no_ggs: bool,
+    /// Correspondences of the geometric method.
+    #[arg(long, value_enum, default_value = "sift")]
+    matcher: Matcher,
+    /// Folder of the learned matcher's weights (default: $POSEDIFF_WEIGHTS_DIR, else
+    /// ~/.cache/posediff/weights).
+    #[arg(long)]
+    weights_dir: Option<PathBuf>,
     /// Report path (JSON; the Markdown table is written beside it).
     #[arg(long)]
     out: PathBuf,
@@ -142,10 +136,16 @@ impl Co3dArgs {
             weights,
             method,
             no_ggs,
+            matcher,
+            weights_dir,
             out,
         } = self;
         let list = categories.0;
-        let method = bench_method(method, weights.as_deref(), no_ggs)?;
+        let method = with_matcher(
+            bench_method(method, weights.as_deref(), no_ggs)?,
+            matcher,
+            weights_dir,
+        )?;
         let report = posediff::bench::bench_co3d(
             &co3d_dir,
             &annotation_dir,
@@ -162,6 +162,35 @@ impl Co3dArgs {
             &md,
         )
     }
+}
+
+/// The geometric method with `matcher` instead of SIFT (other methods, and SIFT, unchanged).
+fn with_matcher(
+    method: Box<dyn posediff::bench::Method>,
+    matcher: Matcher,
+    weights_dir: Option<PathBuf>,
+) -> anyhow::Result<Box<dyn posediff::bench::Method>> {
+    let choice: MatcherChoice = matcher.into();
+    if choice == MatcherChoice::Sift {
+        return Ok(method);
+    }
+    if !method.name().starts_with("posediff geometric") {
+        bail!("--matcher {choice} applies to --method geometric");
+    }
+    let options = posediff::estimate::run::RunOptions {
+        matcher: choice,
+        weights_dir,
+        ..posediff::estimate::run::RunOptions::default()
+    };
+    let mut config = posediff::estimate::geometric::GeometricConfig {
+        learned: options.load_learned()?,
+        ..Default::default()
+    };
+    config.matching.features.detector = choice.detector();
+    Ok(Box::new(posediff::bench::Geometric {
+        config,
+        label: Some(format!("posediff geometric ({choice})")),
+    }))
 }
 
 fn bench_method(
