@@ -151,15 +151,26 @@ pub fn match_pair(
     config: &MatchConfig,
 ) -> Result<PairMatches> {
     let idx = mnn::mutual_nearest_neighbours(&a.descriptors, &b.descriptors, config.ratio);
-    let raw = PairMatches {
+    verify(raw_matches(a, b, first, second, &idx), config)
+}
+
+/// The matches `idx` (keypoint index in `a`, in `b`) of images `first` and `second` with their
+/// positions and keypoint ids, before any verification.
+pub fn raw_matches(
+    a: &ImageFeatures,
+    b: &ImageFeatures,
+    first: usize,
+    second: usize,
+    idx: &[(usize, usize)],
+) -> PairMatches {
+    PairMatches {
         first,
         second,
         kp1: idx.iter().map(|&(i, _)| a.keypoints[i]).collect(),
         kp2: idx.iter().map(|&(_, j)| b.keypoints[j]).collect(),
         idx1: idx.iter().map(|&(i, _)| keypoint_id(i)).collect(),
         idx2: idx.iter().map(|&(_, j)| keypoint_id(j)).collect(),
-    };
-    verify(raw, config)
+    }
 }
 
 /// The verification of `config` on a pair's raw matches: the MAGSAC inliers, or none when

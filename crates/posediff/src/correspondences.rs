@@ -226,15 +226,7 @@ impl LearnedMatcher {
             },
             &self.lightglue_config,
         )?;
-        let id = |i: usize| u32::try_from(i).unwrap_or(u32::MAX);
-        let raw = PairMatches {
-            first,
-            second,
-            kp1: m.matches.iter().map(|&(i, _)| a.keypoints[i]).collect(),
-            kp2: m.matches.iter().map(|&(_, j)| b.keypoints[j]).collect(),
-            idx1: m.matches.iter().map(|&(i, _)| id(i)).collect(),
-            idx2: m.matches.iter().map(|&(_, j)| id(j)).collect(),
-        };
+        let raw = posediff_matching::raw_matches(a, b, first, second, &m.matches);
         Ok(posediff_matching::verify(raw, config)?)
     }
 }
