@@ -88,15 +88,29 @@ fn gelu_blocks(values: &mut [f32]) {
 
 /// [`gelu_slice`] on the threads candle uses (one below [`PARALLEL_MIN`] elements).
 fn gelu_parallel(values: &mut [f32]) {
+    split_over_threads(values, 1, PARALLEL_MIN, gelu_slice);
+}
+
+/// `f` on parts of `values` (whole multiples of `unit` elements), one per thread candle uses;
+/// on the calling thread alone below `min_len` elements or with fewer than two units.
+pub(crate) fn split_over_threads(
+    values: &mut [f32],
+    unit: usize,
+    min_len: usize,
+    f: impl Fn(&mut [f32]) + Sync,
+) {
     let threads = candle_core::utils::get_num_threads().max(1);
-    if threads == 1 || values.len() < PARALLEL_MIN {
-        gelu_slice(values);
+    let unit = unit.max(1);
+    let units = values.len() / unit;
+    if threads == 1 || values.len() < min_len || units < 2 {
+        f(values);
         return;
     }
-    let chunk = values.len().div_ceil(threads);
+    let chunk = units.div_ceil(threads) * unit;
+    let f = &f;
     std::thread::scope(|s| {
         for part in values.chunks_mut(chunk) {
-            s.spawn(move || gelu_slice(part));
+            s.spawn(move || f(part));
         }
     });
 }

@@ -112,17 +112,8 @@ fn softmax_dispatch(values: &mut [f32], row: usize) {
 
 /// Over candle's threads, whole rows per thread.
 fn softmax_parallel(values: &mut [f32], row: usize) {
-    let threads = candle_core::utils::get_num_threads().max(1);
-    let rows = values.len() / row.max(1);
-    if threads == 1 || values.len() < PARALLEL_MIN || rows < 2 {
-        softmax_dispatch(values, row);
-        return;
-    }
-    let chunk = rows.div_ceil(threads) * row;
-    std::thread::scope(|s| {
-        for part in values.chunks_mut(chunk) {
-            s.spawn(move || softmax_dispatch(part, row));
-        }
+    crate::activation::split_over_threads(values, row, PARALLEL_MIN, |part| {
+        softmax_dispatch(part, row);
     });
 }
 
