@@ -4,6 +4,8 @@
 //! - [`features`]: SIFT (default) or ORB through the opencv crate; keypoints in OpenCV pixel
 //!   coordinates of the original image.
 //! - [`mnn`]: mutual nearest neighbours (blocked L2 products or Hamming), Lowe ratio test.
+//! - [`two_view`] and [`resection`]: relative poses of pairs and absolute poses (PnP) of
+//!   single cameras, for the mapper.
 //! - [`match_images`]: images → features once each → matches of every requested pair, verified
 //!   by OpenCV's USAC MAGSAC fundamental matrix when asked.
 //!
@@ -17,6 +19,7 @@ pub mod features;
 pub mod image_check;
 pub mod mnn;
 pub mod pairs;
+pub mod resection;
 pub mod two_view;
 
 use std::path::PathBuf;

@@ -46,6 +46,14 @@ pub enum SfmError {
         /// The cause.
         detail: String,
     },
+    /// The solver failed to resect a camera.
+    #[error("resection of image {image}: {detail}")]
+    Resection {
+        /// The image.
+        image: usize,
+        /// The cause.
+        detail: String,
+    },
     /// No pair of images has a usable relative pose.
     #[error("none of the {images} images shares a usable two-view geometry with another")]
     NoUsablePairs {

@@ -10,6 +10,7 @@
 //! | translation averaging (LUD, scales eliminated) | [`translation_averaging`] |
 //! | Sampson refinement (GGS's objective to convergence) | [`sampson_refine`] |
 //! | tracks by union-find over keypoint ids | [`tracks`] |
+//! | resection of the cameras on view-graph bridges (PnP on the other side's tracks) | [`resection`] |
 //! | bundle adjustment (Schur complement) | [`bundle`] |
 //! | sparse points for export (any cameras) | [`points`] |
 //! | all of it, with one options struct per stage | [`mapper`] |
@@ -21,7 +22,7 @@
 //! reason), never replaced by a guess.
 //!
 //! The crate takes matches ([`posediff_geometry::PairMatches`], with keypoint ids) and a
-//! [`mapper::TwoViewSolver`] for relative poses: it never depends on OpenCV or candle.
+//! [`mapper::GeometrySolver`] for relative and absolute poses: it never depends on OpenCV or candle.
 #![deny(missing_docs)]
 #![forbid(unsafe_code)]
 
@@ -35,6 +36,7 @@ pub mod lm;
 pub mod mapper;
 pub mod points;
 pub mod report;
+pub mod resection;
 pub mod rotation_averaging;
 pub mod sampson_refine;
 pub mod tracks;

@@ -1,5 +1,6 @@
 //! The global mapper: matches → pair types → a shared focal → (per focal start) relative poses
 //! → rotation averaging → translation averaging → Sampson refinement → the best start → tracks
+//! → resection of the cameras on view-graph bridges
 //! → bundle adjustment.
 //!
 //! The focal is multi-started: the self-calibrated value, a log grid and the prior (fixed),
@@ -13,7 +14,7 @@
 
 use std::time::Instant;
 
-use nalgebra::{Matrix3, Rotation3};
+use nalgebra::{Matrix3, Rotation3, Vector3};
 use posediff_geometry::PairMatches;
 use rayon::prelude::*;
 
@@ -23,6 +24,7 @@ use crate::error::{Result, SfmError};
 use crate::focal::{FocalSearch, PairFundamental, focal_from_homographies, self_calibrate};
 use crate::intrinsics::ImageIntrinsics;
 use crate::report::{FocalSource, FocalStart, MapperReport, NotEstimated};
+use crate::resection::{AbsolutePose, ResectionOptions, resect_bridged_sides};
 use crate::rotation_averaging::{
     RelativeRotation, RotationAveragingOptions, RotationAveragingReport, average_rotations,
     rotation_residuals_deg,
@@ -41,9 +43,10 @@ pub use posediff_geometry::TwoViewPose as RelativePose;
 /// A pair's homography and the fraction of its matches it explains.
 pub type Homography = Option<(Matrix3<f64>, f64)>;
 
-/// Two-view geometry from matches, provided by the caller (OpenCV in the umbrella crate), so
-/// this crate stays free of image libraries. Called from several threads.
-pub trait TwoViewSolver: Sync {
+/// Two-view geometry from matches and one-view geometry (resection) from 3D points, provided by
+/// the caller (OpenCV in the umbrella crate), so this crate stays free of image libraries.
+/// Called from several threads.
+pub trait GeometrySolver: Sync {
     /// A homography fit and the fraction of matches it explains (within the solver's
     /// threshold); `None` when none can be fitted.
     ///
@@ -69,6 +72,21 @@ pub trait TwoViewSolver: Sync {
         k_a: &Matrix3<f64>,
         k_b: &Matrix3<f64>,
     ) -> Result<Option<RelativePose>>;
+
+    /// The pose of `image` (intrinsics `k`) that sees `points[i]` at `pixels[i]`, robust to
+    /// outliers, with the correspondences within `threshold_px` of reprojection error as its
+    /// inliers; `None` when no pose is found.
+    ///
+    /// # Errors
+    /// The solver's own failures.
+    fn absolute_pose(
+        &self,
+        image: usize,
+        points: &[Vector3<f64>],
+        pixels: &[[f64; 2]],
+        k: &Matrix3<f64>,
+        threshold_px: f64,
+    ) -> Result<Option<AbsolutePose>>;
 }
 
 /// Settings of the mapper, one struct per stage.
@@ -91,6 +109,9 @@ pub struct MapperOptions {
     pub translation_averaging: TranslationAveragingOptions,
     /// The Sampson refinement (`None`: the averaged cameras).
     pub sampson: Option<SampsonRefineOptions>,
+    /// Resection of the cameras that hang on a bridge of the view graph, from the other side's
+    /// tracks, before the bundle adjustment (`None`: skipped).
+    pub resection: Option<ResectionOptions>,
     /// The bundle adjustment with tracks (`None`: skipped).
     pub bundle: Option<BundleOptions>,
     /// When starts are compared, a match whose pair is not estimated costs as much as one this
@@ -114,6 +135,7 @@ impl Default for MapperOptions {
             max_rotation_residual_deg: 10.0,
             translation_averaging: TranslationAveragingOptions::default(),
             sampson: Some(SampsonRefineOptions::default()),
+            resection: Some(ResectionOptions::default()),
             bundle: Some(BundleOptions::default()),
             missing_penalty_px: 10.0,
             focal_selection_images: 60,
@@ -183,6 +205,8 @@ pub struct GlobalMapper {
 struct Solution {
     cameras: Vec<Option<CameraPose>>,
     members: Vec<usize>,
+    /// The pairs whose relative pose the averaging used.
+    edges: Vec<(usize, usize)>,
     phi: f64,
     pairs_with_pose: usize,
     rotation_only_pairs: usize,
@@ -214,7 +238,7 @@ impl GlobalMapper {
         pairs: &[PairMatches],
         intrinsics: ImageIntrinsics,
         known_focal: bool,
-        solver: &dyn TwoViewSolver,
+        solver: &dyn GeometrySolver,
     ) -> Result<Reconstruction> {
         let o = &self.options;
         let n = intrinsics.len();
@@ -400,9 +424,28 @@ impl GlobalMapper {
 
         let clock = Instant::now();
         let reference = (0..n).find(|&i| cameras[i].is_some());
-        if let (Some(options), Some(reference)) = (o.bundle, reference) {
+        let tracks = if o.bundle.is_some() || o.resection.is_some() {
             let (tracks, track_report) = build_tracks(n, pairs)?;
             report.tracks = Some(track_report);
+            tracks
+        } else {
+            Vec::new()
+        };
+        if let Some(options) = &o.resection {
+            report.resection = Some(resect_bridged_sides(
+                &tracks,
+                pairs,
+                &intrinsics,
+                phi_refined,
+                &mut cameras,
+                &best.edges,
+                solver,
+                options,
+            )?);
+        }
+        report.times.resection = clock.elapsed().as_secs_f64();
+        let clock = Instant::now();
+        if let (Some(options), Some(reference)) = (o.bundle, reference) {
             let mut options = options;
             options.refine_focal &= best.free_focal;
             let (before, phi_before) = (cameras.clone(), phi_refined);
@@ -457,7 +500,7 @@ impl GlobalMapper {
         all_pairs: &[&PairMatches],
         intrinsics: &ImageIntrinsics,
         refine_focal: bool,
-        solver: &dyn TwoViewSolver,
+        solver: &dyn GeometrySolver,
         report: &mut MapperReport,
     ) -> Result<Solution> {
         let o = &self.options;
@@ -545,6 +588,7 @@ impl GlobalMapper {
         let empty = |members: Vec<usize>| Solution {
             cameras: vec![None; n],
             members,
+            edges: Vec::new(),
             phi,
             pairs_with_pose,
             rotation_only_pairs,
@@ -628,9 +672,16 @@ impl GlobalMapper {
             o.missing_penalty_px,
         )?;
         report.times.refinement += clock.elapsed().as_secs_f64();
+        let edges = rotations
+            .iter()
+            .zip(&keep)
+            .filter(|(r, k)| **k && cameras[r.first].is_some() && cameras[r.second].is_some())
+            .map(|(r, _)| (r.first, r.second))
+            .collect();
         Ok(Solution {
             cameras,
             members,
+            edges,
             phi,
             pairs_with_pose,
             rotation_only_pairs,

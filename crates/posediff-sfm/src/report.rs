@@ -1,6 +1,7 @@
 //! What the mapper did, stage by stage (the umbrella writes it into run.json).
 
 use crate::bundle::BundleReport;
+use crate::resection::ResectionReport;
 use crate::rotation_averaging::RotationAveragingReport;
 use crate::sampson_refine::SampsonRefineReport;
 use crate::tracks::TrackReport;
@@ -80,6 +81,8 @@ pub struct StageTimes {
     pub averaging: f64,
     /// Sampson refinement and scoring.
     pub refinement: f64,
+    /// Resection of the cameras on bridges.
+    pub resection: f64,
     /// Tracks and bundle adjustment of the chosen start.
     pub bundle: f64,
 }
@@ -117,6 +120,8 @@ pub struct MapperReport {
     pub sampson: Option<SampsonRefineReport>,
     /// Tracks.
     pub tracks: Option<TrackReport>,
+    /// Resection of the cameras on bridges.
+    pub resection: Option<ResectionReport>,
     /// Bundle adjustment.
     pub bundle: Option<BundleReport>,
     /// The bundle adjustment drove a free focal out of range and was undone.

@@ -104,6 +104,91 @@ pub fn largest_component(n: usize, edges: &[(usize, usize, f64)]) -> Vec<usize> 
         .unwrap_or_default()
 }
 
+/// The bridges of the graph with `n` nodes and `edges`: the indices (into `edges`, ascending) of
+/// the edges whose removal disconnects their component. A bridge pair's relative pose is
+/// confirmed by no cycle. Parallel edges are never bridges; self-loops and edges naming a node
+/// out of range are ignored. Iterative Tarjan: linear in nodes and edges, no recursion.
+pub fn bridges(n: usize, edges: &[(usize, usize)]) -> Vec<usize> {
+    let mut adjacency: Vec<Vec<(usize, usize)>> = vec![Vec::new(); n];
+    for (k, &(a, b)) in edges.iter().enumerate() {
+        if a < n && b < n && a != b {
+            adjacency[a].push((b, k));
+            adjacency[b].push((a, k));
+        }
+    }
+    const UNSEEN: usize = usize::MAX;
+    let mut order = vec![UNSEEN; n];
+    let mut low = vec![0usize; n];
+    let mut found = Vec::new();
+    let mut time = 0;
+    // (node, the edge it was entered by, next adjacency slot to visit)
+    let mut stack: Vec<(usize, usize, usize)> = Vec::new();
+    for root in 0..n {
+        if order[root] != UNSEEN {
+            continue;
+        }
+        order[root] = time;
+        low[root] = time;
+        time += 1;
+        stack.push((root, usize::MAX, 0));
+        while let Some(&mut (v, entered, ref mut next)) = stack.last_mut() {
+            if let Some(&(w, k)) = adjacency[v].get(*next) {
+                *next += 1;
+                if k == entered {
+                    continue;
+                }
+                if order[w] == UNSEEN {
+                    order[w] = time;
+                    low[w] = time;
+                    time += 1;
+                    stack.push((w, k, 0));
+                } else {
+                    low[v] = low[v].min(order[w]);
+                }
+            } else {
+                stack.pop();
+                if let Some(&(parent, _, _)) = stack.last() {
+                    low[parent] = low[parent].min(low[v]);
+                    if low[v] > order[parent] {
+                        found.push(entered);
+                    }
+                }
+            }
+        }
+    }
+    found.sort_unstable();
+    found
+}
+
+/// The nodes reachable from `start` over `edges` without crossing edge `skip`, sorted.
+pub fn side_of(n: usize, edges: &[(usize, usize)], skip: usize, start: usize) -> Vec<usize> {
+    let mut adjacency: Vec<Vec<usize>> = vec![Vec::new(); n];
+    for (k, &(a, b)) in edges.iter().enumerate() {
+        if k != skip && a < n && b < n && a != b {
+            adjacency[a].push(b);
+            adjacency[b].push(a);
+        }
+    }
+    let mut seen = vec![false; n];
+    let mut out = Vec::new();
+    if start >= n {
+        return out;
+    }
+    seen[start] = true;
+    let mut queue = VecDeque::from([start]);
+    while let Some(v) = queue.pop_front() {
+        out.push(v);
+        for &w in &adjacency[v] {
+            if !seen[w] {
+                seen[w] = true;
+                queue.push_back(w);
+            }
+        }
+    }
+    out.sort_unstable();
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -127,5 +212,35 @@ mod tests {
         assert!(u.union(1, 4));
         assert_eq!(u.find(0), u.find(3));
         assert_ne!(u.find(0), u.find(2));
+    }
+
+    #[test]
+    fn bridges_are_the_edges_on_no_cycle() {
+        // Triangle 0-1-2, bridge 2-3, square 3-4-5-6, bridge 6-7, a parallel pair 8=9 joined
+        // to 7 by a bridge, and an isolated node 10.
+        let edges = [
+            (0, 1),
+            (1, 2),
+            (2, 0),
+            (2, 3),
+            (3, 4),
+            (4, 5),
+            (5, 6),
+            (6, 3),
+            (6, 7),
+            (7, 8),
+            (8, 9),
+            (9, 8),
+            (4, 4),
+        ];
+        assert_eq!(bridges(11, &edges), vec![3, 8, 9]);
+        assert_eq!(side_of(11, &edges, 3, 3), vec![3, 4, 5, 6, 7, 8, 9]);
+        assert_eq!(side_of(11, &edges, 3, 2), vec![0, 1, 2]);
+        assert_eq!(side_of(11, &edges, 0, 0), (0..10).collect::<Vec<_>>());
+        // A path: every edge. A long path needs no recursion.
+        let path: Vec<(usize, usize)> = (0..5000).map(|i| (i, i + 1)).collect();
+        assert_eq!(bridges(5001, &path).len(), 5000);
+        let cycle: Vec<(usize, usize)> = (0..5000).map(|i| (i, (i + 1) % 5000)).collect();
+        assert!(bridges(5000, &cycle).is_empty());
     }
 }

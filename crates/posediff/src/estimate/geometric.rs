@@ -2,7 +2,7 @@
 //!
 //! images → features (`posediff-matching`) → pair selection (exhaustive, sequential,
 //! retrieval) → verified matches with keypoint ids → [`posediff_sfm::GlobalMapper`] (two-view
-//! geometry through OpenCV behind its [`TwoViewSolver`] trait, focal, rotation and translation
+//! geometry through OpenCV behind its [`GeometrySolver`] trait, focal, rotation and translation
 //! averaging, Sampson refinement, tracks, bundle adjustment) → OpenCV cameras in original
 //! pixels. Principal points are the image centres (`((W−1)/2, (H−1)/2)`) unless given.
 
@@ -19,7 +19,8 @@ use posediff_matching::two_view::{
 };
 use posediff_matching::{MatchConfig, PairMatches, PairSelection, TwoViewConfig, select_pairs};
 use posediff_sfm::bundle::{BundleOptions, Point, bundle_adjust};
-use posediff_sfm::mapper::{RelativePose, TwoViewSolver};
+use posediff_sfm::mapper::{GeometrySolver, RelativePose};
+use posediff_sfm::resection::AbsolutePose;
 use posediff_sfm::sampson_refine::{SampsonRefineOptions, SampsonRefineReport, refine_sampson};
 use posediff_sfm::tracks::build_tracks;
 use posediff_sfm::{
@@ -199,6 +200,10 @@ pub struct GeometricReport {
     pub refine_matches: usize,
     /// RMS Sampson distance of those inliers, px.
     pub refine_inlier_rms_px: f64,
+    /// Bridges of the view graph: pairs that no cycle confirms (0: resection not run).
+    pub bridges: usize,
+    /// The smaller sides of bridges moved to where the other side's tracks resect them.
+    pub resected_sides: Vec<ResectedSide>,
     /// Tracks built from the matches (0: not run).
     pub tracks: usize,
     /// Tracks dropped because they see an image twice.
@@ -213,6 +218,27 @@ pub struct GeometricReport {
     pub bundle: StageOutcome,
     /// Stage timings.
     pub times: GeometricTimes,
+}
+
+/// One side of a view-graph bridge moved by resection (run.json).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct ResectedSide {
+    /// The bridge pair (image indices).
+    pub bridge: [usize; 2],
+    /// The camera placed by the evidence.
+    pub image: usize,
+    /// Cameras moved (the side).
+    pub images: usize,
+    /// What placed it: `tracks` (PnP) or `plane` (the bridge's homography and the plane).
+    pub evidence: &'static str,
+    /// The correspondences weighed: 2D–3D (tracks) or the bridge pair's matches (plane).
+    pub correspondences: usize,
+    /// Inliers among them with the pose before.
+    pub inliers_before: usize,
+    /// Inliers among them with the new pose.
+    pub inliers_after: usize,
+    /// The side's scale change; `null` when unobserved (kept).
+    pub scale: Option<f64>,
 }
 
 impl GeometricReport {
@@ -262,6 +288,23 @@ impl GeometricReport {
         if let Some(r) = &m.sampson {
             self.record_refine(r);
         }
+        if let Some(r) = &m.resection {
+            self.bridges = r.bridges;
+            self.resected_sides = r
+                .moved
+                .iter()
+                .map(|s| ResectedSide {
+                    bridge: [s.first, s.second],
+                    image: s.image,
+                    images: s.images,
+                    evidence: s.evidence.as_str(),
+                    correspondences: s.correspondences,
+                    inliers_before: s.inliers_before,
+                    inliers_after: s.inliers_after,
+                    scale: s.scale,
+                })
+                .collect();
+        }
         if let Some(t) = &m.tracks {
             self.tracks = t.tracks;
             self.inconsistent_tracks = t.inconsistent;
@@ -284,7 +327,7 @@ impl GeometricReport {
         self.times.averaging = s.averaging;
         self.times.initialisation =
             s.pair_geometry + s.focal + s.two_view + s.averaging + s.refinement;
-        self.times.refinement = s.bundle;
+        self.times.refinement = s.resection + s.bundle;
     }
 }
 
@@ -343,7 +386,7 @@ fn two_view_error(p: &PairMatches, e: impl std::fmt::Display) -> SfmError {
     }
 }
 
-impl TwoViewSolver for OpenCvTwoView<'_> {
+impl GeometrySolver for OpenCvTwoView<'_> {
     fn homography(&self, p: &PairMatches) -> posediff_sfm::Result<Option<(Matrix3<f64>, f64)>> {
         homography_fit(&p.kp1, &p.kp2, self.0).map_err(|e| two_view_error(p, e))
     }
@@ -361,6 +404,26 @@ impl TwoViewSolver for OpenCvTwoView<'_> {
     ) -> posediff_sfm::Result<Option<RelativePose>> {
         relative_pose_with_homography(&p.kp1, &p.kp2, homography, k_a, k_b, self.0)
             .map_err(|e| two_view_error(p, e))
+    }
+
+    fn absolute_pose(
+        &self,
+        image: usize,
+        points: &[nalgebra::Vector3<f64>],
+        pixels: &[[f64; 2]],
+        k: &Matrix3<f64>,
+        threshold_px: f64,
+    ) -> posediff_sfm::Result<Option<AbsolutePose>> {
+        let pose = posediff_matching::resection::absolute_pose(points, pixels, k, threshold_px)
+            .map_err(|e| SfmError::Resection {
+                image,
+                detail: e.to_string(),
+            })?;
+        Ok(pose.map(|p| AbsolutePose {
+            rotation: p.rotation,
+            translation: p.translation,
+            inliers: p.inliers,
+        }))
     }
 }
 
@@ -791,4 +854,196 @@ pub fn bundle_refine_cameras(
         sampson_termination: first.termination.as_str().into(),
         focal_factor: phi,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used, clippy::expect_used)]
+    use super::*;
+    use nalgebra::Vector3;
+    use posediff_sfm::resection::{Evidence, ResectionOptions, resect_bridged_sides};
+    use posediff_sfm::tracks::build_tracks;
+
+    const N: usize = 6;
+
+    /// Six cameras on an arc 2.5 above a table (`z = 0`), looking at its centre.
+    fn cameras() -> Vec<Option<CameraPose>> {
+        (0..N)
+            .map(|i| {
+                let a = 0.35 * i as f64;
+                let center = Vector3::new(3.0 * a.cos(), 3.0 * a.sin(), 2.5);
+                let forward = (-center).normalize();
+                let right = forward.cross(&Vector3::z()).normalize();
+                let down = forward.cross(&right);
+                let rotation = Rotation3::from_matrix(&Matrix3::from_rows(&[
+                    right.transpose(),
+                    down.transpose(),
+                    forward.transpose(),
+                ]));
+                Some(CameraPose { rotation, center })
+            })
+            .collect()
+    }
+
+    fn intrinsics() -> ImageIntrinsics {
+        ImageIntrinsics {
+            principal: vec![[320.0, 240.0]; N],
+            scale: vec![640.0; N],
+        }
+    }
+
+    /// Table points (and `object` points above it), numbered from `first`.
+    fn points(first: usize, count: usize, object: bool) -> Vec<(u32, Vector3<f64>)> {
+        let mut s: u64 = 0x5eed + first as u64;
+        let mut rnd = || {
+            s = s
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1_442_695_040_888_963_407);
+            ((s >> 33) as f64) / f64::from(1u32 << 31) - 0.5
+        };
+        (0..count)
+            .map(|k| {
+                let z = if object && k % 3 == 0 {
+                    0.4 + 0.4 * rnd()
+                } else {
+                    0.0
+                };
+                (
+                    (first + k) as u32,
+                    Vector3::new(2.0 * rnd(), 2.0 * rnd(), z),
+                )
+            })
+            .collect()
+    }
+
+    /// The exact matches of `points` between cameras `a` and `b` (keypoint id = point id).
+    fn pair(a: usize, b: usize, pts: &[(u32, Vector3<f64>)]) -> PairMatches {
+        let (cams, k) = (cameras(), intrinsics());
+        let project = |i: usize, x: &Vector3<f64>| {
+            let c = cams[i].unwrap();
+            let p = k.k(1.0, i) * (c.rotation * (x - c.center));
+            [p.x / p.z, p.y / p.z]
+        };
+        PairMatches {
+            first: a,
+            second: b,
+            kp1: pts.iter().map(|(_, x)| project(a, x)).collect(),
+            kp2: pts.iter().map(|(_, x)| project(b, x)).collect(),
+            idx1: pts.iter().map(|(id, _)| *id).collect(),
+            idx2: pts.iter().map(|(id, _)| *id).collect(),
+        }
+    }
+
+    /// Side {3, 4, 5} turned by 25° about camera 3 and scaled by `scale`: a wrong bridge pose.
+    fn misplaced(scale: f64) -> Vec<Option<CameraPose>> {
+        let truth = cameras();
+        let pivot = truth[3].unwrap();
+        let turn = Rotation3::from_axis_angle(&Vector3::y_axis(), 25f64.to_radians());
+        truth
+            .iter()
+            .enumerate()
+            .map(|(i, c)| {
+                let c = c.unwrap();
+                Some(if i < 3 {
+                    c
+                } else {
+                    CameraPose {
+                        rotation: c.rotation * turn.inverse(),
+                        center: pivot.center + scale * (turn * (c.center - pivot.center)),
+                    }
+                })
+            })
+            .collect()
+    }
+
+    fn worst_error(cameras: &[Option<CameraPose>]) -> (f64, f64) {
+        let truth = self::cameras();
+        cameras
+            .iter()
+            .zip(&truth)
+            .fold((0.0, 0.0), |(r, c), (a, b)| {
+                let (a, b) = (a.unwrap(), b.unwrap());
+                (
+                    r.max((a.rotation * b.rotation.inverse()).angle().to_degrees()),
+                    c.max((a.center - b.center).norm()),
+                )
+            })
+    }
+
+    fn run(
+        pairs: &[PairMatches],
+        cameras: &mut [Option<CameraPose>],
+    ) -> posediff_sfm::resection::ResectionReport {
+        let (tracks, _) = build_tracks(N, pairs).unwrap();
+        let edges: Vec<(usize, usize)> = pairs.iter().map(|p| (p.first, p.second)).collect();
+        let config = TwoViewConfig::default();
+        resect_bridged_sides(
+            &tracks,
+            pairs,
+            &intrinsics(),
+            1.0,
+            cameras,
+            &edges,
+            &OpenCvTwoView(&config),
+            &ResectionOptions::default(),
+        )
+        .unwrap()
+    }
+
+    #[test]
+    fn a_side_on_a_wrong_bridge_is_resected_from_the_tracks_through_it() {
+        // Triangles {0, 1, 2} and {3, 4, 5} joined by the bridge 2–3; one set of points seen by
+        // all, so tracks run through the bridge.
+        let pts = points(0, 80, true);
+        let links = [(0, 1), (1, 2), (0, 2), (2, 3), (3, 4), (4, 5), (3, 5)];
+        let pairs: Vec<PairMatches> = links.iter().map(|&(a, b)| pair(a, b, &pts)).collect();
+        let mut cams = misplaced(1.7);
+        assert!(worst_error(&cams).0 > 20.0);
+        let report = run(&pairs, &mut cams);
+        assert_eq!(report.bridges, 1);
+        assert_eq!(report.moved.len(), 1, "{report:?}");
+        let moved = report.moved[0];
+        assert_eq!(
+            (moved.first, moved.second, moved.evidence),
+            (2, 3, Evidence::Tracks)
+        );
+        assert_eq!(moved.images, 3);
+        let scale = moved.scale.expect("the shared points observe the scale");
+        assert!((scale - 1.0 / 1.7).abs() < 1e-3, "{scale}");
+        let (rotation, centre) = worst_error(&cams);
+        assert!(rotation < 0.01 && centre < 1e-3, "{rotation}° {centre}");
+        // Where the cameras are right, nothing moves.
+        let report = run(&pairs, &mut cams);
+        assert!(report.moved.is_empty(), "{report:?}");
+    }
+
+    #[test]
+    fn a_planar_bridge_without_tracks_is_resected_on_the_anchor_s_plane() {
+        // The bridge 2–3 matches table points that no other pair of the anchor sees, so no
+        // track through it has two anchor observations: only the plane can place camera 3.
+        let anchor = points(0, 80, true);
+        let bridge = points(1000, 40, false);
+        let side = points(2000, 60, true);
+        let mut pairs: Vec<PairMatches> = [(0, 1), (1, 2), (0, 2)]
+            .iter()
+            .map(|&(a, b)| pair(a, b, &anchor))
+            .collect();
+        pairs.push(pair(2, 3, &bridge));
+        let with_bridge: Vec<(u32, Vector3<f64>)> = side.iter().chain(&bridge).copied().collect();
+        for (a, b) in [(3, 4), (4, 5), (3, 5)] {
+            pairs.push(pair(a, b, &with_bridge));
+        }
+        let mut cams = misplaced(0.6);
+        let report = run(&pairs, &mut cams);
+        assert_eq!(report.moved.len(), 1, "{report:?}");
+        let moved = report.moved[0];
+        assert_eq!((moved.image, moved.evidence), (3, Evidence::Plane));
+        assert!(moved.inliers_after >= 38, "{moved:?}");
+        let scale = moved.scale.expect("the side's points meet the plane");
+        assert!((scale - 1.0 / 0.6).abs() < 1e-3, "{scale}");
+        let (rotation, centre) = worst_error(&cams);
+        assert!(rotation < 0.01 && centre < 1e-3, "{rotation}° {centre}");
+        let report = run(&pairs, &mut cams);
+        assert!(report.moved.is_empty(), "{report:?}");
+    }
 }
