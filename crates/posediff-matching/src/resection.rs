@@ -81,45 +81,49 @@ pub fn absolute_pose(
             .iter()
             .filter_map(|&j| Some((object.get(j as usize).ok()?, image.get(j as usize).ok()?)))
             .unzip();
-        let (mut rvec, mut tvec) = (Mat::default(), Mat::default());
-        if opencv::calib3d::solve_pnp(
+        let mut keep = |candidate: Option<AbsolutePose>| {
+            if let Some(c) = candidate
+                && best
+                    .as_ref()
+                    .is_none_or(|b| c.inliers.len() > b.inliers.len())
+            {
+                best = Some(c);
+            }
+        };
+        // OpenCV 4.6's SQPnP can fail an internal assertion on exact points (its null-space
+        // step, terzakig/sqpnp#16, fixed upstream after OpenCV's copy): LM then starts from
+        // the RANSAC pose.
+        let (mut rv, mut tv) = (Mat::default(), Mat::default());
+        let refit = opencv::calib3d::solve_pnp(
             &o,
             &i,
             &camera,
             &no_distortion,
-            &mut rvec,
-            &mut tvec,
+            &mut rv,
+            &mut tv,
             false,
             opencv::calib3d::SOLVEPNP_SQPNP,
-        )? && rvec.rows() == 3
-            && tvec.rows() == 3
-        {
-            let mut keep = |candidate: Option<AbsolutePose>| {
-                if let Some(c) = candidate
-                    && best
-                        .as_ref()
-                        .is_none_or(|b| c.inliers.len() > b.inliers.len())
-                {
-                    best = Some(c);
-                }
-            };
-            keep(pose_of(&rvec, &tvec, points, pixels, k, threshold_px)?);
-            let criteria = TermCriteria::new(
-                opencv::core::TermCriteria_COUNT + opencv::core::TermCriteria_EPS,
-                50,
-                1e-10,
-            )?;
-            opencv::calib3d::solve_pnp_refine_lm(
-                &o,
-                &i,
-                &camera,
-                &no_distortion,
-                &mut rvec,
-                &mut tvec,
-                criteria,
-            )?;
-            keep(pose_of(&rvec, &tvec, points, pixels, k, threshold_px)?);
+        );
+        if matches!(refit, Ok(true)) && rv.rows() == 3 && tv.rows() == 3 {
+            keep(pose_of(&rv, &tv, points, pixels, k, threshold_px)?);
+        } else {
+            (rv, tv) = (rvec.try_clone()?, tvec.try_clone()?);
         }
+        let criteria = TermCriteria::new(
+            opencv::core::TermCriteria_COUNT + opencv::core::TermCriteria_EPS,
+            50,
+            1e-10,
+        )?;
+        opencv::calib3d::solve_pnp_refine_lm(
+            &o,
+            &i,
+            &camera,
+            &no_distortion,
+            &mut rv,
+            &mut tv,
+            criteria,
+        )?;
+        keep(pose_of(&rv, &tv, points, pixels, k, threshold_px)?);
     }
     Ok(best)
 }

@@ -11,21 +11,29 @@
 //! enough of them is resected (PnP through the [`GeometrySolver`]). If the best resected camera
 //! explains clearly more of its 2D–3D correspondences than its current pose does, the whole side
 //! is moved by the similarity that takes that camera to its resected pose: the rotation and
-//! centre from the resection, the scale from the points both sides triangulate (or from the
-//! other resected cameras). As in incremental mappers (COLMAP's registration of a new image),
+//! centre from the resection, the side's scale from the points both sides triangulate (or from
+//! the other resected cameras). As in incremental mappers (COLMAP's registration of a new image),
 //! structure decides where a weakly attached camera goes, not the weakest pair.
 //!
 //! Tracks are often too short for that: a bridge is a pair few features survive. When the scene
 //! is dominated by a plane (an object on a table: the captures CO3D is made of), the bridge's
 //! two-view pose has the planar two-fold ambiguity, and both solutions fit its matches. The
 //! plane decides it: the anchor's points seen by the bridge's anchor camera give the plane
-//! `nᵀX = d` in that camera's frame, and with the pair's homography `H` the relative pose is
-//! unique, `K_b⁻¹ H K_a ∝ R + t nᵀ / d` (rotation from `H` on the plane's directions, translation
-//! with its true scale). The side is moved to it when it explains the bridge's matches about as
-//! well as the current pose (both ambiguous solutions do) and the tracks no worse.
+//! `nᵀx = d` in that camera's frame (RANSAC, then least squares); the bridge's keypoints in the
+//! anchor camera, back-projected onto it, are 3D points the moving camera sees, and it is
+//! resected on them (the matches off the plane are PnP's outliers). The side is moved there when
+//! the new pose explains the bridge's matches about as well as the current one (both ambiguous
+//! solutions do), and the tracks do not contradict it. When the rotation agrees already, only
+//! the bridge's length (which no pair observes) is taken from the plane. The side's own scale
+//! is the one that puts its points, triangulated by its cameras, on the plane.
 //!
-//! Cost: per bridge, one pass over the tracks of the smaller side's images and of the bridge's
-//! anchor camera.
+//! The move is rigid about the placed camera, times the side's scale where it is observed; the
+//! bundle adjustment that follows refines everything from there.
+//!
+//! Cost: per bridge, the sides (linear in the view graph) and one pass over the tracks of the
+//! bridge's anchor camera and of the smaller side's cameras matched with the anchor. A chain of
+//! N cameras, where every pair is a bridge, costs N graph traversals and about two cameras'
+//! tracks per bridge.
 
 use std::collections::HashMap;
 
@@ -171,6 +179,8 @@ pub struct ResectionReport {
     pub bridges: usize,
     /// The sides moved.
     pub moved: Vec<MovedSide>,
+    /// Bridges left as they were because the solver failed on them: the pair and the error.
+    pub unchecked: Vec<(usize, usize, String)>,
 }
 
 fn resection_error(image: usize, detail: impl std::fmt::Display) -> SfmError {
@@ -284,6 +294,8 @@ struct Context<'a> {
     intrinsics: &'a ImageIntrinsics,
     phi: f64,
     by_image: Vec<Vec<(usize, usize)>>,
+    /// The images each image has matches with.
+    matched_with: Vec<Vec<usize>>,
     options: &'a ResectionOptions,
     solver: &'a dyn GeometrySolver,
 }
@@ -409,6 +421,11 @@ impl Context<'_> {
         let mut resected: Vec<(usize, CameraPose)> = Vec::new();
         for m in bridge.moving.clone() {
             let Some(current) = cameras[m] else { continue };
+            // Only cameras matched with the anchor see its points (and the work per bridge
+            // stays with the few cameras next to it, not the whole side).
+            if !self.matched_with[m].iter().any(|&j| bridge.in_anchor[j]) {
+                continue;
+            }
             let corr = self.correspondences(bridge, m, cameras);
             if corr.len() < o.min_inliers {
                 continue;
@@ -651,7 +668,8 @@ impl Context<'_> {
 /// plane, as the module says. `cameras` are changed in place; images not estimated stay so.
 ///
 /// # Errors
-/// Invalid options, the solver's failures.
+/// Invalid options, intrinsics of the wrong length. (The solver's failures on a bridge are
+/// reported in [`ResectionReport::unchecked`].)
 #[allow(clippy::too_many_arguments)]
 pub fn resect_bridged_sides(
     tracks: &[Track],
@@ -712,11 +730,19 @@ pub fn resect_bridged_sides(
         .iter()
         .map(|p| ((p.first.min(p.second), p.first.max(p.second)), p))
         .collect();
+    let mut matched_with = vec![Vec::new(); n];
+    for p in pairs.iter().filter(|p| !p.is_empty()) {
+        if p.first < n && p.second < n {
+            matched_with[p.first].push(p.second);
+            matched_with[p.second].push(p.first);
+        }
+    }
     let context = Context {
         tracks,
         intrinsics,
         phi,
         by_image,
+        matched_with,
         options,
         solver,
     };
@@ -744,11 +770,25 @@ pub fn resect_bridged_sides(
             moving,
             anchor_points: HashMap::new(),
         };
-        let mut mv = context.by_tracks(&mut bridge, cameras)?;
+        // A solver failure leaves this bridge as it is (reported): the cameras are then the
+        // averaging's, as without this stage.
+        let mut mv = match context.by_tracks(&mut bridge, cameras) {
+            Ok(mv) => mv,
+            Err(e) => {
+                report.unchecked.push((u, v, e.to_string()));
+                continue;
+            }
+        };
         if mv.is_none()
             && let Some(pair) = by_pair.get(&(u.min(v), u.max(v)))
         {
-            mv = context.by_plane(&mut bridge, cameras, ends, pair)?;
+            mv = match context.by_plane(&mut bridge, cameras, ends, pair) {
+                Ok(mv) => mv,
+                Err(e) => {
+                    report.unchecked.push((u, v, e.to_string()));
+                    continue;
+                }
+            };
         }
         let Some(mv) = mv else { continue };
         // x_new = s Q (x_old − c_old) + c_new with Q = R_newᵀ R_old.
@@ -775,4 +815,123 @@ pub fn resect_bridged_sides(
         });
     }
     Ok(report)
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+    use crate::mapper::RelativePose;
+    use crate::tracks::build_tracks;
+
+    /// A solver whose resection always fails (the other methods are not used here).
+    struct Failing;
+
+    impl GeometrySolver for Failing {
+        fn homography(&self, _: &PairMatches) -> Result<Option<(Matrix3<f64>, f64)>> {
+            Ok(None)
+        }
+        fn fundamental(&self, _: &PairMatches) -> Result<Option<Matrix3<f64>>> {
+            Ok(None)
+        }
+        fn relative_pose(
+            &self,
+            _: &PairMatches,
+            _: Option<(Matrix3<f64>, f64)>,
+            _: &Matrix3<f64>,
+            _: &Matrix3<f64>,
+        ) -> Result<Option<RelativePose>> {
+            Ok(None)
+        }
+        fn absolute_pose(
+            &self,
+            image: usize,
+            _: &[Vector3<f64>],
+            _: &[[f64; 2]],
+            _: &Matrix3<f64>,
+            _: f64,
+        ) -> Result<Option<AbsolutePose>> {
+            Err(resection_error(image, "no PnP here"))
+        }
+    }
+
+    #[test]
+    fn a_solver_failure_leaves_the_bridge_as_it_was_and_says_so() {
+        // Four cameras in a row looking down +z at points 5 ahead; triangle 0-1-2, bridge 2-3.
+        let cameras: Vec<Option<CameraPose>> = (0..4)
+            .map(|i| {
+                Some(CameraPose {
+                    rotation: Rotation3::identity(),
+                    center: Vector3::new(0.5 * f64::from(i), 0.0, 0.0),
+                })
+            })
+            .collect();
+        let intrinsics = ImageIntrinsics {
+            principal: vec![[320.0, 240.0]; 4],
+            scale: vec![500.0; 4],
+        };
+        let points: Vec<Vector3<f64>> = (0..30)
+            .map(|k| {
+                let k = f64::from(k);
+                Vector3::new(
+                    (k * 0.37) % 2.0 - 0.2,
+                    (k * 0.53) % 1.5 - 0.7,
+                    5.0 + k % 3.0,
+                )
+            })
+            .collect();
+        let pixel = |i: usize, x: &Vector3<f64>| {
+            let p = intrinsics.k(1.0, i) * (x - cameras[i].unwrap().center);
+            [p.x / p.z, p.y / p.z]
+        };
+        let pairs: Vec<PairMatches> = [(0, 1), (1, 2), (0, 2), (2, 3)]
+            .iter()
+            .map(|&(a, b)| PairMatches {
+                first: a,
+                second: b,
+                kp1: points.iter().map(|x| pixel(a, x)).collect(),
+                kp2: points.iter().map(|x| pixel(b, x)).collect(),
+                idx1: (0..30).collect(),
+                idx2: (0..30).collect(),
+            })
+            .collect();
+        let (tracks, _) = build_tracks(4, &pairs).unwrap();
+        let edges: Vec<(usize, usize)> = pairs.iter().map(|p| (p.first, p.second)).collect();
+        let mut moved = cameras.clone();
+        let report = resect_bridged_sides(
+            &tracks,
+            &pairs,
+            &intrinsics,
+            1.0,
+            &mut moved,
+            &edges,
+            &Failing,
+            &ResectionOptions::default(),
+        )
+        .unwrap();
+        assert_eq!(report.bridges, 1);
+        assert!(report.moved.is_empty());
+        assert_eq!(report.unchecked.len(), 1, "{report:?}");
+        assert_eq!((report.unchecked[0].0, report.unchecked[0].1), (2, 3));
+        assert!(report.unchecked[0].2.contains("no PnP here"));
+        assert_eq!(moved, cameras);
+        // Invalid options are an error before any work.
+        let bad = ResectionOptions {
+            min_gain: 0.5,
+            ..ResectionOptions::default()
+        };
+        assert!(
+            resect_bridged_sides(
+                &tracks,
+                &pairs,
+                &intrinsics,
+                1.0,
+                &mut moved,
+                &edges,
+                &Failing,
+                &bad
+            )
+            .is_err()
+        );
+    }
 }

@@ -73,7 +73,8 @@ fn run_case(images_dir: &Path, gt: &Path, out: &Path, pairs: &str) -> Result<()>
         (t.initialisation - t.two_view - t.averaging).max(0.0),
         rss,
     ));
-    stages.push(("bundle adjustment", t.refinement, rss));
+    stages.push(("bridge resection", t.resection, rss));
+    stages.push(("bundle adjustment", t.refinement - t.resection, rss));
     let seconds = total.elapsed().as_secs_f64();
     let truth = posediff::io::export::read_cameras_json(gt)?;
     let gt_cams: Vec<_> = truth.iter().map(|c| c.camera).collect();

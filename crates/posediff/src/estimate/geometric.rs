@@ -135,8 +135,11 @@ pub struct GeometricTimes {
     pub averaging: f64,
     /// Every focal start: two-view geometry, averaging and the Sampson refinement.
     pub initialisation: f64,
-    /// Tracks and bundle adjustment of the chosen start (or the official GGS schedule).
+    /// Tracks, bridge resection and bundle adjustment of the chosen start (or the official GGS
+    /// schedule).
     pub refinement: f64,
+    /// Of that, the resection of the cameras on view-graph bridges.
+    pub resection: f64,
 }
 
 /// A stage that iterates: how it ended.
@@ -202,8 +205,11 @@ pub struct GeometricReport {
     pub refine_inlier_rms_px: f64,
     /// Bridges of the view graph: pairs that no cycle confirms (0: resection not run).
     pub bridges: usize,
-    /// The smaller sides of bridges moved to where the other side's tracks resect them.
+    /// The smaller sides of bridges moved to where the other side's tracks or plane resect
+    /// them.
     pub resected_sides: Vec<ResectedSide>,
+    /// Bridges the resection could not check (the solver failed): `[first, second]` and why.
+    pub unchecked_bridges: Vec<([usize; 2], String)>,
     /// Tracks built from the matches (0: not run).
     pub tracks: usize,
     /// Tracks dropped because they see an image twice.
@@ -304,6 +310,11 @@ impl GeometricReport {
                     scale: s.scale,
                 })
                 .collect();
+            self.unchecked_bridges = r
+                .unchecked
+                .iter()
+                .map(|(a, b, why)| ([*a, *b], why.clone()))
+                .collect();
         }
         if let Some(t) = &m.tracks {
             self.tracks = t.tracks;
@@ -328,6 +339,7 @@ impl GeometricReport {
         self.times.initialisation =
             s.pair_geometry + s.focal + s.two_view + s.averaging + s.refinement;
         self.times.refinement = s.resection + s.bundle;
+        self.times.resection = s.resection;
     }
 }
 
