@@ -27,6 +27,12 @@ use pyo3::exceptions::{PyException, PyFileNotFoundError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
 
+/// The CLI's allocator (see `crates/posediff/src/main.rs`): the networks allocate and free tensors
+/// of tens of megabytes per layer, which glibc's allocator hands back to the kernel each time.
+/// Only this module's Rust allocations use it; arrays handed to numpy are freed by Rust too.
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 pyo3::create_exception!(
     posediff,
     Error,

@@ -74,6 +74,12 @@ pub struct ResectionOptions {
     pub min_gain: f64,
     /// Smallest widest-ray angle of an anchor point, degrees.
     pub min_angle_deg: f64,
+    /// Sampson distance of an epipolar inlier of the bridge pair, pixels.
+    pub epipolar_px: f64,
+    /// A move must leave at least this fraction of the bridge pair's epipolar inliers (the two
+    /// solutions of the planar ambiguity explain about the same; a move that the tracks of
+    /// wrong matches suggest does not).
+    pub min_relative_inliers: f64,
     /// The plane-induced pose of planar bridges (`None`: tracks only).
     pub plane: Option<PlaneOptions>,
 }
@@ -85,6 +91,8 @@ impl Default for ResectionOptions {
             min_inliers: 12,
             min_gain: 1.5,
             min_angle_deg: 2.0,
+            epipolar_px: 2.0,
+            min_relative_inliers: 0.8,
             plane: Some(PlaneOptions::default()),
         }
     }
@@ -103,11 +111,6 @@ pub struct PlaneOptions {
     pub min_plane_matches: f64,
     /// Distance from the plane of a point on it, relative to the points' median depth.
     pub tolerance: f64,
-    /// Sampson distance of an epipolar inlier, pixels.
-    pub epipolar_px: f64,
-    /// The candidate must explain at least this fraction of the bridge matches the current
-    /// pose explains (the two ambiguous solutions explain about the same).
-    pub min_relative_inliers: f64,
     /// A resection within this rotation (degrees) of the current pose changes at most the
     /// bridge's length.
     pub min_rotation_deg: f64,
@@ -122,8 +125,6 @@ impl Default for PlaneOptions {
             min_fraction: 0.6,
             min_plane_matches: 0.4,
             tolerance: 0.01,
-            epipolar_px: 2.0,
-            min_relative_inliers: 0.8,
             min_rotation_deg: 2.0,
             min_scale_change: 1.1,
         }
@@ -308,6 +309,19 @@ struct Bridge {
     anchor_points: HashMap<usize, Option<Vector3<f64>>>,
 }
 
+impl Move {
+    /// Camera `c` of the side after the move: `x_new = s Q (x_old − c_old) + c_new`, with
+    /// `Q = R_newᵀ R_old` and `s` the scale (1 when unobserved).
+    fn moved(&self, c: &CameraPose) -> CameraPose {
+        let q = self.new.rotation.inverse() * self.old.rotation;
+        CameraPose {
+            rotation: c.rotation * q.inverse(),
+            center: self.new.center
+                + self.scale.unwrap_or(1.0) * (q * (c.center - self.old.center)),
+        }
+    }
+}
+
 /// How to move a side: camera `image` goes from `old` to `new`, the side's scale by `scale`.
 struct Move {
     image: usize,
@@ -409,12 +423,37 @@ impl Context<'_> {
             .count()
     }
 
+    /// The bridge pair's matches within the epipolar threshold of cameras `a` and `b`.
+    fn epipolar_inliers(
+        &self,
+        pair: &PairMatches,
+        (ia, a): (usize, &CameraPose),
+        (ib, b): (usize, &CameraPose),
+    ) -> usize {
+        let (kp_a, kp_b) = if pair.first == ia {
+            (&pair.kp1, &pair.kp2)
+        } else {
+            (&pair.kp2, &pair.kp1)
+        };
+        let f = pair_fundamental(a, b, self.phi, self.intrinsics, ia, ib);
+        let f = [0, 1, 2, 3, 4, 5, 6, 7, 8].map(|k| f[(k / 3, k % 3)]);
+        kp_a.iter()
+            .zip(kp_b.iter())
+            .filter(|(x, y)| {
+                sampson_residual(&f, **x, **y)
+                    .is_some_and(|(r, _)| r.abs() <= self.options.epipolar_px)
+            })
+            .count()
+    }
+
     /// PnP of the smaller side's cameras on the anchor's points: the best resected camera, if
     /// it beats its current pose by the gain.
     fn by_tracks(
         &self,
         bridge: &mut Bridge,
         cameras: &[Option<CameraPose>],
+        (u, v): (usize, usize),
+        pair: &PairMatches,
     ) -> Result<Option<Move>> {
         let o = self.options;
         let mut best: Option<(Move, Vec<usize>)> = None;
@@ -497,6 +536,16 @@ impl Context<'_> {
             }
         }
         mv.scale = median(ratios).filter(|s| s.is_finite() && *s > 0.0);
+        // Tracks can be wrong too (repeated structure matched across the set): the move must
+        // keep the bridge pair's own epipolar geometry.
+        let (Some(cu), Some(cv)) = (cameras[u], cameras[v]) else {
+            return Ok(None);
+        };
+        let before = self.epipolar_inliers(pair, (u, &cu), (v, &cv));
+        let after = self.epipolar_inliers(pair, (u, &cu), (v, &mv.moved(&cv)));
+        if (after as f64) < o.min_relative_inliers * before as f64 {
+            return Ok(None);
+        }
         Ok(Some(mv))
     }
 
@@ -589,17 +638,10 @@ impl Context<'_> {
                 center: cu.center + (cv.center - cu.center) * ratio,
             };
         }
-        let epipolar = |c: &CameraPose| {
-            let f = pair_fundamental(&cu, c, self.phi, self.intrinsics, u, v);
-            let f = [0, 1, 2, 3, 4, 5, 6, 7, 8].map(|k| f[(k / 3, k % 3)]);
-            kp_u.iter()
-                .zip(kp_v.iter())
-                .filter(|(x, y)| {
-                    sampson_residual(&f, **x, **y).is_some_and(|(r, _)| r.abs() <= po.epipolar_px)
-                })
-                .count()
-        };
-        let (before, after) = (epipolar(&cv), epipolar(&candidate));
+        let (before, after) = (
+            self.epipolar_inliers(pair, (u, &cu), (v, &cv)),
+            self.epipolar_inliers(pair, (u, &cu), (v, &candidate)),
+        );
         let corr = self.correspondences(bridge, v, cameras);
         // The tracks contradict the candidate when the current pose explains clearly more of
         // the camera's 2D–3D correspondences (a few either way are noise).
@@ -610,7 +652,7 @@ impl Context<'_> {
         let tracks_agree =
             tracks_now < 3 || (tracks_now as f64) <= self.options.min_gain * tracks_then as f64;
         if after < self.options.min_inliers
-            || (after as f64) < po.min_relative_inliers * before as f64
+            || (after as f64) < self.options.min_relative_inliers * before as f64
             || !tracks_agree
         {
             return Ok(None);
@@ -687,12 +729,12 @@ pub fn resect_bridged_sides(
             .iter()
             .all(|f| *f > 0.0 && *f <= 1.0)
             && p.tolerance > 0.0
-            && p.epipolar_px > 0.0
-            && p.min_relative_inliers >= 0.0
             && p.min_rotation_deg >= 0.0
             && p.min_scale_change >= 1.0
     });
     if !(o.threshold_px > 0.0
+        && o.epipolar_px > 0.0
+        && o.min_relative_inliers >= 0.0
         && o.min_gain >= 1.0
         && o.min_angle_deg >= 0.0
         && o.min_inliers >= 6
@@ -770,18 +812,22 @@ pub fn resect_bridged_sides(
             moving,
             anchor_points: HashMap::new(),
         };
+        let Some(pair) = by_pair.get(&(u.min(v), u.max(v))).copied() else {
+            report
+                .unchecked
+                .push((u, v, "no matches for the bridge pair".into()));
+            continue;
+        };
         // A solver failure leaves this bridge as it is (reported): the cameras are then the
         // averaging's, as without this stage.
-        let mut mv = match context.by_tracks(&mut bridge, cameras) {
+        let mut mv = match context.by_tracks(&mut bridge, cameras, ends, pair) {
             Ok(mv) => mv,
             Err(e) => {
                 report.unchecked.push((u, v, e.to_string()));
                 continue;
             }
         };
-        if mv.is_none()
-            && let Some(pair) = by_pair.get(&(u.min(v), u.max(v)))
-        {
+        if mv.is_none() {
             mv = match context.by_plane(&mut bridge, cameras, ends, pair) {
                 Ok(mv) => mv,
                 Err(e) => {
@@ -791,15 +837,9 @@ pub fn resect_bridged_sides(
             };
         }
         let Some(mv) = mv else { continue };
-        // x_new = s Q (x_old − c_old) + c_new with Q = R_newᵀ R_old.
-        let q = mv.new.rotation.inverse() * mv.old.rotation;
-        let s = mv.scale.unwrap_or(1.0);
         for &j in &bridge.moving {
             if let Some(c) = cameras[j] {
-                cameras[j] = Some(CameraPose {
-                    rotation: c.rotation * q.inverse(),
-                    center: mv.new.center + s * (q * (c.center - mv.old.center)),
-                });
+                cameras[j] = Some(mv.moved(&c));
             }
         }
         report.moved.push(MovedSide {

@@ -257,9 +257,14 @@ pub fn bench_real_sets(
             let paths: Vec<PathBuf> = subset.images.iter().map(|i| dir.join(i)).collect();
             let gt_poses: Vec<Pose> = gt.iter().map(|c| c.cam_from_world).collect();
             let start = Instant::now();
-            let pred = method
-                .estimate(&paths, &gt_poses)
-                .unwrap_or_else(|_| vec![None; gt.len()]);
+            let pred = method.estimate(&paths, &gt_poses).unwrap_or_else(|e| {
+                log::warn!(
+                    "{set} {}: {e}; its {} cameras count as failed",
+                    subset.id,
+                    gt.len()
+                );
+                vec![None; gt.len()]
+            });
             let seconds = start.elapsed().as_secs_f64();
             let (scores, cc) = score_set(&gt, &pred).map_err(|e| read_err(subsets_json, e))?;
             let n = subset

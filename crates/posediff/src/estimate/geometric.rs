@@ -930,17 +930,29 @@ mod tests {
 
     /// The exact matches of `points` between cameras `a` and `b` (keypoint id = point id).
     fn pair(a: usize, b: usize, pts: &[(u32, Vector3<f64>)]) -> PairMatches {
+        pair_seen_by(a, b, pts, cameras()[b].unwrap())
+    }
+
+    /// Matches of `points` whose pixels in `b` are where camera `seen_by` sees them.
+    fn pair_seen_by(
+        a: usize,
+        b: usize,
+        pts: &[(u32, Vector3<f64>)],
+        seen_by: CameraPose,
+    ) -> PairMatches {
         let (cams, k) = (cameras(), intrinsics());
-        let project = |i: usize, x: &Vector3<f64>| {
-            let c = cams[i].unwrap();
+        let project = |c: CameraPose, i: usize, x: &Vector3<f64>| {
             let p = k.k(1.0, i) * (c.rotation * (x - c.center));
             [p.x / p.z, p.y / p.z]
         };
         PairMatches {
             first: a,
             second: b,
-            kp1: pts.iter().map(|(_, x)| project(a, x)).collect(),
-            kp2: pts.iter().map(|(_, x)| project(b, x)).collect(),
+            kp1: pts
+                .iter()
+                .map(|(_, x)| project(cams[a].unwrap(), a, x))
+                .collect(),
+            kp2: pts.iter().map(|(_, x)| project(seen_by, b, x)).collect(),
             idx1: pts.iter().map(|(id, _)| *id).collect(),
             idx2: pts.iter().map(|(id, _)| *id).collect(),
         }
@@ -986,8 +998,17 @@ mod tests {
         pairs: &[PairMatches],
         cameras: &mut [Option<CameraPose>],
     ) -> posediff_sfm::resection::ResectionReport {
-        let (tracks, _) = build_tracks(N, pairs).unwrap();
         let edges: Vec<(usize, usize)> = pairs.iter().map(|p| (p.first, p.second)).collect();
+        run_with(pairs, &edges, cameras, &ResectionOptions::default())
+    }
+
+    fn run_with(
+        pairs: &[PairMatches],
+        edges: &[(usize, usize)],
+        cameras: &mut [Option<CameraPose>],
+        options: &ResectionOptions,
+    ) -> posediff_sfm::resection::ResectionReport {
+        let (tracks, _) = build_tracks(N, pairs).unwrap();
         let config = TwoViewConfig::default();
         resect_bridged_sides(
             &tracks,
@@ -995,9 +1016,9 @@ mod tests {
             &intrinsics(),
             1.0,
             cameras,
-            &edges,
+            edges,
             &OpenCvTwoView(&config),
-            &ResectionOptions::default(),
+            options,
         )
         .unwrap()
     }
@@ -1057,5 +1078,42 @@ mod tests {
         assert!(rotation < 0.01 && centre < 1e-3, "{rotation}° {centre}");
         let report = run(&pairs, &mut cams);
         assert!(report.moved.is_empty(), "{report:?}");
+    }
+
+    #[test]
+    fn tracks_of_wrong_matches_do_not_move_a_side_against_its_bridge() {
+        // As the first test with the cameras right, plus a pair 2–4 (left out of the pose graph,
+        // as the rotation check drops it, but in the tracks) whose pixels in 4 are where a
+        // camera turned by 40° would see the points: repeated structure matched wrongly, more
+        // of it than the right matches. A PnP of 4 on the anchor's points (0 and 2 see them
+        // right) fits that camera with 200 inliers against 80 for the right pose.
+        let pts = points(0, 80, true);
+        let links = [(0, 1), (1, 2), (0, 2), (2, 3), (3, 4), (4, 5), (3, 5)];
+        let mut pairs: Vec<PairMatches> = links.iter().map(|&(a, b)| pair(a, b, &pts)).collect();
+        let edges: Vec<(usize, usize)> = links.to_vec();
+        let truth = cameras()[4].unwrap();
+        let turn = Rotation3::from_axis_angle(&Vector3::z_axis(), 40f64.to_radians());
+        let wrong = CameraPose {
+            rotation: truth.rotation * turn.inverse(),
+            center: turn * truth.center,
+        };
+        let mirrored = points(5000, 200, true);
+        pairs.push(pair(0, 2, &mirrored));
+        pairs.push(pair_seen_by(2, 4, &mirrored, wrong));
+        let mut cams = cameras();
+        let report = run_with(&pairs, &edges, &mut cams, &ResectionOptions::default());
+        assert!(report.moved.is_empty(), "{report:?}");
+        assert_eq!(cams, cameras());
+        // Without the bridge's epipolar check the tracks would have moved the side.
+        let unchecked = ResectionOptions {
+            min_relative_inliers: 0.0,
+            ..ResectionOptions::default()
+        };
+        let report = run_with(&pairs, &edges, &mut cams, &unchecked);
+        assert_eq!(report.moved.len(), 1, "{report:?}");
+        assert_eq!(
+            (report.moved[0].image, report.moved[0].evidence),
+            (4, Evidence::Tracks)
+        );
     }
 }
