@@ -251,6 +251,11 @@ pub fn extract_all(
     config: &MatchConfig,
     learned: Option<&SharedLearned>,
 ) -> Result<Vec<ImageFeatures>> {
+    log::info!(
+        "{}extracting features of {} images",
+        crate::estimate::run::WORK_STARTS,
+        images.len()
+    );
     let Some(l) = learned else {
         return Ok(posediff_matching::extract_all(images, config)?);
     };

@@ -456,7 +456,11 @@ impl Estimator {
         }
         let mut times = StageTimes::default();
         let mut warnings = Vec::new();
-        log::info!("loading {} images", images.len());
+        log::info!(
+            "{}loading {} images",
+            crate::estimate::run::WORK_STARTS,
+            images.len()
+        );
         progress.start("images", 0);
         let start = Instant::now();
         let loaded = load_images(images)?;

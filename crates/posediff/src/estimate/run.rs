@@ -686,6 +686,11 @@ fn read_per_image(path: &Path, names: &[String], what: &str) -> Result<Matched<I
     .map_err(|e| PosediffError::invalid(path, format!("{what}: {e}")))
 }
 
+/// The prefix of the info-level log line each expensive stage starts with (loading the images
+/// for the network, extracting features): the tests of bad inputs check that no such line
+/// precedes an error that needs no computation. (A checkpoint is loaded, and checked, before.)
+pub const WORK_STARTS: &str = "stage: ";
+
 /// Loads a checkpoint, timing it (for [`Network::load_seconds`]).
 ///
 /// # Errors
@@ -695,6 +700,7 @@ pub fn load_estimator(weights: &Path, device: candle_core::Device) -> Result<(Es
         return Err(PosediffError::NotFound(weights.to_owned()));
     }
     let clock = Instant::now();
+    log::info!("loading the checkpoint {}", weights.display());
     let estimator = Estimator::load(weights, device, crate::EstimateConfig::default())?;
     Ok((estimator, clock.elapsed().as_secs_f64()))
 }
