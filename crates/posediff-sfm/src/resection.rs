@@ -136,7 +136,7 @@ impl Default for PlaneOptions {
 pub enum Evidence {
     /// PnP of a camera on the anchor side's triangulated tracks.
     Tracks,
-    /// The bridge pair's homography with the plane the anchor side reconstructs.
+    /// A PnP of the bridge's keypoints back-projected onto the plane the anchor reconstructs.
     Plane,
 }
 
@@ -549,8 +549,9 @@ impl Context<'_> {
         Ok(Some(mv))
     }
 
-    /// The plane-induced pose of the bridge's moving camera, if the plane and the homography
-    /// hold and the candidate fits the bridge's matches as the module says.
+    /// The plane-induced pose of the bridge's moving camera, if the anchor has a plane, the
+    /// bridge's keypoints on it resect the camera, and the pose fits the bridge's matches and
+    /// the tracks as the module says.
     fn by_plane(
         &self,
         bridge: &mut Bridge,
