@@ -64,7 +64,20 @@ fn gelu_f32(x: f32) -> f32 {
 /// GELU of `values` in place, compiled for the best instruction set this CPU has (AVX2 + FMA
 /// where present) by `pulp`'s safe runtime dispatch, the portable build otherwise.
 fn gelu_slice(values: &mut [f32]) {
-    pulp::Arch::new().dispatch(|| gelu_blocks(values));
+    pulp::Arch::new().dispatch(Blocks(values));
+}
+
+/// The values for pulp's dispatch: `with_simd` is inlined into a function compiled for the
+/// CPU's features (a plain closure passed to `dispatch` is not, and runs the baseline code).
+struct Blocks<'a>(&'a mut [f32]);
+
+impl pulp::WithSimd for Blocks<'_> {
+    type Output = ();
+
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _simd: S) {
+        gelu_blocks(self.0);
+    }
 }
 
 /// GELU of `values` in place, eight lanes at a time (fixed-size blocks the compiler turns into
@@ -99,7 +112,7 @@ pub(crate) fn split_over_threads(
     min_len: usize,
     f: impl Fn(&mut [f32]) + Sync,
 ) {
-    let threads = candle_core::utils::get_num_threads().max(1);
+    let threads = crate::threads();
     let unit = unit.max(1);
     let units = values.len() / unit;
     if threads == 1 || values.len() < min_len || units < 2 {

@@ -12,8 +12,10 @@
 //!   cos block, then `x`.
 //! - The pivot flag marks frame 0 of every sequence.
 
-use candle_core::{D, DType, Device, Module, Tensor};
-use candle_nn::{Linear, VarBuilder};
+use candle_core::{D, DType, Device, Tensor};
+use candle_nn::VarBuilder;
+
+use crate::linear::{Linear, linear};
 
 use crate::norm::LayerNorm;
 
@@ -72,8 +74,7 @@ pub fn harmonic_embedding(x: &Tensor) -> Result<Tensor> {
 /// One `nn.TransformerEncoderLayer(norm_first=True, activation=relu)`.
 #[derive(Debug, Clone)]
 pub struct EncoderLayer {
-    in_proj_weight: Tensor,
-    in_proj_bias: Tensor,
+    in_proj: Linear,
     out_proj: Linear,
     linear1: Linear,
     linear2: Linear,
@@ -85,11 +86,13 @@ impl EncoderLayer {
     fn new(vb: VarBuilder) -> Result<Self> {
         let sa = vb.pp("self_attn");
         Ok(Self {
-            in_proj_weight: sa.get((3 * DENOISER_DIM, DENOISER_DIM), "in_proj_weight")?,
-            in_proj_bias: sa.get(3 * DENOISER_DIM, "in_proj_bias")?,
-            out_proj: candle_nn::linear(DENOISER_DIM, DENOISER_DIM, sa.pp("out_proj"))?,
-            linear1: candle_nn::linear(DENOISER_DIM, DENOISER_FF_DIM, vb.pp("linear1"))?,
-            linear2: candle_nn::linear(DENOISER_FF_DIM, DENOISER_DIM, vb.pp("linear2"))?,
+            in_proj: Linear::new(
+                sa.get((3 * DENOISER_DIM, DENOISER_DIM), "in_proj_weight")?,
+                Some(sa.get(3 * DENOISER_DIM, "in_proj_bias")?),
+            )?,
+            out_proj: linear(DENOISER_DIM, DENOISER_DIM, sa.pp("out_proj"))?,
+            linear1: linear(DENOISER_DIM, DENOISER_FF_DIM, vb.pp("linear1"))?,
+            linear2: linear(DENOISER_FF_DIM, DENOISER_DIM, vb.pp("linear2"))?,
             norm1: LayerNorm::new(DENOISER_DIM, LN_EPS, vb.pp("norm1"))?,
             norm2: LayerNorm::new(DENOISER_DIM, LN_EPS, vb.pp("norm2"))?,
         })
@@ -98,9 +101,7 @@ impl EncoderLayer {
     fn self_attention(&self, x: &Tensor) -> Result<Tensor> {
         let (b, n, c) = x.dims3()?;
         let head_dim = c / HEADS;
-        let qkv = x
-            .broadcast_matmul(&self.in_proj_weight.t()?)?
-            .broadcast_add(&self.in_proj_bias)?;
+        let qkv = self.in_proj.forward(x)?;
         let split = |i: usize| -> Result<Tensor> {
             Ok(qkv
                 .narrow(2, i * c, c)?
@@ -112,7 +113,7 @@ impl EncoderLayer {
         let (k, v) = (split(1)?, split(2)?);
         let attn = crate::norm::softmax_last_dim(&q.matmul(&k.t()?)?)?;
         let out = attn.matmul(&v)?.transpose(1, 2)?.reshape((b, n, c))?;
-        Ok(self.out_proj.forward(&out)?)
+        self.out_proj.forward(&out)
     }
 
     /// `x + SA(LN1(x))`, then `+ linear2(ReLU(linear1(LN2(x))))`.
@@ -168,15 +169,15 @@ impl Denoiser {
         let te = vb.pp("time_embed").pp("linear");
         let last = vb.pp("_last");
         Ok(Self {
-            time_linear0: candle_nn::linear(TIME_EMBED_DIM, half, te.pp(0))?,
-            time_linear2: candle_nn::linear(half, half, te.pp(2))?,
-            first: candle_nn::linear(DENOISER_FEED_DIM, DENOISER_DIM, vb.pp("_first"))?,
+            time_linear0: linear(TIME_EMBED_DIM, half, te.pp(0))?,
+            time_linear2: linear(half, half, te.pp(2))?,
+            first: linear(DENOISER_FEED_DIM, DENOISER_DIM, vb.pp("_first"))?,
             layers: (0..layers)
                 .map(|i| EncoderLayer::new(vb.pp("_trunk").pp("layers").pp(i)))
                 .collect::<Result<_>>()?,
-            last0: candle_nn::linear(DENOISER_DIM, half, last.pp(0))?,
+            last0: linear(DENOISER_DIM, half, last.pp(0))?,
             last1: LayerNorm::new(half, LN_EPS, last.pp(1))?,
-            last3: candle_nn::linear(half, POSE_DIM, last.pp(3))?,
+            last3: linear(half, POSE_DIM, last.pp(3))?,
         })
     }
 

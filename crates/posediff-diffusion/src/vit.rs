@@ -4,8 +4,10 @@
 //! the 14×14 positional table is resized bicubically with DINO's `+0.1` scale factor
 //! (`interpolate_pos_encoding`).
 
-use candle_core::{DType, Device, IndexOp, Module, Tensor};
-use candle_nn::{Linear, VarBuilder};
+use candle_core::{DType, Device, IndexOp, Tensor};
+use candle_nn::VarBuilder;
+
+use crate::linear::{Linear, linear};
 
 use crate::norm::LayerNorm;
 
@@ -51,8 +53,8 @@ struct Attention {
 impl Attention {
     fn new(vb: VarBuilder) -> Result<Self> {
         Ok(Self {
-            qkv: candle_nn::linear(VIT_DIM, 3 * VIT_DIM, vb.pp("qkv"))?,
-            proj: candle_nn::linear(VIT_DIM, VIT_DIM, vb.pp("proj"))?,
+            qkv: linear(VIT_DIM, 3 * VIT_DIM, vb.pp("qkv"))?,
+            proj: linear(VIT_DIM, VIT_DIM, vb.pp("proj"))?,
         })
     }
 
@@ -71,7 +73,7 @@ impl Attention {
         let attn = (q.matmul(&k.t()?)? * scale)?;
         let attn = crate::norm::softmax_last_dim(&attn)?;
         let out = attn.matmul(&v)?.transpose(1, 2)?.reshape((b, n, c))?;
-        Ok(self.proj.forward(&out)?)
+        self.proj.forward(&out)
     }
 }
 
@@ -91,8 +93,8 @@ impl Block {
             norm1: LayerNorm::new(VIT_DIM, LN_EPS, vb.pp("norm1"))?,
             attn: Attention::new(vb.pp("attn"))?,
             norm2: LayerNorm::new(VIT_DIM, LN_EPS, vb.pp("norm2"))?,
-            fc1: candle_nn::linear(VIT_DIM, VIT_MLP_DIM, vb.pp("mlp").pp("fc1"))?,
-            fc2: candle_nn::linear(VIT_MLP_DIM, VIT_DIM, vb.pp("mlp").pp("fc2"))?,
+            fc1: linear(VIT_DIM, VIT_MLP_DIM, vb.pp("mlp").pp("fc1"))?,
+            fc2: linear(VIT_MLP_DIM, VIT_DIM, vb.pp("mlp").pp("fc2"))?,
         })
     }
 

@@ -350,8 +350,54 @@ pub(crate) fn check_inputs(
     Ok(())
 }
 
-/// The robust cost `Σ ρ(r)` of all matches under `cameras`; a match whose pair lacks a camera
-/// (or a baseline) costs `ρ(missing_px)`. Compares solutions that estimate different images.
+/// The robust cost of the matches of pairs whose cameras share a centre (a rotation-only
+/// pair, e.g. a repeated viewpoint): they have no epipolar geometry, but the cameras still
+/// predict where each match lands, through the infinite homography `K_b R_b R_aᵀ K_a⁻¹`; `r`
+/// is the pixel distance to that prediction (`missing_px` behind the camera).
+fn tied_cost(
+    pairs: &[&PairMatches],
+    intrinsics: &ImageIntrinsics,
+    cams: &[Option<CameraPose>],
+    phi: f64,
+    loss: Loss,
+    missing_px: f64,
+) -> f64 {
+    let per_pair: Vec<f64> = pairs
+        .par_iter()
+        .map(|p| {
+            let (Some(a), Some(b)) = (
+                cams.get(p.first).copied().flatten(),
+                cams.get(p.second).copied().flatten(),
+            ) else {
+                return 0.0;
+            };
+            if usable(cams, p.first, p.second).is_some() {
+                return 0.0;
+            }
+            let h = intrinsics.k(phi, p.second)
+                * (b.rotation * a.rotation.inverse()).matrix()
+                * intrinsics.k_inverse(phi, p.first);
+            p.kp1
+                .iter()
+                .zip(&p.kp2)
+                .map(|(x1, x2)| {
+                    let y = h * Vector3::new(x1[0], x1[1], 1.0);
+                    if y.z > 1e-12 {
+                        loss.rho(((y.x / y.z - x2[0]).powi(2) + (y.y / y.z - x2[1]).powi(2)).sqrt())
+                    } else {
+                        loss.rho(missing_px)
+                    }
+                })
+                .sum()
+        })
+        .collect();
+    per_pair.iter().sum()
+}
+
+/// The robust cost `Σ ρ(r)` of all matches under `cameras`: `r` is the Sampson distance, or
+/// for a pair whose cameras share a centre the distance to the rotation's prediction
+/// ([`tied_cost`]); a match whose pair lacks a camera costs `ρ(missing_px)`. Compares
+/// solutions that estimate different images.
 ///
 /// # Errors
 /// Inputs of the wrong length.
@@ -368,12 +414,15 @@ pub fn robust_cost(
         cauchy: cauchy_px,
         gate: None,
     };
+    let estimated = |i: usize| cameras.get(i).copied().flatten().is_some();
     let missing: usize = pairs
         .iter()
-        .filter(|p| usable(cameras, p.first, p.second).is_none())
+        .filter(|p| !(estimated(p.first) && estimated(p.second)))
         .map(|p| p.len())
         .sum();
-    Ok(cost_of(pairs, intrinsics, cameras, phi, loss) + missing as f64 * loss.rho(missing_px))
+    Ok(cost_of(pairs, intrinsics, cameras, phi, loss)
+        + tied_cost(pairs, intrinsics, cameras, phi, loss, missing_px)
+        + missing as f64 * loss.rho(missing_px))
 }
 
 /// Refines `cameras` (`None`: not estimated, left alone) and `phi` in place on the matches of
@@ -563,5 +612,61 @@ mod tests {
                 fd.norm()
             );
         }
+    }
+
+    /// A repeated viewpoint (two cameras on one centre) is scored by the rotation's
+    /// prediction of its matches, not as unestimated: the right rotation and focal cost
+    /// nothing, a wrong focal costs, and neither pays the missing-pair penalty.
+    #[test]
+    fn pairs_on_one_centre_are_scored_by_their_rotation() {
+        let intrinsics = ImageIntrinsics {
+            principal: vec![[320.0, 240.0], [320.0, 240.0]],
+            scale: vec![640.0, 640.0],
+        };
+        let phi = 1.5;
+        let a = CameraPose {
+            rotation: Rotation3::identity(),
+            center: Vector3::new(0.1, 0.2, 0.3),
+        };
+        let b = CameraPose {
+            rotation: Rotation3::from_euler_angles(0.02, -0.05, 0.01),
+            center: a.center,
+        };
+        let h = intrinsics.k(phi, 1) * b.rotation.matrix() * intrinsics.k_inverse(phi, 0);
+        let kp1: Vec<[f64; 2]> = (0..50)
+            .map(|i| [40.0 + 11.0 * f64::from(i), 30.0 + 7.0 * f64::from(i % 13)])
+            .collect();
+        let kp2 = kp1
+            .iter()
+            .map(|x| {
+                let y = h * Vector3::new(x[0], x[1], 1.0);
+                [y.x / y.z, y.y / y.z]
+            })
+            .collect();
+        let pair = PairMatches {
+            first: 0,
+            second: 1,
+            kp1,
+            kp2,
+            idx1: (0..50).collect(),
+            idx2: (0..50).collect(),
+        };
+        let cams = [Some(a), Some(b)];
+        let at = |phi: f64, cams: &[Option<CameraPose>]| {
+            robust_cost(&[&pair], &intrinsics, cams, phi, 2.0, 10.0).unwrap()
+        };
+        assert!(at(phi, &cams) < 1e-12, "{}", at(phi, &cams));
+        let missing = at(phi, &[Some(a), None]);
+        assert!((missing - 50.0 * 0.5 * 4.0 * (1.0 + 25.0f64).ln()).abs() < 1e-9);
+        let wrong_focal = at(0.5, &cams);
+        assert!(
+            wrong_focal > 1.0 && wrong_focal.is_finite(),
+            "{wrong_focal}"
+        );
+        let turned = CameraPose {
+            rotation: Rotation3::from_euler_angles(0.0, 0.02, 0.0) * b.rotation,
+            ..b
+        };
+        assert!(at(phi, &[Some(a), Some(turned)]) > 1.0);
     }
 }

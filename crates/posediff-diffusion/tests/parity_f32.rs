@@ -1,0 +1,58 @@
+//! The network in F32, as `posediff estimate` runs it (the vectorised GELU and softmax, faer's
+//! linear layers), against the official float32 outputs of `full/denoiser_io.safetensors`.
+//!
+//! Both sides round in float32 but sum in different orders, so they differ by the float32
+//! rounding of the network, not by the f64 recomputation error the f64 parity tests measure:
+//! `full/README.md` gives about 1e-6 relative for single passes. The features are
+//! LayerNorm outputs of magnitude up to about 5 after 12 blocks: 1e-6 · 5 rounds up to the
+//! backbone bound 1e-5 of the f64 tests; the denoiser outputs (|ε̂| ≲ 1) get 1e-6 · 1 = 1e-6 per
+//! element, relative to the largest output. PyTorch's own math path and fast path differ
+//! by 1.5e-7 on the same step (README).
+
+#![allow(clippy::unwrap_used)]
+
+use candle_core::{DType, Device, Tensor};
+use posediff_diffusion::PoseDiffusionModel;
+use posediff_fixtures::tensors::{tensor, values};
+use posediff_fixtures::{SafetensorsFixture, assert_close, shared_path};
+
+fn model() -> PoseDiffusionModel {
+    let path = shared_path("reference/full/model_random.safetensors");
+    PoseDiffusionModel::load(&path, DType::F32, &Device::Cpu).unwrap()
+}
+
+fn f32(fx: &SafetensorsFixture, name: &str) -> Tensor {
+    tensor(fx, name).to_dtype(DType::F32).unwrap()
+}
+
+#[test]
+fn f32_features_match_the_official_float32_ones() {
+    let m = model();
+    let fx = SafetensorsFixture::open(&shared_path("reference/full/denoiser_io.safetensors"));
+    let z = m
+        .image_features(&f32(&fx, "images").unsqueeze(0).unwrap())
+        .unwrap();
+    assert_eq!(z.dtype(), DType::F32);
+    let worst = assert_close("z", &values(&z), &fx.tensor("z").data, 1e-5, 0.0);
+    eprintln!("z: {worst:?}");
+}
+
+#[test]
+fn f32_denoiser_steps_match_the_official_float32_ones() {
+    let m = model();
+    let fx = SafetensorsFixture::open(&shared_path("reference/full/denoiser_io.safetensors"));
+    let (x, z) = (f32(&fx, "x_t"), f32(&fx, "z"));
+    for t in [0usize, 37, 99] {
+        let out = m.denoiser.forward(&x, &[t], &z).unwrap();
+        let expected = fx.tensor(&format!("out_t{t}")).data;
+        let scale = expected.iter().fold(0f64, |a, v| a.max(v.abs())).max(1.0);
+        let worst = assert_close(
+            &format!("out_t{t}"),
+            &values(&out),
+            &expected,
+            1e-6 * scale,
+            0.0,
+        );
+        eprintln!("t={t}: {worst:?}");
+    }
+}
