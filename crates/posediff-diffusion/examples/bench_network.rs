@@ -17,6 +17,11 @@ use posediff_diffusion::PoseDiffusionModel;
 use posediff_diffusion::sampler::{SeededNoise, sample};
 use serde_json::{Value, json};
 
+/// The `posediff` binary's allocator (glibc's returns the layers' large buffers to the kernel
+/// after each op: page faults on every allocation).
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 struct Args {
     reference: PathBuf,
     frames: Vec<usize>,

@@ -99,20 +99,9 @@ impl EncoderLayer {
     }
 
     fn self_attention(&self, x: &Tensor) -> Result<Tensor> {
-        let (b, n, c) = x.dims3()?;
-        let head_dim = c / HEADS;
-        let qkv = self.in_proj.forward(x)?;
-        let split = |i: usize| -> Result<Tensor> {
-            Ok(qkv
-                .narrow(2, i * c, c)?
-                .reshape((b, n, HEADS, head_dim))?
-                .transpose(1, 2)?
-                .contiguous()?)
-        };
-        let q = (split(0)? * (1.0 / (head_dim as f64).sqrt()))?;
-        let (k, v) = (split(1)?, split(2)?);
-        let attn = crate::norm::softmax_last_dim(&q.matmul(&k.t()?)?)?;
-        let out = attn.matmul(&v)?.transpose(1, 2)?.reshape((b, n, c))?;
+        let head_dim = DENOISER_DIM / HEADS;
+        let scale = 1.0 / (head_dim as f64).sqrt();
+        let out = crate::attention::self_attention(&self.in_proj.forward(x)?, HEADS, scale)?;
         self.out_proj.forward(&out)
     }
 

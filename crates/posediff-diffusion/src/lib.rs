@@ -11,6 +11,7 @@
 #![forbid(unsafe_code)]
 
 pub mod activation;
+pub mod attention;
 pub mod checkpoint;
 pub mod denoiser;
 pub mod error;

@@ -106,14 +106,16 @@ impl pulp::WithSimd for Rows<'_> {
     }
 }
 
-fn softmax_dispatch(values: &mut [f32], row: usize) {
+/// Softmax of every `row`-long row of `values` on the calling thread (the fused attention's
+/// rows).
+pub(crate) fn softmax_rows_dispatch(values: &mut [f32], row: usize) {
     pulp::Arch::new().dispatch(Rows { values, row });
 }
 
 /// Over candle's threads, whole rows per thread.
 fn softmax_parallel(values: &mut [f32], row: usize) {
     crate::activation::split_over_threads(values, row, PARALLEL_MIN, |part| {
-        softmax_dispatch(part, row);
+        softmax_rows_dispatch(part, row);
     });
 }
 

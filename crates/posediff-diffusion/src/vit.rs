@@ -59,20 +59,9 @@ impl Attention {
     }
 
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        let (b, n, c) = x.dims3()?;
-        let head_dim = c / HEADS;
-        let qkv = self
-            .qkv
-            .forward(x)?
-            .reshape((b, n, 3, HEADS, head_dim))?
-            .permute((2, 0, 3, 1, 4))?;
-        let q = qkv.i(0)?.contiguous()?;
-        let k = qkv.i(1)?.contiguous()?;
-        let v = qkv.i(2)?.contiguous()?;
+        let head_dim = VIT_DIM / HEADS;
         let scale = (head_dim as f64).powf(-0.5);
-        let attn = (q.matmul(&k.t()?)? * scale)?;
-        let attn = crate::norm::softmax_last_dim(&attn)?;
-        let out = attn.matmul(&v)?.transpose(1, 2)?.reshape((b, n, c))?;
+        let out = crate::attention::self_attention(&self.qkv.forward(x)?, HEADS, scale)?;
         self.proj.forward(&out)
     }
 }

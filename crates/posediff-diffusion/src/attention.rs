@@ -1,0 +1,200 @@
+//! Multi-head self-attention from a packed `qkv` projection, fused per image and head for F32
+//! on the CPU: `softmax(s · Q Kᵀ) V` per head of the `(B, N, 3·C)` projection (PyTorch's
+//! packing: `[q | k | v]`, each `H` heads of `D = C/H`), with the head's `Q`, `K`, `V`, its
+//! `N × N` scores and its output in per-thread buffers reused across heads (L2-sized for the
+//! ViT's 197 tokens), the scale folded into the product and the output written straight into
+//! `(B, N, C)`.
+//!
+//! candle's path splits `q`, `k`, `v` into contiguous copies, multiplies them as a batch of
+//! small matrices (about 56 GFLOP/s here), scales, applies the softmax and transposes the
+//! result back: four extra passes and five allocations per layer. Other dtypes, devices and
+//! tracked tensors keep that path ([`attention_candle`]).
+
+use candle_core::{CpuStorage, CustomOp1, DType, Layout, Shape, Tensor};
+use faer::{Accum, MatMut, MatRef, Par};
+use rayon::prelude::*;
+
+use crate::error::Result;
+
+/// `softmax(scale · Q Kᵀ) V` per head for `qkv` `(B, N, 3·C)` with `heads` heads: `(B, N, C)`.
+///
+/// # Errors
+/// A last dimension that is not `3 · heads · D`, tensor errors.
+pub fn self_attention(qkv: &Tensor, heads: usize, scale: f64) -> Result<Tensor> {
+    if qkv.dtype() == DType::F32 && qkv.device().is_cpu() && !qkv.track_op() {
+        return Ok(qkv
+            .contiguous()?
+            .apply_op1_no_bwd(&FusedAttention { heads, scale })?);
+    }
+    attention_candle(qkv, heads, scale)
+}
+
+/// The same with candle's tensor ops (differentiable; any dtype and device).
+///
+/// # Errors
+/// As [`self_attention`].
+pub fn attention_candle(qkv: &Tensor, heads: usize, scale: f64) -> Result<Tensor> {
+    let (b, n, c3) = qkv.dims3()?;
+    let c = c3 / 3;
+    let d = c / heads.max(1);
+    let p = qkv.reshape((b, n, 3, heads, d))?.permute((2, 0, 3, 1, 4))?;
+    let (q, k, v) = (
+        p.get(0)?.contiguous()?,
+        p.get(1)?.contiguous()?,
+        p.get(2)?.contiguous()?,
+    );
+    let attn = (q.matmul(&k.t()?)? * scale)?;
+    let attn = crate::norm::softmax_last_dim(&attn)?;
+    Ok(attn.matmul(&v)?.transpose(1, 2)?.reshape((b, n, c))?)
+}
+
+struct FusedAttention {
+    heads: usize,
+    scale: f64,
+}
+
+impl CustomOp1 for FusedAttention {
+    fn name(&self) -> &'static str {
+        "fused-self-attention-f32"
+    }
+
+    fn cpu_fwd(
+        &self,
+        storage: &CpuStorage,
+        layout: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let (CpuStorage::F32(data), Some((start, end))) = (storage, layout.contiguous_offsets())
+        else {
+            candle_core::bail!("fused attention takes a contiguous F32 tensor");
+        };
+        let (b, n, c3) = layout.shape().dims3()?;
+        let h = self.heads;
+        if h == 0 || c3 % (3 * h) != 0 {
+            candle_core::bail!("fused attention: {c3} is not 3 × {h} heads × a head width");
+        }
+        let c = c3 / 3;
+        let mut out = vec![0f32; b * n * c];
+        attend(&data[start..end], &mut out, (b, n, c, h), self.scale as f32);
+        Ok((CpuStorage::F32(out), Shape::from((b, n, c))))
+    }
+}
+
+/// Per-thread buffers of one head: `Q`, `K`, `V`, the output (`N × D` each) and the scores.
+struct Scratch {
+    q: Vec<f32>,
+    k: Vec<f32>,
+    v: Vec<f32>,
+    o: Vec<f32>,
+    scores: Vec<f32>,
+}
+
+/// Images in parallel (each writes its own `N × C` block), heads in turn.
+fn attend(qkv: &[f32], out: &mut [f32], (b, n, c, h): (usize, usize, usize, usize), scale: f32) {
+    if b == 0 || n == 0 || c == 0 {
+        return;
+    }
+    let d = c / h;
+    let per_image = |(image, dst): (usize, &mut [f32])| {
+        let src = &qkv[image * n * 3 * c..(image + 1) * n * 3 * c];
+        let mut scratch = Scratch {
+            q: vec![0f32; n * d],
+            k: vec![0f32; n * d],
+            v: vec![0f32; n * d],
+            o: vec![0f32; n * d],
+            scores: vec![0f32; n * n],
+        };
+        for head in 0..h {
+            attend_head(src, dst, &mut scratch, (n, c, d, head), scale);
+        }
+    };
+    if b > 1 && crate::threads() > 1 {
+        out.par_chunks_mut(n * c).enumerate().for_each(per_image);
+    } else {
+        out.chunks_mut(n * c).enumerate().for_each(per_image);
+    }
+}
+
+/// One head of one image: `S = scale · Q Kᵀ` (row-major `N × N`), its row softmax, then
+/// `dst[:, head] = S V`. The head's `Q`, `K`, `V` are gathered into contiguous buffers first
+/// and every product runs on contiguous matrices (faer 0.24 corrupted the heap on views with
+/// gaps between rows: `munmap_chunk(): invalid pointer` for `N = 1`, `D = 3`).
+fn attend_head(
+    src: &[f32],
+    dst: &mut [f32],
+    buf: &mut Scratch,
+    (n, c, d, head): (usize, usize, usize, usize),
+    scale: f32,
+) {
+    for (i, row) in src.chunks_exact(3 * c).enumerate() {
+        let at = head * d;
+        buf.q[i * d..(i + 1) * d].copy_from_slice(&row[at..at + d]);
+        buf.k[i * d..(i + 1) * d].copy_from_slice(&row[c + at..c + at + d]);
+        buf.v[i * d..(i + 1) * d].copy_from_slice(&row[2 * c + at..2 * c + at + d]);
+    }
+    // Row-major N × D buffers are column-major D × N: Qᵀ, Kᵀ, Vᵀ.
+    let qt = MatRef::from_column_major_slice(&buf.q, d, n);
+    let kt = MatRef::from_column_major_slice(&buf.k, d, n);
+    let vt = MatRef::from_column_major_slice(&buf.v, d, n);
+    // Sᵀ = K Qᵀ, column-major: S row-major.
+    let st = MatMut::from_column_major_slice_mut(&mut buf.scores, n, n);
+    faer::linalg::matmul::matmul(st, Accum::Replace, kt.transpose(), qt, scale, Par::Seq);
+    crate::softmax::softmax_rows_dispatch(&mut buf.scores, n);
+    // Oᵀ = Vᵀ Sᵀ, column-major D × N: O row-major N × D.
+    let st = MatRef::from_column_major_slice(&buf.scores, n, n);
+    let ot = MatMut::from_column_major_slice_mut(&mut buf.o, d, n);
+    faer::linalg::matmul::matmul(ot, Accum::Replace, vt, st, 1.0, Par::Seq);
+    for (i, row) in buf.o.chunks_exact(d).enumerate() {
+        dst[i * c + head * d..i * c + (head + 1) * d].copy_from_slice(row);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use candle_core::{Device, Var};
+
+    use super::*;
+
+    /// Against candle's composed attention in F64, for the ViT's and the denoiser's shapes
+    /// (and a single image, a single token): F32 rounding of `D`- and `N`-long sums only.
+    #[test]
+    fn matches_the_composed_attention() -> anyhow::Result<()> {
+        for (b, n, heads, d) in [
+            (1, 1, 2, 3),
+            (1, 2, 1, 2),
+            (1, 20, 4, 128),
+            (2, 17, 6, 64),
+            (3usize, 197usize, 6usize, 64usize),
+        ] {
+            let qkv = Tensor::randn(0f32, 1.0, (b, n, 3 * heads * d), &Device::Cpu)?;
+            let scale = (d as f64).powf(-0.5);
+            let ours = self_attention(&qkv, heads, scale)?;
+            let truth = attention_candle(&qkv.to_dtype(DType::F64)?, heads, scale)?;
+            assert_eq!(ours.dims(), &[b, n, heads * d]);
+            let err = (ours.to_dtype(DType::F64)? - truth)?
+                .abs()?
+                .flatten_all()?
+                .max(0)?
+                .to_scalar::<f64>()?;
+            assert!(err < 2e-5, "{b}×{n}, {heads} heads of {d}: {err:e}");
+        }
+        Ok(())
+    }
+
+    /// A width that does not split into three blocks of whole heads is an error.
+    #[test]
+    fn a_width_without_whole_heads_is_an_error() -> anyhow::Result<()> {
+        let qkv = Tensor::zeros((1, 4, 20), DType::F32, &Device::Cpu)?;
+        assert!(self_attention(&qkv, 3, 1.0).is_err());
+        Ok(())
+    }
+
+    /// Tracked inputs (training) take the differentiable path.
+    #[test]
+    fn tracked_inputs_keep_gradients() -> anyhow::Result<()> {
+        let qkv = Var::randn(0f32, 1.0, (1, 5, 12), &Device::Cpu)?;
+        let loss = self_attention(qkv.as_tensor(), 2, 0.5)?.sqr()?.sum_all()?;
+        let grads = loss.backward()?;
+        assert!(grads.get(qkv.as_tensor()).is_some());
+        Ok(())
+    }
+}
