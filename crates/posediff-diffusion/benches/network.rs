@@ -8,6 +8,10 @@ use candle_core::{DType, Device, Tensor};
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
 use posediff_diffusion::PoseDiffusionModel;
 
+/// The `posediff` binary's allocator, so that the benchmark times what it runs.
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 fn model() -> PoseDiffusionModel {
     let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("../../../shared/reference/full/model_random.safetensors");

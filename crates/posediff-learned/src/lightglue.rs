@@ -96,33 +96,23 @@ pub struct Trace {
     pub assignment: Vec<f32>,
 }
 
+/// `nn.Linear`: posediff-diffusion's layer (faer's product for F32 on the CPU).
 #[derive(Debug, Clone)]
-struct Linear {
-    /// `(in, out)`.
-    weight_t: Tensor,
-    bias: Option<Tensor>,
-}
+struct Linear(posediff_diffusion::linear::Linear);
 
 impl Linear {
     fn new(vb: &VarBuilder, name: &str, inp: usize, out: usize, bias: bool) -> Result<Self> {
-        let weight_t = vb
-            .get((out, inp), &format!("{name}.weight"))?
-            .t()?
-            .contiguous()?;
+        let weight = vb.get((out, inp), &format!("{name}.weight"))?;
         let bias = if bias {
             Some(vb.get(out, &format!("{name}.bias"))?)
         } else {
             None
         };
-        Ok(Self { weight_t, bias })
+        Ok(Self(posediff_diffusion::linear::Linear::new(weight, bias)?))
     }
 
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        let y = x.matmul(&self.weight_t)?;
-        Ok(match &self.bias {
-            Some(b) => y.broadcast_add(b)?,
-            None => y,
-        })
+        Ok(self.0.forward(x)?)
     }
 }
 
