@@ -56,3 +56,25 @@ fn f32_denoiser_steps_match_the_official_float32_ones() {
         eprintln!("t={t}: {worst:?}");
     }
 }
+
+/// More images than one ViT pass takes (13 = passes of 7 and 6) give each image the features
+/// it gets alone: the passes split the batch and nothing else (the tiny checkpoint, F32; the
+/// products' blocking may differ with the row count, hence float32 rounding, not equality).
+#[test]
+fn features_in_several_passes_match_one_image_at_a_time() {
+    let path = shared_path("reference/tiny/model_tiny.safetensors");
+    let m = PoseDiffusionModel::load(&path, DType::F32, &Device::Cpu).unwrap();
+    let n = posediff_diffusion::features::ImageFeatureExtractor::MAX_IMAGES_PER_PASS + 1;
+    let images = Tensor::rand(0f32, 1.0, (n, 3, 224, 224), &Device::Cpu).unwrap();
+    let all = m.extractor.forward(&images).unwrap();
+    assert_eq!(all.dims(), &[n, 384]);
+    let one_by_one: Vec<Tensor> = (0..n)
+        .map(|i| {
+            m.extractor
+                .forward(&images.narrow(0, i, 1).unwrap())
+                .unwrap()
+        })
+        .collect();
+    let one_by_one = Tensor::cat(&one_by_one, 0).unwrap();
+    assert_close("passes", &values(&all), &values(&one_by_one), 1e-5, 0.0);
+}
