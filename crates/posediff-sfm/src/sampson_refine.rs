@@ -396,7 +396,7 @@ fn tied_cost(
 
 /// The robust cost `Σ ρ(r)` of all matches under `cameras`: `r` is the Sampson distance, or
 /// for a pair whose cameras share a centre the distance to the rotation's prediction
-/// ([`tied_cost`]); a match whose pair lacks a camera costs `ρ(missing_px)`. Compares
+/// (see `tied_cost`); a match whose pair lacks a camera costs `ρ(missing_px)`. Compares
 /// solutions that estimate different images.
 ///
 /// # Errors
