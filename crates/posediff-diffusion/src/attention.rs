@@ -63,10 +63,7 @@ impl CustomOp1 for FusedAttention {
         storage: &CpuStorage,
         layout: &Layout,
     ) -> candle_core::Result<(CpuStorage, Shape)> {
-        let (CpuStorage::F32(data), Some((start, end))) = (storage, layout.contiguous_offsets())
-        else {
-            candle_core::bail!("fused attention takes a contiguous F32 tensor");
-        };
+        let qkv = crate::contiguous_f32(storage, layout, "fused attention: qkv")?;
         let (b, n, c3) = layout.shape().dims3()?;
         let h = self.heads;
         if h == 0 || c3 % (3 * h) != 0 {
@@ -74,7 +71,7 @@ impl CustomOp1 for FusedAttention {
         }
         let c = c3 / 3;
         let mut out = vec![0f32; b * n * c];
-        attend(&data[start..end], &mut out, (b, n, c, h), self.scale as f32);
+        attend(qkv, &mut out, (b, n, c, h), self.scale as f32);
         Ok((CpuStorage::F32(out), Shape::from((b, n, c))))
     }
 }

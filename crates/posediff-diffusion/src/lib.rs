@@ -25,6 +25,19 @@ pub mod softmax;
 pub mod train;
 pub mod vit;
 
+/// The values of a contiguous F32 CPU tensor, for the custom ops' `cpu_fwd`; `what` names the
+/// operand in the error.
+pub(crate) fn contiguous_f32<'a>(
+    storage: &'a candle_core::CpuStorage,
+    layout: &candle_core::Layout,
+    what: &str,
+) -> candle_core::Result<&'a [f32]> {
+    match (storage, layout.contiguous_offsets()) {
+        (candle_core::CpuStorage::F32(data), Some((start, end))) => Ok(&data[start..end]),
+        _ => candle_core::bail!("{what} must be a contiguous F32 tensor"),
+    }
+}
+
 /// The threads the CPU kernels split over: candle's count (`RAYON_NUM_THREADS`, else the
 /// physical cores), read once. candle's `get_num_threads` reads the environment and
 /// `/proc/cpuinfo` on every call (about 3 % of a denoiser step in a profile).

@@ -135,24 +135,13 @@ fn weight_slice<'a>(
     }
 }
 
-fn slice<'a>(
-    storage: &'a CpuStorage,
-    layout: &Layout,
-    what: &str,
-) -> candle_core::Result<&'a [f32]> {
-    match (storage, layout.contiguous_offsets()) {
-        (CpuStorage::F32(data), Some((start, end))) => Ok(&data[start..end]),
-        _ => candle_core::bail!("linear-f32: {what} must be a contiguous F32 tensor"),
-    }
-}
-
 impl LinearF32 {
     fn run(
         x: (&CpuStorage, &Layout),
         w: (&CpuStorage, &Layout),
         b: Option<(&CpuStorage, &Layout)>,
     ) -> candle_core::Result<(CpuStorage, Shape)> {
-        let xs = slice(x.0, x.1, "the input")?;
+        let xs = crate::contiguous_f32(x.0, x.1, "linear-f32: the input")?;
         let (ws, column_major) = weight_slice(w.0, w.1)?;
         let (out_dim, in_dim) = w.1.shape().dims2()?;
         let dims = x.1.shape().dims();
@@ -165,7 +154,7 @@ impl LinearF32 {
         let rows = xs.len() / in_dim.max(1);
         let mut out = match b {
             Some(b) => {
-                let bs = slice(b.0, b.1, "the bias")?;
+                let bs = crate::contiguous_f32(b.0, b.1, "linear-f32: the bias")?;
                 if bs.len() != out_dim {
                     candle_core::bail!("linear-f32: {} biases for {out_dim} outputs", bs.len());
                 }
@@ -283,51 +272,33 @@ mod tests {
             let b = Tensor::randn(0f32, 1.0, out_dim, &Device::Cpu)?;
             for bias in [Some(b.clone()), None] {
                 let layer = Linear::new(w.clone(), bias.clone())?;
-                let ours = layer.forward(&x)?;
-                let f64_layer = Linear::new(
-                    w.to_dtype(DType::F64)?,
-                    bias.map(|b| b.to_dtype(DType::F64)).transpose()?,
-                )?;
+                assert!(layer.weight.t()?.is_contiguous(), "stored column-major");
+                // The same layer with the weight row-major, as PyTorch stores it.
                 let row_major = Linear {
                     weight: w.clone(),
                     bias: layer.bias.clone(),
                 };
-                assert!(layer.weight.t()?.is_contiguous(), "stored column-major");
-                assert_eq!(
-                    row_major
-                        .forward(&x)?
-                        .flatten_all()?
-                        .to_vec1::<f32>()?
-                        .len(),
-                    ours_len(&lead, out_dim)
-                );
-                let a = row_major.forward(&x)?.to_dtype(DType::F64)?;
-                let truth = f64_layer.forward(&x.to_dtype(DType::F64)?)?;
-                assert_eq!(ours.dims(), truth.dims());
-                if ours.elem_count() > 0 {
-                    let err = (a - &truth)?
-                        .abs()?
-                        .flatten_all()?
-                        .max(0)?
-                        .to_scalar::<f64>()?;
-                    assert!(err < 1e-4, "row-major {lead:?} {in_dim}→{out_dim}: {err:e}");
-                }
-                assert_eq!(ours.dtype(), DType::F32);
-                if ours.elem_count() > 0 {
-                    let err = (ours.to_dtype(DType::F64)? - truth)?
-                        .abs()?
-                        .flatten_all()?
-                        .max(0)?
-                        .to_scalar::<f64>()?;
-                    assert!(err < 1e-4, "{lead:?} {in_dim}→{out_dim}: {err:e}");
+                let truth = Linear::new(
+                    w.to_dtype(DType::F64)?,
+                    bias.map(|b| b.to_dtype(DType::F64)).transpose()?,
+                )?
+                .forward(&x.to_dtype(DType::F64)?)?;
+                for (what, l) in [("column-major", &layer), ("row-major", &row_major)] {
+                    let ours = l.forward(&x)?;
+                    assert_eq!(ours.dtype(), DType::F32);
+                    assert_eq!(ours.dims(), truth.dims(), "{what}");
+                    if ours.elem_count() > 0 {
+                        let err = (ours.to_dtype(DType::F64)? - &truth)?
+                            .abs()?
+                            .flatten_all()?
+                            .max(0)?
+                            .to_scalar::<f64>()?;
+                        assert!(err < 1e-4, "{what} {lead:?} {in_dim}→{out_dim}: {err:e}");
+                    }
                 }
             }
         }
         Ok(())
-    }
-
-    fn ours_len(lead: &[usize], out_dim: usize) -> usize {
-        lead.iter().product::<usize>() * out_dim
     }
 
     /// A strided input (a transpose) gives the same values as its contiguous copy.
