@@ -9,7 +9,7 @@
 //! docs/BENCHMARKS.md). The bias is the product's initial value (one pass less). Other dtypes
 //! (the F64 parity tests), devices and tracked tensors (training) keep candle's ops.
 
-use candle_core::{CpuStorage, CustomOp2, CustomOp3, DType, Layout, Module, Shape, Tensor};
+use candle_core::{CpuStorage, CustomOp2, CustomOp3, DType, Layout, Shape, Tensor};
 use candle_nn::VarBuilder;
 use faer::{Accum, MatMut, MatRef, Par};
 
@@ -56,16 +56,6 @@ impl Linear {
         Ok(Self { weight, bias })
     }
 
-    /// The weight `(out, in)`.
-    pub fn weight(&self) -> &Tensor {
-        &self.weight
-    }
-
-    /// The bias `(out)`.
-    pub fn bias(&self) -> Option<&Tensor> {
-        self.bias.as_ref()
-    }
-
     fn fast_path(&self, x: &Tensor) -> bool {
         std::iter::once(x)
             .chain(std::iter::once(&self.weight))
@@ -100,12 +90,6 @@ impl Linear {
             Some(b) => x.apply_op3_no_bwd(&weight, &b.contiguous()?, &LinearF32)?,
             None => x.apply_op2_no_bwd(&weight, &LinearF32)?,
         })
-    }
-}
-
-impl Module for Linear {
-    fn forward(&self, x: &Tensor) -> candle_core::Result<Tensor> {
-        Linear::forward(self, x).map_err(|e| candle_core::Error::Msg(e.to_string()))
     }
 }
 
