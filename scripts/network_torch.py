@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""The official PoseDiffusion network timed in PyTorch on the CPU (`cargo xtask bench-network`).
+"""The official PoseDiffusion network timed in PyTorch (`cargo xtask bench-network`, `scripts/device_check.sh`).
 
 The modules are the official ones written out: DINO's `vision_transformer.py` (ViT-S/16, the
 `Attention`/`Mlp`/`Block` of facebookresearch/dino @ 7c446df, positional-embedding interpolation
@@ -9,7 +9,13 @@ with the scale-factor mapping), and its `Denoiser` (time and harmonic pose embed
 DDPM `p_sample_loop` (100 steps, no GGS). SPEC.md §3-4 describes them; the weights are the
 random-weight checkpoint of `shared/reference/full` in the official key layout. Before timing,
 the script checks itself against the official outputs of `denoiser_io.safetensors` (features
-and a denoiser step), so what is timed is the official network.
+and a denoiser step), so what is timed is the official network. Given `--reference` a `tiny`
+fixture folder instead (2 ViT blocks, 2 trunk layers: what travels to a GPU machine), it
+checks itself on the tiny model and times an official-size network with PyTorch's default
+initialisation (the timings do not depend on the weights). `--device cuda` times on the GPU
+(synchronised); `--train-iterations K` also times K iterations of the official training step
+with a frozen backbone (`train.py`: ⌊512 / 50⌋ = 10 sets of 50 frames, batch repeat 90, the L1
+noise loss, gradient clipping at 1, AdamW), as `posediff device-check` does.
 
     python scripts/network_torch.py --reference ../shared/reference/full --frames 10,20,100 \
         --threads 2 --out target/bench-network/pytorch.json
@@ -138,9 +144,9 @@ class VisionTransformer(nn.Module):
 
 
 class MultiScaleImageFeatureExtractor(nn.Module):
-    def __init__(self):
+    def __init__(self, depth=12):
         super().__init__()
-        self._net = VisionTransformer()
+        self._net = VisionTransformer(depth=depth)
         self.register_buffer("_resnet_mean", torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("_resnet_std", torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1), persistent=False)
         self.scale_factors = [1, 1 / 2, 1 / 3]
@@ -167,7 +173,9 @@ class TimeStepEmbedding(nn.Module):
 
     def forward(self, timesteps):
         half = self.dim // 2
-        freqs = torch.exp(-math.log(self.max_period) * torch.arange(0, half, dtype=torch.float32) / half)
+        freqs = torch.exp(
+            -math.log(self.max_period) * torch.arange(0, half, dtype=torch.float32, device=timesteps.device) / half
+        )
         args = timesteps[:, None].float() * freqs[None]
         return self.linear(torch.cat([torch.cos(args), torch.sin(args)], dim=-1))
 
@@ -190,7 +198,7 @@ class MLPHead(nn.Sequential):
 
 
 class Denoiser(nn.Module):
-    def __init__(self):
+    def __init__(self, layers=8):
         super().__init__()
         self.time_embed = TimeStepEmbedding()
         self.pose_embed = PoseEmbedding()
@@ -199,12 +207,12 @@ class Denoiser(nn.Module):
             d_model=512, nhead=4, dim_feedforward=1024, dropout=0.1, activation="relu",
             batch_first=True, norm_first=True, layer_norm_eps=1e-5,
         )
-        self._trunk = nn.TransformerEncoder(layer, num_layers=8, enable_nested_tensor=False)
+        self._trunk = nn.TransformerEncoder(layer, num_layers=layers, enable_nested_tensor=False)
         self._last = MLPHead()
 
     def forward(self, x, t, z):
         B, N, _ = z.shape
-        pivot = torch.zeros(B, N, 1)
+        pivot = torch.zeros(B, N, 1, device=z.device)
         pivot[:, 0] = 1
         z = torch.cat([z, pivot], dim=-1)
         t_emb = self.time_embed(t).view(B, 1, -1).expand(-1, N, -1)
@@ -214,46 +222,99 @@ class Denoiser(nn.Module):
 
 def p_sample_loop(denoiser, sched, z, gen):
     B, N, _ = z.shape
-    x = torch.randn(B, N, 9, generator=gen)
+    x = torch.randn(B, N, 9, generator=gen, device=z.device)
     for t in reversed(range(100)):
-        tt = torch.full((B,), t, dtype=torch.long)
+        tt = torch.full((B,), t, dtype=torch.long, device=z.device)
         eps = denoiser(x, tt, z)
         x0 = sched["sqrt_recip_alphas_cumprod"][t] * x - sched["sqrt_recipm1_alphas_cumprod"][t] * eps
         mean = sched["posterior_mean_coef1"][t] * x0 + sched["posterior_mean_coef2"][t] * x
-        noise = torch.randn(x.shape, generator=gen) if t > 0 else torch.zeros_like(x)
+        noise = torch.randn(x.shape, generator=gen, device=x.device) if t > 0 else torch.zeros_like(x)
         x = mean + (0.5 * sched["posterior_log_variance_clipped"][t]).exp() * noise
     return x
 
 
-def load(reference):
-    state = read_safetensors(f"{reference}/model_random.safetensors")
-    extractor = MultiScaleImageFeatureExtractor()
-    denoiser = Denoiser()
+def fixture_files(reference):
+    """The model and the denoiser outputs of a fixture folder (full or tiny)."""
+    import os
+
+    if os.path.isfile(f"{reference}/model_random.safetensors"):
+        return f"{reference}/model_random.safetensors", f"{reference}/denoiser_io.safetensors", True
+    return f"{reference}/model_tiny.safetensors", f"{reference}/denoiser_io_tiny.safetensors", False
+
+
+def load(model_path, device):
+    """The network of a checkpoint in the official key layout (depths read from its keys)."""
+    state = read_safetensors(model_path)
     pre_e, pre_d = "image_feature_extractor.", "diffuser.model."
+    blocks = {int(k.split(".")[3]) for k in state if k.startswith(pre_e + "_net.blocks.")}
+    layers = {int(k.split(".")[4]) for k in state if k.startswith(pre_d + "_trunk.layers.")}
+    extractor = MultiScaleImageFeatureExtractor(depth=len(blocks))
+    denoiser = Denoiser(layers=len(layers))
     extractor.load_state_dict({k[len(pre_e):]: v for k, v in state.items() if k.startswith(pre_e)})
     denoiser.load_state_dict({k[len(pre_d):]: v for k, v in state.items() if k.startswith(pre_d)})
-    sched = {k[len("diffuser."):]: v for k, v in state.items() if k.startswith("diffuser.") and not k.startswith(pre_d)}
-    return extractor.eval(), denoiser.eval(), sched
+    sched = {
+        k[len("diffuser."):]: v.to(device)
+        for k, v in state.items()
+        if k.startswith("diffuser.") and not k.startswith(pre_d)
+    }
+    return extractor.to(device).eval(), denoiser.to(device).eval(), sched
 
 
-def check(extractor, denoiser, reference):
-    """Max abs differences against the official outputs of denoiser_io.safetensors."""
-    io = read_safetensors(f"{reference}/denoiser_io.safetensors")
+def check(extractor, denoiser, io_path, device):
+    """Max abs differences against the official outputs of a denoiser_io file."""
+    io = {k: v.to(device) for k, v in read_safetensors(io_path).items()}
     feats = extractor(io["images"])
-    out = denoiser(io["x_t"], torch.tensor([37]), io["z"])
+    out = denoiser(io["x_t"], torch.tensor([37], device=device), io["z"])
     return {
         "features_max_abs": float((feats - io["features"]).abs().max()),
         "denoiser_t37_max_abs": float((out - io["out_t37"]).abs().max()),
     }
 
 
-def best_of(fn, repeats):
+def best_of(fn, repeats, device):
     times = []
     for _ in range(repeats):
+        if device.type == "cuda":
+            torch.cuda.synchronize()
         start = time.perf_counter()
         fn()
+        if device.type == "cuda":
+            torch.cuda.synchronize()
         times.append(time.perf_counter() - start)
     return min(times), times
+
+
+def train_rate(denoiser, sched, device, iterations, sets=10, frames=50, repeat=90):
+    """Seconds per official training iteration with a frozen backbone (features given)."""
+    denoiser.train()
+    params = [p for p in denoiser.parameters() if p.requires_grad]
+    opt = torch.optim.AdamW(params, lr=1e-4)
+    b = sets * repeat
+    z = torch.randn(sets, frames, 384, device=device).repeat(repeat, 1, 1)
+    x0 = torch.randn(sets, frames, 9, device=device).repeat(repeat, 1, 1)
+    a, s1 = sched["sqrt_alphas_cumprod"], sched["sqrt_one_minus_alphas_cumprod"]
+    seconds = []
+    for i in range(iterations + 1):
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+        start = time.perf_counter()
+        t = torch.randint(0, 100, (b,), device=device)
+        noise = torch.randn(b, frames, 9, device=device)
+        x_t = a[t].view(b, 1, 1) * x0 + s1[t].view(b, 1, 1) * noise
+        loss = (denoiser(x_t, t, z) - noise).abs().mean()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(params, 1.0)
+        opt.step()
+        float(loss.detach())
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+        if i > 0:
+            seconds.append(time.perf_counter() - start)
+    denoiser.eval()
+    mean = sum(seconds) / max(len(seconds), 1)
+    return {"preset": "official", "sets": sets, "frames": frames, "batch_repeat": repeat,
+            "seconds_per_iteration": mean, "iterations_per_s": 1.0 / mean, "loss": float(loss.detach())}
 
 
 def main():
@@ -262,24 +323,41 @@ def main():
     ap.add_argument("--frames", default="10,20,100")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    ap.add_argument("--train-iterations", type=int, default=0)
     ap.add_argument("--out", required=True)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
+    device = torch.device(args.device)
+    if device.type == "cuda":
+        # Full float32 products, as posediff device-check runs them.
+        torch.backends.cuda.matmul.allow_tf32 = False
+        torch.backends.cudnn.allow_tf32 = False
+    model_path, io_path, full_size = fixture_files(args.reference)
+    # Built outside inference mode: the training step needs ordinary parameters.
+    extractor, denoiser, sched = load(model_path, device)
     with torch.inference_mode():
-        extractor, denoiser, sched = load(args.reference)
-        checks = check(extractor, denoiser, args.reference)
+        checks = check(extractor, denoiser, io_path, device)
         if checks["features_max_abs"] > 1e-4 or checks["denoiser_t37_max_abs"] > 1e-4:
             raise SystemExit(f"the PyTorch network does not reproduce the official outputs: {checks}")
+    if not full_size:
+        # Official size, PyTorch's default initialisation (the tiny model was only checked).
+        extractor = MultiScaleImageFeatureExtractor().to(device).eval()
+        denoiser = Denoiser().to(device).eval()
+    with torch.inference_mode():
         rows = []
-        gen = torch.Generator().manual_seed(0)
+        gen = torch.Generator(device=device).manual_seed(0)
         for n in [int(s) for s in args.frames.split(",")]:
-            images = torch.rand(n, 3, 224, 224, generator=gen)
-            extractor(images[:2])  # warm-up
-            feat_s, feat_all = best_of(lambda: extractor(images), args.repeats)
+            images = torch.rand(n, 3, 224, 224, generator=gen, device=device)
+            extractor(images)  # warm-up
+            feat_s, feat_all = best_of(lambda: extractor(images), args.repeats, device)
             z = extractor(images).view(1, n, 384)
-            step_s, _ = best_of(lambda: denoiser(torch.randn(1, n, 9), torch.tensor([50]), z), 10)
-            sample_s, sample_all = best_of(lambda: p_sample_loop(denoiser, sched, z, gen), args.repeats)
+            x = torch.randn(1, n, 9, device=device)
+            t50 = torch.tensor([50], device=device)
+            denoiser(x, t50, z)
+            step_s, _ = best_of(lambda: denoiser(x, t50, z), 10, device)
+            sample_s, sample_all = best_of(lambda: p_sample_loop(denoiser, sched, z, gen), args.repeats, device)
             rows.append({
                 "frames": n,
                 "features_s": feat_s,
@@ -288,12 +366,17 @@ def main():
                 "sampling_100_s": sample_s,
                 "sampling_runs_s": sample_all,
             })
-            print(f"pytorch {n} frames: features {feat_s:.3f} s, 100 steps {sample_s:.3f} s", flush=True)
+            print(f"pytorch {n} frames: features {feat_s:.4f} s, 100 steps {sample_s:.4f} s", flush=True)
+    training = train_rate(denoiser, sched, device, args.train_iterations) if args.train_iterations > 0 else None
     report = {
         "torch": torch.__version__,
+        "device": args.device,
         "threads": args.threads,
+        "checked_on": model_path,
+        "timed": model_path if full_size else "official size, PyTorch default initialisation",
         "checks": checks,
         "rows": rows,
+        "training": training,
     }
     with open(args.out, "w") as f:
         json.dump(report, f, indent=1)

@@ -47,7 +47,14 @@
 //! - `convert-checkpoint IN OUT`: an official `.pth` (or safetensors) checkpoint to validated
 //!   safetensors with the official keys.
 //!
+//! - `cuda-build [--compute-cap 90] [--out F]`: the `posediff` binary with `--features cuda`,
+//!   built without a GPU (the CUDA 13.0 compiler and libraries from PyPI, a static OpenCV),
+//!   stripped, in `target/cuda-build/posediff`, for `scripts/device_check.sh` on a GPU machine
+//!   (`cuda_build.rs`).
+//!
 //! xtask stays light (std + anyhow): it shells out to cargo for the heavy work.
+
+mod cuda_build;
 
 use std::process::Command;
 use std::time::Instant;
@@ -144,6 +151,7 @@ fn main() -> Result<()> {
         ),
         "weights" => weights(&std::env::args().skip(2).collect::<Vec<_>>()),
         "bench-network" => bench_network(&std::env::args().skip(2).collect::<Vec<_>>()),
+        "cuda-build" => cuda_build::cuda_build(&std::env::args().skip(2).collect::<Vec<_>>()),
         "convert-checkpoint" => {
             // Paths are the caller's, relative to where they ran the command.
             let cwd = std::env::current_dir()?;
@@ -163,7 +171,7 @@ fn main() -> Result<()> {
         }
         _ => {
             eprintln!(
-                "usage: cargo xtask <demo | synth ... | bench-network [--frames 10,20,100] [--python P | --no-pytorch] [--out D] | bench-scale [--sizes 20,50,100] [--paths orbit,forward] [--pairs P] --out D | ci | setup | deps-check | convert-checkpoint IN OUT | bench-matching --data D --out F.json | bench-real ... | bench-co3d ...>"
+                "usage: cargo xtask <demo | synth ... | cuda-build [--compute-cap 90] [--out F] | bench-network [--frames 10,20,100] [--python P | --no-pytorch] [--out D] | bench-scale [--sizes 20,50,100] [--paths orbit,forward] [--pairs P] --out D | ci | setup | deps-check | convert-checkpoint IN OUT | bench-matching --data D --out F.json | bench-real ... | bench-co3d ...>"
             );
             bail!("unknown task {task:?}")
         }

@@ -3,6 +3,7 @@
 //! (progress bars, the device argument, the ground truth matched by name).
 
 pub mod bench;
+pub mod device_check;
 pub mod estimate;
 pub mod import_colmap;
 pub mod plot;
@@ -41,6 +42,9 @@ pub enum Command {
     View(view::Args),
     /// Plot cameras (frusta from above and from the side), optionally against the ground truth.
     Plot(plot::Args),
+    /// Check the network on a device (`--device cuda`) against the official outputs of the
+    /// parity fixtures and time it: backbone, denoiser step, sampling, training iteration.
+    DeviceCheck(device_check::Args),
 }
 
 impl Command {
@@ -55,6 +59,7 @@ impl Command {
             Self::Score(a) => a.run(),
             Self::View(a) => a.run(),
             Self::Plot(a) => a.run(),
+            Self::DeviceCheck(a) => a.run(),
         }
     }
 }
