@@ -3,8 +3,10 @@
 #
 # Here (the CPU machine), after `cargo xtask cuda-build`:
 #   scripts/device_check.sh stage [--binary target/cuda-build/posediff] [--shared ../shared] [--dir target/device]
-# copies what travels to the GPU machine into the ignored folder target/device: the binary, the
-# tiny parity fixtures (the full model is 78 MB, over the 64 MiB a call carries; the timed
+# copies what travels to the GPU machine into the ignored folder target/device: the binary
+# (xz-compressed: 68 MB of it are CUDA kernels and their PTX), the tiny fixtures' official
+# outputs (the tiny model itself travels in the tree as fixtures/torch/model_tiny_module_prefix.pth,
+# the same values; the full model is 78 MB, over the 64 MiB a call carries, so the timed
 # official-size network is initialised there instead) and the 20 apple frames with their cameras.
 #
 # There (the device tool, carry ["target/device"]):
@@ -62,14 +64,20 @@ stage() {
   done
   rm -rf "$dir"
   mkdir -p "$dir/reference/tiny" "$dir/data/co3d_apple_posediffusion"
-  cp "$binary" "$dir/posediff"
-  cp "$ref/model_tiny.safetensors" "$ref/denoiser_io_tiny.safetensors" \
-     "$ref/sampling_io_tiny.safetensors" "$dir/reference/tiny/"
+  python3 - "$binary" "$dir/posediff.xz" <<'EOF'
+import lzma, shutil, sys
+with open(sys.argv[1], "rb") as src, lzma.open(sys.argv[2], "wb", preset=6) as dst:
+    shutil.copyfileobj(src, dst, 1 << 20)
+EOF
+  cp "$ref/denoiser_io_tiny.safetensors" "$ref/sampling_io_tiny.safetensors" "$dir/reference/tiny/"
   cp -r "$apple/images" "$apple/cameras.json" "$dir/data/co3d_apple_posediffusion/"
-  local bytes
+  local bytes tree=0
   bytes=$(du -sb "$dir" | cut -f1)
-  echo "staged $dir: $((bytes / 1048576)) MiB (a device call carries at most 64 MiB, the tree included)"
-  [ "$bytes" -lt $((60 * 1048576)) ] || die "$dir is too large to travel"
+  if git -C "$root" rev-parse --git-dir >/dev/null 2>&1; then
+    tree=$(cd "$root" && git ls-files -z | du --files0-from=- -cb | tail -1 | cut -f1)
+  fi
+  echo "staged $dir: $((bytes / 1048576)) MiB + the tree's $((tree / 1048576)) MiB (a device call carries at most 64 MiB)"
+  [ $((bytes + tree)) -lt $((62 * 1048576)) ] || die "$dir and the tree are too large to travel"
 }
 
 cuda_libraries() {
@@ -90,11 +98,23 @@ cuda_libraries() {
 
 run_checks() {
   [ -n "$out" ] || die "run needs --out DIR"
-  [ -n "$binary" ] || binary=$dir/posediff
-  [ -x "$binary" ] || die "$binary: no binary (stage first, or pass --binary)"
   local reference=$dir/reference apple=$dir/data/co3d_apple_posediffusion
   [ -d "$reference/tiny" ] || die "$reference/tiny: missing (stage first)"
   mkdir -p "$out" "$dir/work"
+  if [ -z "$binary" ] && [ -f "$dir/posediff.xz" ]; then
+    binary=$dir/work/posediff
+    python3 - "$dir/posediff.xz" "$binary" <<'EOF'
+import lzma, os, shutil, sys
+with lzma.open(sys.argv[1], "rb") as src, open(sys.argv[2], "wb") as dst:
+    shutil.copyfileobj(src, dst, 1 << 20)
+os.chmod(sys.argv[2], 0o755)
+EOF
+  fi
+  [ -n "$binary" ] || binary=$dir/posediff
+  [ -x "$binary" ] || die "$binary: no binary (stage first, or pass --binary)"
+  local tiny_model=$reference/tiny/model_tiny.safetensors
+  [ -f "$tiny_model" ] || tiny_model=$root/fixtures/torch/model_tiny_module_prefix.pth
+  [ -f "$tiny_model" ] || die "$tiny_model: missing (the tiny fixtures' model)"
   local size
   size=$(stat -c %s "$binary")
   echo "binary $binary: $((size / 1048576)) MiB"
@@ -108,7 +128,7 @@ run_checks() {
     die "$binary: shared libraries not found (see $out/ldd.txt; set LD_LIBRARY_PATH to the CUDA 13 libraries)"
   fi
 
-  local check_args=(--reference "$reference" --device "$device" --out "$out/network"
+  local check_args=(--reference "$reference" --tiny-model "$tiny_model" --device "$device" --out "$out/network"
                     --save-model "$dir/work/model_official_random.safetensors")
   local images=$apple/images gt=$apple/cameras.json
   if [ "$quick" = 1 ]; then
@@ -147,7 +167,7 @@ EOF
     echo "==> PyTorch, the official network on $device"
     local threads
     threads=$(nproc)
-    python3 "$root/scripts/network_torch.py" --reference "$reference/tiny" --device "$device" \
+    python3 "$root/scripts/network_torch.py" --reference "$reference/tiny" --model "$tiny_model" --device "$device" \
       --frames 1,10,20,100 --threads "$threads" --repeats 5 --train-iterations 5 \
       --out "$out/pytorch.json" || echo "PyTorch timing failed (the posediff checks above stand)"
   fi

@@ -244,7 +244,12 @@ def fixture_files(reference):
 
 def load(model_path, device):
     """The network of a checkpoint in the official key layout (depths read from its keys)."""
-    state = read_safetensors(model_path)
+    if model_path.endswith(".pth"):
+        # A state dict saved by torch (possibly under `module.`, as DDP saves it).
+        raw = torch.load(model_path, map_location="cpu", weights_only=True)
+        state = {k.removeprefix("module."): v.float() for k, v in raw.items()}
+    else:
+        state = read_safetensors(model_path)
     pre_e, pre_d = "image_feature_extractor.", "diffuser.model."
     blocks = {int(k.split(".")[3]) for k in state if k.startswith(pre_e + "_net.blocks.")}
     layers = {int(k.split(".")[4]) for k in state if k.startswith(pre_d + "_trunk.layers.")}
@@ -320,6 +325,7 @@ def train_rate(denoiser, sched, device, iterations, sets=10, frames=50, repeat=9
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--reference", required=True)
+    ap.add_argument("--model", help="the fixtures' model when not in --reference (safetensors or .pth)")
     ap.add_argument("--frames", default="10,20,100")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--repeats", type=int, default=3)
@@ -335,6 +341,7 @@ def main():
         torch.backends.cuda.matmul.allow_tf32 = False
         torch.backends.cudnn.allow_tf32 = False
     model_path, io_path, full_size = fixture_files(args.reference)
+    model_path = args.model or model_path
     # Built outside inference mode: the training step needs ordinary parameters.
     extractor, denoiser, sched = load(model_path, device)
     with torch.inference_mode():

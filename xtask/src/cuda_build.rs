@@ -451,6 +451,10 @@ fn build(base: &Path, cuda: &Path, opencv: &Path, compute_cap: &str, out: &Path)
         ("CUDA_COMPUTE_CAP", compute_cap),
         ("CARGO_TARGET_DIR", target_dir.as_str()),
         ("CARGO_PROFILE_RELEASE_STRIP", "symbols"),
+        // Whole-program LTO drops candle's quantized CUDA paths posediff never calls, and with
+        // them the references that would pull candle-kernels' 33 MB of MoE/GGUF machine code
+        // (`.nv_fatbin`) out of its static library.
+        ("CARGO_PROFILE_RELEASE_LTO", "fat"),
         ("OPENCV_LINK_LIBS", link_libs.as_str()),
         ("OPENCV_LINK_PATHS", link_paths.as_str()),
         ("OPENCV_INCLUDE_PATHS", include.as_str()),

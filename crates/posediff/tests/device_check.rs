@@ -30,11 +30,14 @@ fn the_device_script_runs_every_check_on_the_cpu() {
         .status()
         .unwrap();
     assert!(status.success(), "stage failed");
+    // The binary travels compressed; the tiny model travels in the tree (fixtures/torch).
+    assert!(stage.join("posediff.xz").is_file());
     assert!(
         stage
-            .join("reference/tiny/model_tiny.safetensors")
+            .join("reference/tiny/denoiser_io_tiny.safetensors")
             .is_file()
     );
+    assert!(!stage.join("reference/tiny/model_tiny.safetensors").exists());
     assert_eq!(
         std::fs::read_dir(stage.join("data/co3d_apple_posediffusion/images"))
             .unwrap()

@@ -36,6 +36,10 @@ pub struct Args {
     /// The parity fixtures: the folder holding `full/` (`../shared/reference`).
     #[arg(long)]
     reference: PathBuf,
+    /// The tiny fixtures' model, when not `tiny/model_tiny.safetensors` of `--reference` (the
+    /// repository's `fixtures/torch/model_tiny_module_prefix.pth` holds the same values).
+    #[arg(long)]
+    tiny_model: Option<PathBuf>,
     /// Where the network runs.
     #[arg(long, value_enum, default_value = "cpu")]
     device: DeviceArg,
@@ -67,19 +71,21 @@ impl Args {
             bail!("--frames needs positive frame counts and --repeats at least 1");
         }
         // The fixture sets: tiny (17 MB, travels to a GPU machine) always, full when present.
-        let sets: Vec<FixtureSet> = [
-            FixtureSet::tiny(&self.reference),
-            FixtureSet::full(&self.reference),
-        ]
-        .into_iter()
-        .filter(|s| s.required || s.model.is_file())
-        .collect();
+        let mut tiny = FixtureSet::tiny(&self.reference);
+        if let Some(model) = &self.tiny_model {
+            tiny.model.clone_from(model);
+        }
+        let sets: Vec<FixtureSet> = [tiny, FixtureSet::full(&self.reference)]
+            .into_iter()
+            .filter(|s| s.required || s.model.is_file())
+            .collect();
         for set in &sets {
             for f in [&set.model, &set.denoiser_io, &set.sampling_io] {
                 if !f.is_file() {
                     bail!(
                         "{}: missing (--reference is the folder of the parity fixtures, \
-                         ../shared/reference, holding tiny/ and optionally full/)",
+                         ../shared/reference, holding tiny/ and optionally full/; --tiny-model \
+                         for the tiny model elsewhere)",
                         f.display()
                     );
                 }
