@@ -14,7 +14,8 @@
 # runs, well inside 10 minutes:
 #   1. `posediff device-check`: the F32 parity checks (backbone, denoiser, sampling teacher-forced)
 #      against the official outputs, timings of the backbone (1/10/20/100 images), one denoiser
-#      step and the 100-step sampling, and the training iteration of the tiny and official presets;
+#      step and the 100-step sampling, BF16/F16 against F32, and the training iteration of the
+#      tiny and official presets;
 #   2. `posediff estimate --device cuda` on the 20 apple frames with a random-weight
 #      official-size checkpoint (GGS on real SIFT matches), and `posediff score` against the
 #      ground truth (random weights: the accuracy is not the point, the run and its times are);
@@ -130,6 +131,8 @@ EOF
 
   local check_args=(--reference "$reference" --tiny-model "$tiny_model" --device "$device" --out "$out/network"
                     --save-model "$dir/work/model_official_random.safetensors")
+  # BF16/F16 against F32 on the GPU (candle has no BF16 product on the CPU).
+  [ "$device" = cuda ] && [ "$quick" = 0 ] && check_args+=(--half)
   local images=$apple/images gt=$apple/cameras.json
   if [ "$quick" = 1 ]; then
     check_args+=(--frames 1,2 --repeats 1 --train-iterations 1 --skip-official-training)

@@ -79,7 +79,7 @@ pub fn cuda_build(args: &[String]) -> Result<()> {
     std::fs::create_dir_all(&base).with_context(|| format!("creating {}", base.display()))?;
     check_system_libraries()?;
     let tools = tools_venv(&base)?;
-    let cuda = cuda_toolkit(&base)?;
+    let cuda = cuda_toolkit(&base, &tools)?;
     let opencv = static_opencv(&base, &tools)?;
     build(&base, &cuda, &opencv, &compute_cap, &out)
 }
@@ -154,7 +154,7 @@ fn tools_venv(base: &Path) -> Result<PathBuf> {
 
 /// `target/cuda-build/cuda/nvidia/cu13` with the pinned wheels, unversioned link names and the
 /// driver stub; returns that folder (the `CUDA_HOME` of the build).
-fn cuda_toolkit(base: &Path) -> Result<PathBuf> {
+fn cuda_toolkit(base: &Path, tools: &Path) -> Result<PathBuf> {
     let root = workspace_root();
     let target = base.join("cuda");
     let requirements = root.join("scripts/cuda-build-requirements.txt");
@@ -162,8 +162,9 @@ fn cuda_toolkit(base: &Path) -> Result<PathBuf> {
         .with_context(|| format!("reading {}", requirements.display()))?;
     std::fs::create_dir_all(&target)?;
     stamped(&target.join("requirements.stamp"), &key, || {
+        // The tools venv's pip: no system Python policy (PEP 668) in the way.
         run(
-            "python3",
+            &tools.join("python").to_string_lossy(),
             &[
                 "-m",
                 "pip",

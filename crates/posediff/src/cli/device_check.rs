@@ -58,6 +58,10 @@ pub struct Args {
     /// Also write the timed official-size model here (for `posediff estimate --weights`).
     #[arg(long)]
     save_model: Option<PathBuf>,
+    /// Also run the timed network in BF16 and F16: their difference from F32 on the fixture
+    /// images and their speed at 20 frames (informational, no bound).
+    #[arg(long)]
+    half: bool,
     /// Skip the official preset's training iteration (900 sequences of 50 frames: minutes on
     /// a CPU).
     #[arg(long)]
@@ -137,6 +141,11 @@ impl Args {
         device.synchronize()?;
         let load_s = load_start.elapsed().as_secs_f64();
         let timings = network_timings(&model, &device, &self.frames, self.repeats)?;
+        let half = if self.half {
+            half_precision(&checkpoint, &model, &sets[0], &device, self.repeats)?
+        } else {
+            Vec::new()
+        };
         drop(model);
         let tiny = Checkpoint::load(&sets[0].model, &device)?;
         let mut training = vec![train_rate(
@@ -164,6 +173,7 @@ impl Args {
             "parity": checks.iter().map(Check::json).collect::<Vec<_>>(),
             "parity_passed": checks.iter().all(Check::pass),
             "network": timings,
+            "half_precision": half,
             "training": training,
         });
         std::fs::create_dir_all(&self.out)
@@ -422,6 +432,85 @@ fn network_timings(
     Ok(rows)
 }
 
+/// The timed network in BF16 and F16 against itself in F32: the largest difference of the
+/// features of the fixture images and of one denoiser step (t = 37), relative to the largest
+/// F32 value, and the features + 100-step sampling at 20 frames.
+fn half_precision(
+    checkpoint: &Checkpoint,
+    f32_model: &PoseDiffusionModel,
+    set: &FixtureSet,
+    device: &Device,
+    repeats: usize,
+) -> anyhow::Result<Vec<Value>> {
+    let io = candle_core::safetensors::load(&set.denoiser_io, device)
+        .with_context(|| format!("reading {}", set.denoiser_io.display()))?;
+    let get = |name: &str| {
+        io.get(name)
+            .with_context(|| format!("{} has no tensor {name:?}", set.denoiser_io.display()))
+            .and_then(|t| Ok(t.to_dtype(DType::F32)?))
+    };
+    let images = get("images")?.unsqueeze(0)?;
+    let x = get("x_t")?;
+    let z32 = f32_model.image_features(&images)?;
+    let out32 = f32_model.denoiser.forward(&x, &[37], &z32)?;
+    let relative = |ours: &Tensor, reference: &Tensor| -> anyhow::Result<f64> {
+        let ours = ours.to_dtype(DType::F32)?;
+        Ok(worst(&ours, reference)? / scale(reference)?)
+    };
+    let one = |dtype: DType| -> anyhow::Result<Value> {
+        let model = PoseDiffusionModel::from_checkpoint(checkpoint, dtype, device)?;
+        let z = model.image_features(&images.to_dtype(dtype)?)?;
+        let out = model
+            .denoiser
+            .forward(&x.to_dtype(dtype)?, &[37], &z32.to_dtype(dtype)?)?;
+        let n = 20;
+        let frames = Tensor::rand(0f32, 1f32, (1, n, 3, 224, 224), device)?.to_dtype(dtype)?;
+        let mut zn = model.image_features(&frames)?;
+        let features = best_of(repeats, device, || {
+            zn = model.image_features(&frames)?;
+            Ok(())
+        })?;
+        let mut noise = SeededNoise::new(0);
+        let sampling = best_of(repeats.min(3), device, || {
+            sample(
+                &model.denoiser,
+                &model.schedule,
+                &zn,
+                &mut noise,
+                None,
+                None,
+            )?;
+            Ok(())
+        })?;
+        Ok(json!({
+            "dtype": format!("{dtype:?}"),
+            "features_rel_diff": relative(&z, &z32)?,
+            "denoiser_rel_diff": relative(&out, &out32)?,
+            "features_20_s": features,
+            "sampling_100_20_s": sampling,
+        }))
+    };
+    // Informational: a dtype the device cannot run (candle has no BF16 product on the CPU)
+    // is reported as such, not fatal.
+    let rows = [DType::BF16, DType::F16]
+        .into_iter()
+        .map(|dtype| {
+            let row = one(dtype).unwrap_or_else(
+                |e| json!({"dtype": format!("{dtype:?}"), "error": first_line(&e)}),
+            );
+            eprintln!("{row}");
+            row
+        })
+        .collect();
+    Ok(rows)
+}
+
+/// An error's message without candle's backtrace lines.
+fn first_line(e: &anyhow::Error) -> String {
+    let text = format!("{e:#}");
+    text.lines().next().unwrap_or_default().trim().to_owned()
+}
+
 /// Training iterations per second of `preset` with a frozen backbone (features cached, as
 /// `posediff train --freeze-backbone` runs): the preset's batch (⌊images / max_frames⌋ sets of
 /// `max_frames` frames, each repeated `batch_repeat` times with its own step and noise) on
@@ -521,6 +610,29 @@ fn markdown(r: &Value) -> String {
             f("sampling_100_s"),
             f("features_plus_sampling_s")
         );
+    }
+    if let Some(rows) = r["half_precision"].as_array().filter(|a| !a.is_empty()) {
+        md.push_str("\n## Half precision against F32 (the timed network; differences relative to the largest F32 value)\n\n| dtype | features | denoiser step | features, 20 frames (s) | 100-step sampling, 20 frames (s) |\n|---|---:|---:|---:|---:|\n");
+        for row in rows {
+            if let Some(e) = row["error"].as_str() {
+                let _ = writeln!(
+                    md,
+                    "| {} | not run: {e} | | | |",
+                    row["dtype"].as_str().unwrap_or("?")
+                );
+                continue;
+            }
+            let f = |k: &str| row[k].as_f64().unwrap_or(f64::NAN);
+            let _ = writeln!(
+                md,
+                "| {} | {:.2e} | {:.2e} | {:.4} | {:.4} |",
+                row["dtype"].as_str().unwrap_or("?"),
+                f("features_rel_diff"),
+                f("denoiser_rel_diff"),
+                f("features_20_s"),
+                f("sampling_100_20_s")
+            );
+        }
     }
     md.push_str("\n## Training iteration (frozen backbone)\n\n| preset | batch | s / iteration | iterations / s |\n|---|---|---:|---:|\n");
     for row in r["training"].as_array().into_iter().flatten() {
