@@ -40,13 +40,28 @@ const OPENCV_MODULES: [&str; 6] = [
     "imgproc",
     "core",
 ];
-/// The system static libraries OpenCV's image codecs and core use (Debian's `-dev` packages).
-const SYSTEM_STATIC: [(&str, &str); 3] = [
-    ("png16", "libpng-dev"),
-    ("jpeg", "libjpeg62-turbo-dev"),
-    ("z", "zlib1g-dev"),
+/// The system static libraries OpenCV's image codecs and core use (Debian's `-dev` packages),
+/// in link order: the codecs and zlib, then LAPACK (core's decompositions, as in Debian's
+/// build) on the reference BLAS, with the Fortran runtime it needs.
+const SYSTEM_STATIC: [(&str, &str, &str); 7] = [
+    ("png16", "libpng-dev", SYSTEM_LIB_DIR),
+    ("jpeg", "libjpeg62-turbo-dev", SYSTEM_LIB_DIR),
+    ("z", "zlib1g-dev", SYSTEM_LIB_DIR),
+    ("lapack", "liblapack-dev", SYSTEM_LIB_DIR),
+    ("blas", "libblas-dev", SYSTEM_LIB_DIR),
+    ("gfortran", "libgfortran-12-dev", GCC_LIB_DIR),
+    ("quadmath", "libgcc-12-dev", GCC_LIB_DIR),
+];
+/// Header-only or header packages the static OpenCV is configured with: Eigen (USAC's
+/// essential-matrix and other minimal solvers need Eigen or LAPACK: without them
+/// `findEssentialMat` throws "not implemented") and LAPACKE/CBLAS's headers.
+const SYSTEM_HEADERS: [(&str, &str); 3] = [
+    ("/usr/include/eigen3/Eigen/Core", "libeigen3-dev"),
+    ("/usr/include/lapacke.h", "liblapacke-dev"),
+    ("/usr/include/x86_64-linux-gnu/cblas.h", "libblas-dev"),
 ];
 const SYSTEM_LIB_DIR: &str = "/usr/lib/x86_64-linux-gnu";
+const GCC_LIB_DIR: &str = "/usr/lib/gcc/x86_64-linux-gnu/12";
 /// Libraries that get an unversioned `.so` link for the linker (the wheels ship only sonames).
 const CUDA_LINK_NAMES: [&str; 5] = [
     "libcudart.so.13",
@@ -84,21 +99,36 @@ pub fn cuda_build(args: &[String]) -> Result<()> {
     build(&base, &cuda, &opencv, &compute_cap, &out)
 }
 
-/// The static libraries of [`SYSTEM_STATIC`] are there (the project's set-up installs
-/// `libopencv-dev`, which brings them); a clear error naming the package otherwise.
+/// The static libraries of [`SYSTEM_STATIC`] and the headers of [`SYSTEM_HEADERS`] are there:
+/// installed with apt when missing and running as root, else a clear error naming the packages.
 fn check_system_libraries() -> Result<()> {
-    let missing: Vec<&str> = SYSTEM_STATIC
+    let mut missing: Vec<&str> = SYSTEM_STATIC
         .iter()
-        .filter(|(lib, _)| {
-            !Path::new(SYSTEM_LIB_DIR)
-                .join(format!("lib{lib}.a"))
-                .is_file()
-        })
-        .map(|(_, package)| *package)
+        .filter(|(lib, _, dir)| !Path::new(dir).join(format!("lib{lib}.a")).is_file())
+        .map(|(_, package, _)| *package)
         .collect();
-    if !missing.is_empty() {
+    missing.extend(
+        SYSTEM_HEADERS
+            .iter()
+            .filter(|(file, _)| !Path::new(file).is_file())
+            .map(|(_, package)| *package),
+    );
+    missing.sort_unstable();
+    missing.dedup();
+    if !missing.is_empty() && crate::is_root() {
+        run("apt-get", &["update", "-qq"], &[])?;
+        run(
+            "apt-get",
+            &[
+                &["install", "-y", "-qq", "--no-install-recommends"],
+                &missing[..],
+            ]
+            .concat(),
+            &[("DEBIAN_FRONTEND", "noninteractive")],
+        )?;
+    } else if !missing.is_empty() {
         bail!(
-            "the static OpenCV needs {}: run `sudo apt-get install -y {}`",
+            "the static OpenCV needs {}: run `sudo apt-get install -y --no-install-recommends {}`",
             missing.join(", "),
             missing.join(" ")
         );
@@ -282,11 +312,24 @@ fn cudarc_source() -> Result<PathBuf> {
     bail!("cudarc-{version} is not in {}", registry.display())
 }
 
-/// The CMake options of the static OpenCV: the modules of [`OPENCV_MODULES`], no optional back
-/// end (IPP, TBB, OpenMP, OpenCL, LAPACK, Eigen), no codec beyond JPEG and PNG (plus OpenCV's
-/// own PNM/HDR), and the system's static zlib, libjpeg and libpng.
+/// The CMake options of the static OpenCV: the modules of [`OPENCV_MODULES`]; what changes
+/// numbers configured as Debian's `libopencv-dev` is (so SIFT, MAGSAC and the decompositions
+/// give the system build's results): Eigen, reference LAPACK/BLAS, the SSE2 baseline with the
+/// same dispatched kernels, `-O2`; no optional back end that only changes speed or I/O (IPP,
+/// TBB, OpenMP, OpenCL), no codec beyond JPEG and PNG (plus OpenCV's own PNM/HDR), and the
+/// system's static zlib, libjpeg and libpng.
 fn opencv_options(prefix: &Path) -> Vec<String> {
     let lib = |name: &str| format!("{SYSTEM_LIB_DIR}/lib{name}.a");
+    let lapack = ["lapack", "blas"]
+        .iter()
+        .map(|l| lib(l))
+        .chain(
+            ["gfortran", "quadmath"]
+                .iter()
+                .map(|l| format!("{GCC_LIB_DIR}/lib{l}.a")),
+        )
+        .collect::<Vec<_>>()
+        .join(";");
     let mut options = vec![
         "-DCMAKE_BUILD_TYPE=Release".to_owned(),
         format!("-DCMAKE_INSTALL_PREFIX={}", prefix.display()),
@@ -298,6 +341,18 @@ fn opencv_options(prefix: &Path) -> Vec<String> {
         format!("-DPNG_LIBRARY={}", lib("png16")),
         format!("-DPNG_LIBRARY_RELEASE={}", lib("png16")),
         "-DWITH_PTHREADS_PF=ON".to_owned(),
+        "-DWITH_EIGEN=ON".to_owned(),
+        "-DEIGEN_INCLUDE_PATH=/usr/include/eigen3".to_owned(),
+        "-DWITH_LAPACK=ON".to_owned(),
+        format!("-DLAPACK_LIBRARIES={lapack}"),
+        "-DLAPACK_INCLUDE_DIR=/usr/include;/usr/include/x86_64-linux-gnu".to_owned(),
+        "-DLAPACK_CBLAS_H=cblas.h".to_owned(),
+        "-DLAPACK_LAPACKE_H=lapacke.h".to_owned(),
+        "-DLAPACK_IMPL=LAPACK/Generic".to_owned(),
+        "-DCPU_BASELINE=SSE2".to_owned(),
+        "-DCPU_BASELINE_DISABLE=SSE3".to_owned(),
+        "-DCMAKE_C_FLAGS_RELEASE=-O2 -DNDEBUG".to_owned(),
+        "-DCMAKE_CXX_FLAGS_RELEASE=-O2 -DNDEBUG".to_owned(),
         "-DWITH_IMGCODEC_HDR=ON".to_owned(),
         "-DWITH_IMGCODEC_PXM=ON".to_owned(),
     ];
@@ -319,8 +374,6 @@ fn opencv_options(prefix: &Path) -> Vec<String> {
         "WITH_OPENMP",
         "WITH_OPENCL",
         "WITH_CUDA",
-        "WITH_LAPACK",
-        "WITH_EIGEN",
         "WITH_GDAL",
         "WITH_GDCM",
         "WITH_OPENEXR",
@@ -437,9 +490,12 @@ fn build(base: &Path, cuda: &Path, opencv: &Path, compute_cap: &str, out: &Path)
         .iter()
         .map(|m| format!("static=opencv_{m}"))
         .collect();
-    link_libs.extend(SYSTEM_STATIC.iter().map(|(l, _)| format!("static={l}")));
+    link_libs.extend(SYSTEM_STATIC.iter().map(|(l, _, _)| format!("static={l}")));
     let link_libs = link_libs.join(",");
-    let link_paths = format!("{},{SYSTEM_LIB_DIR}", opencv.join("lib").display());
+    let link_paths = format!(
+        "{},{SYSTEM_LIB_DIR},{GCC_LIB_DIR}",
+        opencv.join("lib").display()
+    );
     let include = opencv
         .join("include/opencv4")
         .to_string_lossy()

@@ -131,8 +131,14 @@ impl DeviceArg {
     pub fn device(self) -> anyhow::Result<candle_core::Device> {
         match self {
             Self::Cpu => Ok(candle_core::Device::Cpu),
-            Self::Cuda => candle_core::Device::new_cuda(0)
-                .context("--device cuda needs a CUDA build (feature `cuda`) and a GPU"),
+            Self::Cuda if cfg!(feature = "cuda") => candle_core::Device::new_cuda(0).context(
+                "--device cuda: no usable NVIDIA GPU (is the driver's libcuda.so.1 the real \
+                 one, and does nvidia-smi see a GPU?)",
+            ),
+            Self::Cuda => candle_core::Device::new_cuda(0).context(
+                "--device cuda needs a CUDA build (`cargo xtask cuda-build`, feature `cuda`) \
+                 and a GPU",
+            ),
         }
     }
 
