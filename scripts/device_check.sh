@@ -197,7 +197,7 @@ if score:
 pt = report["pytorch"]
 if pt:
     md.append(f"\n## PyTorch {pt['torch']} on {pt['device']}, the official network (same machine, same run)\n")
-    md.append(f"Checked against the official outputs first: {pt['checks']}\n")
+    md.append(f"Checked against the official outputs first: {pt['checks']}\n\n")
     md.append("| frames | stage | PyTorch (s) | posediff (s) | PyTorch / posediff |\n|---:|---|---:|---:|---:|\n")
     ours = {r["frames"]: r for r in network["network"]}
     for r in pt["rows"]:
@@ -207,7 +207,7 @@ if pt:
                 md.append(f"| {r['frames']} | {label} | {r[key]:.4f} | {o[key]:.4f} | {r[key] / o[key]:.2f}x |\n")
     tr = pt.get("training")
     ours_tr = [t for t in network["training"] if t.get("preset") == "official" and "seconds_per_iteration" in t]
-    if tr and ours_tr:
+    if tr and "seconds_per_iteration" in tr and ours_tr:
         md.append(f"| – | official training iteration | {tr['seconds_per_iteration']:.4f} | {ours_tr[0]['seconds_per_iteration']:.4f} | {tr['seconds_per_iteration'] / ours_tr[0]['seconds_per_iteration']:.2f}x |\n")
 open(os.path.join(out, "report.md"), "w").write("".join(md))
 print("".join(md))

@@ -374,7 +374,12 @@ def main():
                 "sampling_runs_s": sample_all,
             })
             print(f"pytorch {n} frames: features {feat_s:.4f} s, 100 steps {sample_s:.4f} s", flush=True)
-    training = train_rate(denoiser, sched, device, args.train_iterations) if args.train_iterations > 0 else None
+    training = None
+    if args.train_iterations > 0:
+        try:
+            training = train_rate(denoiser, sched, device, args.train_iterations)
+        except RuntimeError as e:  # out of memory, say: the forward timings still count
+            training = {"preset": "official", "error": str(e).splitlines()[0]}
     report = {
         "torch": torch.__version__,
         "device": args.device,
