@@ -2,8 +2,9 @@
 //! matches, MAGSAC inliers, the inlier ratio, and the fraction of inliers within 4 px² (Sampson)
 //! of the ground-truth epipolar geometry, with the pair's ground-truth rotation angle.
 //!
-//! `cargo run --release -p posediff --example learned_pairs -- <set folder> <weights dir>`
-//! (a set folder holds `images/` and `cameras.json`). One line per pair on stdout.
+//! `cargo run --release -p posediff --example learned_pairs -- <set folder> <weights dir>
+//! [aliked-n16 | aliked-n16rot]` (a set folder holds `images/` and `cameras.json`). One line
+//! per pair on stdout.
 
 use std::path::PathBuf;
 
@@ -17,8 +18,17 @@ use posediff_matching::MatchConfig;
 #[allow(clippy::print_stdout)]
 fn main() -> Result<()> {
     let args: Vec<PathBuf> = std::env::args_os().skip(1).map(PathBuf::from).collect();
-    let [set, weights] = args.as_slice() else {
-        anyhow::bail!("usage: learned_pairs <set folder> <weights dir>");
+    let (set, weights, aliked) = match args.as_slice() {
+        [set, weights] => (set, weights, posediff_learned::WeightSet::AlikedN16),
+        [set, weights, v] if v.as_os_str() == "aliked-n16" => {
+            (set, weights, posediff_learned::WeightSet::AlikedN16)
+        }
+        [set, weights, v] if v.as_os_str() == "aliked-n16rot" => {
+            (set, weights, posediff_learned::WeightSet::AlikedN16Rot)
+        }
+        _ => anyhow::bail!(
+            "usage: learned_pairs <set folder> <weights dir> [aliked-n16 | aliked-n16rot]"
+        ),
     };
     let gt = posediff::io::export::read_cameras_json(&set.join("cameras.json"))?;
     let mut images: Vec<PathBuf> = std::fs::read_dir(set.join("images"))?
@@ -38,7 +48,9 @@ fn main() -> Result<()> {
                 .with_context(|| format!("no ground truth for {name}"))
         })
         .collect::<Result<Vec<_>>>()?;
-    let learned = SharedLearned(std::sync::Arc::new(LearnedMatcher::load(weights)?));
+    let learned = SharedLearned(std::sync::Arc::new(LearnedMatcher::load_with(
+        weights, aliked,
+    )?));
     let features = extract_all(&images, &MatchConfig::default(), Some(&learned))?;
     let pairs = posediff_matching::exhaustive_pairs(images.len());
     let raw_config = MatchConfig {

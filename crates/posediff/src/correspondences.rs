@@ -40,6 +40,9 @@ pub enum MatcherChoice {
     Orb,
     /// ALIKED n16 keypoints, LightGlue matches.
     AlikedLightGlue,
+    /// ALIKED n16rot keypoints (trained with in-plane rotations), LightGlue matches (the same
+    /// LightGlue weights: both ALIKED models give 128-d descriptors).
+    AlikedN16RotLightGlue,
 }
 
 impl MatcherChoice {
@@ -49,6 +52,16 @@ impl MatcherChoice {
             Self::Sift => "sift",
             Self::Orb => "orb",
             Self::AlikedLightGlue => "aliked-lightglue",
+            Self::AlikedN16RotLightGlue => "aliked-n16rot-lightglue",
+        }
+    }
+
+    /// The ALIKED weights of a learned choice (`None` for the OpenCV ones).
+    pub fn aliked_weights(self) -> Option<WeightSet> {
+        match self {
+            Self::AlikedLightGlue => Some(WeightSet::AlikedN16),
+            Self::AlikedN16RotLightGlue => Some(WeightSet::AlikedN16Rot),
+            Self::Sift | Self::Orb => None,
         }
     }
 
@@ -75,8 +88,10 @@ impl std::str::FromStr for MatcherChoice {
             "sift" => Ok(Self::Sift),
             "orb" => Ok(Self::Orb),
             "aliked-lightglue" => Ok(Self::AlikedLightGlue),
+            "aliked-n16rot-lightglue" => Ok(Self::AlikedN16RotLightGlue),
             other => Err(PosediffError::InvalidArgument(format!(
-                "matcher must be sift, orb or aliked-lightglue, got {other:?}"
+                "matcher must be sift, orb, aliked-lightglue or aliked-n16rot-lightglue, \
+                 got {other:?}"
             ))),
         }
     }
@@ -95,25 +110,31 @@ pub struct LearnedMatcher {
     pub image_side: u32,
 }
 
-/// The weight files of the learned matcher in `dir`, checked to exist (before any image is
-/// read).
+/// The weight files of the learned matcher with ALIKED weights `aliked` in `dir`, checked to
+/// exist (before any image is read).
 ///
 /// # Errors
 /// A missing file, with the command that fetches it.
-pub fn learned_weight_files(dir: &Path) -> Result<(PathBuf, PathBuf)> {
-    Ok((
-        WeightSet::AlikedN16.locate(dir)?,
-        WeightSet::AlikedLightGlue.locate(dir)?,
-    ))
+pub fn learned_weight_files(dir: &Path, aliked: WeightSet) -> Result<(PathBuf, PathBuf)> {
+    Ok((aliked.locate(dir)?, WeightSet::AlikedLightGlue.locate(dir)?))
 }
 
 impl LearnedMatcher {
-    /// Loads the weights from `dir` (see [`posediff_learned::weights`]) onto the CPU.
+    /// Loads ALIKED n16 and LightGlue from `dir` (see [`posediff_learned::weights`]) onto the
+    /// CPU.
     ///
     /// # Errors
     /// Missing or malformed weight files.
     pub fn load(dir: &Path) -> Result<Self> {
-        let (aliked, lightglue) = learned_weight_files(dir)?;
+        Self::load_with(dir, WeightSet::AlikedN16)
+    }
+
+    /// As [`Self::load`] with the ALIKED weights `aliked` (`AlikedN16` or `AlikedN16Rot`).
+    ///
+    /// # Errors
+    /// Missing or malformed weight files.
+    pub fn load_with(dir: &Path, aliked: WeightSet) -> Result<Self> {
+        let (aliked, lightglue) = learned_weight_files(dir, aliked)?;
         Ok(Self {
             aliked: Aliked::load(&aliked, &Device::Cpu)?,
             lightglue: LightGlue::load(&lightglue, &Device::Cpu)?,

@@ -35,6 +35,7 @@ fn matcher_names_round_trip() {
         MatcherChoice::Sift,
         MatcherChoice::Orb,
         MatcherChoice::AlikedLightGlue,
+        MatcherChoice::AlikedN16RotLightGlue,
     ] {
         assert_eq!(m.as_str().parse::<MatcherChoice>().unwrap(), m);
     }
@@ -166,4 +167,26 @@ fn the_cli_estimates_with_the_learned_matcher() {
     assert_eq!(cams.len(), 3);
     assert!(cams.iter().all(|c| c["estimated"] == true), "{cams:?}");
     std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// `aliked-n16rot-lightglue` loads the rotation-trained ALIKED (other keypoints than n16's on
+/// the same image) and still gives verified matches between neighbouring apple frames.
+#[test]
+fn the_n16rot_choice_runs_its_own_network() {
+    let dir = weights_dir();
+    let aliked = MatcherChoice::AlikedN16RotLightGlue
+        .aliked_weights()
+        .unwrap();
+    assert_eq!(aliked, posediff_learned::WeightSet::AlikedN16Rot);
+    let rot = SharedLearned(std::sync::Arc::new(
+        LearnedMatcher::load_with(&dir, aliked).unwrap_or_else(|e| panic!("{e}")),
+    ));
+    let n16 = LearnedMatcher::load(&dir).unwrap();
+    let images = apple(2);
+    let a = n16.extract(&images[0]).unwrap();
+    let b = rot.0.extract(&images[0]).unwrap();
+    assert_eq!(a.keypoints.len(), b.keypoints.len());
+    assert_ne!(a.keypoints, b.keypoints, "n16rot gave n16's keypoints");
+    let (_, pairs) = match_images(&images, None, &MatchConfig::default(), Some(&rot)).unwrap();
+    assert!(pairs[0].len() >= 100, "{} verified matches", pairs[0].len());
 }

@@ -105,6 +105,9 @@ pub enum Matcher {
     /// ALIKED keypoints matched by LightGlue (released weights: `cargo xtask weights`).
     #[value(name = "aliked-lightglue")]
     AlikedLightglue,
+    /// The rotation-robust ALIKED (`aliked-n16rot`) matched by the same LightGlue.
+    #[value(name = "aliked-n16rot-lightglue")]
+    AlikedN16rotLightglue,
 }
 
 impl From<Matcher> for posediff::correspondences::MatcherChoice {
@@ -113,6 +116,7 @@ impl From<Matcher> for posediff::correspondences::MatcherChoice {
             Matcher::Sift => Self::Sift,
             Matcher::Orb => Self::Orb,
             Matcher::AlikedLightglue => Self::AlikedLightGlue,
+            Matcher::AlikedN16rotLightglue => Self::AlikedN16RotLightGlue,
         }
     }
 }
