@@ -115,23 +115,8 @@ fn check_system_libraries() -> Result<()> {
     );
     missing.sort_unstable();
     missing.dedup();
-    if !missing.is_empty() && crate::is_root() {
-        run("apt-get", &["update", "-qq"], &[])?;
-        run(
-            "apt-get",
-            &[
-                &["install", "-y", "-qq", "--no-install-recommends"],
-                &missing[..],
-            ]
-            .concat(),
-            &[("DEBIAN_FRONTEND", "noninteractive")],
-        )?;
-    } else if !missing.is_empty() {
-        bail!(
-            "the static OpenCV needs {}: run `sudo apt-get install -y --no-install-recommends {}`",
-            missing.join(", "),
-            missing.join(" ")
-        );
+    if !missing.is_empty() {
+        crate::apt_install(&missing, "the static OpenCV")?;
     }
     for tool in ["cc", "c++", "curl", "tar", "readelf"] {
         if output("sh", &["-c", &format!("command -v {tool}")]).is_err() {

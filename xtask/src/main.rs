@@ -443,6 +443,28 @@ fn is_root() -> bool {
     output("id", &["-u"]).is_ok_and(|s| s.trim() == "0")
 }
 
+/// Installs the Debian packages `missing` (non-empty) with apt when running as root, else fails
+/// naming them and the command, for `what`.
+fn apt_install(missing: &[&str], what: &str) -> Result<()> {
+    if !is_root() {
+        bail!(
+            "{what} needs the Debian packages {}: run `sudo apt-get install -y --no-install-recommends {}`",
+            missing.join(", "),
+            missing.join(" ")
+        );
+    }
+    run("apt-get", &["update", "-qq"], &[])?;
+    run(
+        "apt-get",
+        &[
+            &["install", "-y", "-qq", "--no-install-recommends"],
+            missing,
+        ]
+        .concat(),
+        &[("DEBIAN_FRONTEND", "noninteractive")],
+    )
+}
+
 /// Installs what the build needs on a fresh Debian machine, when it is missing.
 fn setup() -> Result<()> {
     let missing: Vec<&str> = APT_PACKAGES
@@ -457,23 +479,8 @@ fn setup() -> Result<()> {
         .collect();
     if missing.is_empty() {
         eprintln!("system packages present: {}", APT_PACKAGES.join(", "));
-    } else if is_root() {
-        run("apt-get", &["update", "-qq"], &[])?;
-        run(
-            "apt-get",
-            &[
-                &["install", "-y", "-qq", "--no-install-recommends"],
-                &missing[..],
-            ]
-            .concat(),
-            &[("DEBIAN_FRONTEND", "noninteractive")],
-        )?;
     } else {
-        bail!(
-            "missing Debian packages {}: run `sudo apt-get install -y --no-install-recommends {}`",
-            missing.join(", "),
-            missing.join(" ")
-        );
+        apt_install(&missing, "the build")?;
     }
     if output("cargo", &["nextest", "--version"]).is_err() {
         run("cargo", &["install", "--locked", "cargo-nextest"], &[])?;

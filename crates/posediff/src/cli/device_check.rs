@@ -95,6 +95,9 @@ impl Args {
                 }
             }
         }
+        // The output folder before minutes of work, not after.
+        std::fs::create_dir_all(&self.out)
+            .with_context(|| format!("creating {}", self.out.display()))?;
         let device = self.device.device()?;
         // Full float32 products for the parity checks and the timings alike.
         candle_core::cuda::set_gemm_reduced_precision_f32(false);
@@ -123,23 +126,20 @@ impl Args {
                 full.model.display().to_string(),
             )
         } else {
-            let depths = posediff_diffusion::checkpoint::ModelDepths {
-                vit_blocks: 12,
-                trunk_layers: 8,
-            };
+            let depths = posediff_diffusion::checkpoint::ModelDepths::OFFICIAL;
             (
                 posediff_diffusion::train::initial_checkpoint(depths, 0, &device)?,
                 "official size, initialised with seed 0".to_owned(),
             )
         };
+        let model = PoseDiffusionModel::from_checkpoint(&checkpoint, DType::F32, &device)?;
+        device.synchronize()?;
+        let load_s = load_start.elapsed().as_secs_f64();
         if let Some(path) = &self.save_model {
             checkpoint
                 .save_safetensors(path)
                 .with_context(|| format!("writing {}", path.display()))?;
         }
-        let model = PoseDiffusionModel::from_checkpoint(&checkpoint, DType::F32, &device)?;
-        device.synchronize()?;
-        let load_s = load_start.elapsed().as_secs_f64();
         let timings = network_timings(&model, &device, &self.frames, self.repeats)?;
         let half = if self.half {
             half_precision(&checkpoint, &model, &sets[0], &device, self.repeats)?
@@ -186,8 +186,6 @@ impl Args {
             "half_precision": half,
             "training": training,
         });
-        std::fs::create_dir_all(&self.out)
-            .with_context(|| format!("creating {}", self.out.display()))?;
         let json_path = self.out.join("report.json");
         std::fs::write(&json_path, serde_json::to_string_pretty(&report)?)
             .with_context(|| format!("writing {}", json_path.display()))?;
