@@ -555,7 +555,7 @@ fn build(base: &Path, cuda: &Path, opencv: &Path, compute_cap: &str, out: &Path)
     }
     eprintln!(
         "run it with the CUDA 13 libraries on LD_LIBRARY_PATH, e.g. \
-         LD_LIBRARY_PATH=$(python3 -c 'import nvidia, os; print(os.path.join(nvidia.__path__[0], \"cu13/lib\"))') \
+         LD_LIBRARY_PATH=$(python3 -c 'import nvidia, os; print(os.path.join(list(nvidia.__path__)[0], \"cu13/lib\"))') \
          {} estimate … --device cuda (scripts/device_check.sh does this)",
         out.display()
     );
