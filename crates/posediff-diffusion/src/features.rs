@@ -73,7 +73,8 @@ impl ImageFeatureExtractor {
         Ok(resize_separable(&flat, &m_h, &m_w)?.reshape((n, c, ho, wo))?)
     }
 
-    /// The ViT output at each scale, for normalised images.
+    /// The ViT output at each scale, for normalised images, each scale in a pass of its own
+    /// (what [`Self::forward`]'s one stacked pass is checked against).
     ///
     /// # Errors
     /// Tensor errors.
@@ -91,12 +92,13 @@ impl ImageFeatureExtractor {
     }
 
     /// Most images per pass through the ViT. The features of each image are independent;
-    /// passes of at most 12 keep every activation under mimalloc's 16 MiB large-object limit
-    /// (the MLP's `12 × 197 × 1536` floats are 14.5 MB), so the allocator reuses the buffers
-    /// instead of mapping fresh pages for each layer (one batch of 100 images spent 16 % of
-    /// its time in the kernel zeroing them, and peaked at twice the memory), while the
-    /// products keep over 1,500 rows (the linear layers' full speed from about 800).
-    pub const MAX_IMAGES_PER_PASS: usize = 12;
+    /// passes of at most 10 keep every activation under mimalloc's 16 MiB large-object limit
+    /// (a pass stacks the three scales' `197 + 50 + 17` tokens per image: the MLP's
+    /// `10 × 264 × 1536` floats are 16.2 MB, under 16 MiB = 16.8 MB), so the allocator reuses the buffers instead of
+    /// mapping fresh pages for each layer (one batch of 100 images spent 16 % of its time in
+    /// the kernel zeroing them, and peaked at twice the memory), while the products keep over
+    /// 1,500 rows (the linear layers' full speed from about 800).
+    pub const MAX_IMAGES_PER_PASS: usize = 10;
 
     /// The averaged features `(N, 384)` of `(N, 3, H, W)` images in `[0, 1]` (the official
     /// input is 224×224).
@@ -117,7 +119,19 @@ impl ImageFeatureExtractor {
             }
             return Ok(Tensor::cat(&parts, 0)?);
         }
-        let scales = self.per_scale(&self.normalize(images)?)?;
+        let normalized = self.normalize(images)?;
+        let inputs = SCALE_FACTORS
+            .iter()
+            .map(|&s| {
+                if s == 1.0 {
+                    Ok(normalized.clone())
+                } else {
+                    self.resize(&normalized, s)
+                }
+            })
+            .collect::<Result<Vec<_>>>()?;
+        // The three scales' tokens share each linear layer's product.
+        let scales = self.vit.forward_many(&inputs)?;
         let sum = scales[1..]
             .iter()
             .try_fold(scales[0].clone(), |acc, f| acc + f)?;

@@ -88,12 +88,65 @@ impl Block {
     }
 
     /// `x + attn(LN1(x))`, then `+ fc2(GELU(fc1(LN2(x))))`.
+    ///
+    /// # Errors
+    /// Tensor errors.
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         let x = (x + self.attn.forward(&self.norm1.forward(x)?)?)?;
-        let h = crate::activation::gelu_erf_owned(self.fc1.forward(&self.norm2.forward(&x)?)?)?;
-        Ok((&x + self.fc2.forward(&h)?)?)
+        self.mlp_residual(&x)
+    }
+
+    /// `x + fc2(GELU(fc1(LN2(x))))`.
+    fn mlp_residual(&self, x: &Tensor) -> Result<Tensor> {
+        let h = crate::activation::gelu_erf_owned(self.fc1.forward(&self.norm2.forward(x)?)?)?;
+        Ok((x + self.fc2.forward(&h)?)?)
+    }
+
+    /// The block on several token sets at once (see [`TokenSets`]): the norms, the linear
+    /// layers and the GELU see the rows of every set in one call, the attention each set
+    /// (`B` images of `T` tokens) apart. With `cls_only`, only each image's first token leaves
+    /// the block: the attention still reads every token, the projection, the residual and the
+    /// MLP run on the CLS rows alone (rows are independent there).
+    ///
+    /// # Errors
+    /// Rows that do not add up to the sets, tensor errors.
+    pub fn forward_sets(&self, x: &Tensor, sets: &TokenSets, cls_only: bool) -> Result<Tensor> {
+        let qkv = self.attn.qkv.forward(&self.norm1.forward(x)?)?;
+        let head_dim = VIT_DIM / HEADS;
+        let scale = (head_dim as f64).powf(-0.5);
+        let mut attended = Vec::with_capacity(sets.0.len());
+        let mut residual = Vec::with_capacity(sets.0.len());
+        let mut start = 0;
+        for &(b, t) in &sets.0 {
+            let rows = b * t;
+            let set_qkv = qkv.narrow(0, start, rows)?.reshape((b, t, 3 * VIT_DIM))?;
+            let out = crate::attention::self_attention(&set_qkv, HEADS, scale)?;
+            if cls_only {
+                attended.push(out.i((.., 0, ..))?);
+                residual.push(x.narrow(0, start, rows)?.reshape((b, t, VIT_DIM))?.i((
+                    ..,
+                    0,
+                    ..,
+                ))?);
+            } else {
+                attended.push(out.reshape((rows, VIT_DIM))?);
+            }
+            start += rows;
+        }
+        let attended = Tensor::cat(&attended, 0)?;
+        let x = if cls_only {
+            (Tensor::cat(&residual, 0)? + self.attn.proj.forward(&attended)?)?
+        } else {
+            (x + self.attn.proj.forward(&attended)?)?
+        };
+        self.mlp_residual(&x)
     }
 }
+
+/// Several token sets whose rows are stacked into one `(Σ B·T, C)` matrix, set after set and
+/// image after image: each set's `(B, T)` (images, tokens per image).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct TokenSets(pub Vec<(usize, usize)>);
 
 /// The DINO ViT-S/16 trunk (`image_feature_extractor._net`).
 #[derive(Debug, Clone)]
@@ -203,5 +256,53 @@ impl VisionTransformer {
     /// Tensor errors.
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         self.norm.forward(&self.cls_before_norm(x)?)
+    }
+
+    /// [`Self::forward`] of several inputs (e.g. the scales of one batch) in one pass: their
+    /// tokens go through each block's linear layers as one matrix ([`Block::forward_sets`]),
+    /// and the last block computes only the CLS rows it returns. Per-row results are those of
+    /// separate calls up to float32 rounding (the products' blocking depends on the rows).
+    ///
+    /// # Errors
+    /// No input, inputs that are not `(B, 3, H, W)`, tensor errors.
+    pub fn forward_many(&self, inputs: &[Tensor]) -> Result<Vec<Tensor>> {
+        let mut tokens = Vec::with_capacity(inputs.len());
+        let mut sets = Vec::with_capacity(inputs.len());
+        for x in inputs {
+            let t = self.prepare_tokens(x)?;
+            let (b, n, c) = t.dims3()?;
+            sets.push((b, n));
+            tokens.push(t.reshape((b * n, c))?);
+        }
+        let sets = TokenSets(sets);
+        let mut t = Tensor::cat(&tokens, 0)?;
+        let last = self.blocks.len().saturating_sub(1);
+        for (k, block) in self.blocks.iter().enumerate() {
+            t = block.forward_sets(&t, &sets, k == last)?;
+        }
+        if self.blocks.is_empty() {
+            // Without blocks the CLS rows are picked here.
+            let mut cls = Vec::with_capacity(sets.0.len());
+            let mut start = 0;
+            for &(b, n) in &sets.0 {
+                cls.push(
+                    t.narrow(0, start, b * n)?
+                        .reshape((b, n, VIT_DIM))?
+                        .i((.., 0, ..))?,
+                );
+                start += b * n;
+            }
+            t = Tensor::cat(&cls, 0)?;
+        }
+        let out = self.norm.forward(&t)?;
+        let mut start = 0;
+        sets.0
+            .iter()
+            .map(|&(b, _)| {
+                let part = out.narrow(0, start, b)?;
+                start += b;
+                Ok(part)
+            })
+            .collect()
     }
 }

@@ -57,7 +57,7 @@ fn f32_denoiser_steps_match_the_official_float32_ones() {
     }
 }
 
-/// More images than one ViT pass takes (13 = passes of 7 and 6) give each image the features
+/// More images than one ViT pass takes (11 = passes of 6 and 5) give each image the features
 /// it gets alone: the passes split the batch and nothing else (the tiny checkpoint, F32; the
 /// products' blocking may differ with the row count, hence float32 rounding, not equality).
 #[test]
@@ -77,4 +77,25 @@ fn features_in_several_passes_match_one_image_at_a_time() {
         .collect();
     let one_by_one = Tensor::cat(&one_by_one, 0).unwrap();
     assert_close("passes", &values(&all), &values(&one_by_one), 1e-5, 0.0);
+}
+
+/// The one pass with the three scales' tokens stacked gives the average of the scales run
+/// apart (the tiny checkpoint, F32; float32 rounding from the products' blocking only).
+#[test]
+fn stacked_scales_match_the_scales_run_apart() {
+    let path = shared_path("reference/tiny/model_tiny.safetensors");
+    let m = PoseDiffusionModel::load(&path, DType::F32, &Device::Cpu).unwrap();
+    let images = Tensor::rand(0f32, 1.0, (3, 3, 224, 224), &Device::Cpu).unwrap();
+    let ex = &m.extractor;
+    let apart = ex.per_scale(&ex.normalize(&images).unwrap()).unwrap();
+    let mean = ((&apart[0] + &apart[1]).unwrap() + &apart[2]).unwrap() / 3.0;
+    let stacked = ex.forward(&images).unwrap();
+    assert_eq!(stacked.dims(), &[3, 384]);
+    assert_close(
+        "stacked",
+        &values(&stacked),
+        &values(&mean.unwrap()),
+        1e-5,
+        0.0,
+    );
 }
