@@ -3,8 +3,15 @@
 //! of the ground-truth epipolar geometry, with the pair's ground-truth rotation angle.
 //!
 //! `cargo run --release -p posediff --example learned_pairs -- <set folder> <weights dir>
-//! [aliked-n16 | aliked-n16rot]` (a set folder holds `images/` and `cameras.json`). One line
-//! per pair on stdout.
+//! [aliked-n16 | aliked-n16rot] [screen]` (a set folder holds `images/` and `cameras.json`).
+//! One line per pair on stdout.
+//!
+//! With `screen`, two cheap pair screens are measured beside it, as the columns `mnn` (mutual
+//! nearest neighbours of the ALIKED descriptors with Lowe's ratio, then the same MAGSAC: the
+//! SIFT path's matcher on ALIKED's features) and `lg512` (LightGlue on each image's 512
+//! strongest keypoints, then MAGSAC), both verified counts without a minimum; stderr gets
+//! their seconds and, per threshold, how many pairs a screen would pass on to the full
+//! LightGlue, how many good pairs it would lose and how many wrong ones it would keep.
 
 use std::path::PathBuf;
 
@@ -18,18 +25,22 @@ use posediff_matching::MatchConfig;
 #[allow(clippy::print_stdout)]
 fn main() -> Result<()> {
     let args: Vec<PathBuf> = std::env::args_os().skip(1).map(PathBuf::from).collect();
-    let (set, weights, aliked) = match args.as_slice() {
-        [set, weights] => (set, weights, posediff_learned::WeightSet::AlikedN16),
-        [set, weights, v] if v.as_os_str() == "aliked-n16" => {
-            (set, weights, posediff_learned::WeightSet::AlikedN16)
-        }
-        [set, weights, v] if v.as_os_str() == "aliked-n16rot" => {
-            (set, weights, posediff_learned::WeightSet::AlikedN16Rot)
-        }
-        _ => anyhow::bail!(
-            "usage: learned_pairs <set folder> <weights dir> [aliked-n16 | aliked-n16rot]"
-        ),
+    let usage =
+        "usage: learned_pairs <set folder> <weights dir> [aliked-n16 | aliked-n16rot] [screen]";
+    let (set, weights, rest) = match args.as_slice() {
+        [set, weights, rest @ ..] => (set, weights, rest),
+        _ => anyhow::bail!(usage),
     };
+    let mut aliked = posediff_learned::WeightSet::AlikedN16;
+    let mut screen = false;
+    for a in rest {
+        match a.to_str() {
+            Some("aliked-n16") => aliked = posediff_learned::WeightSet::AlikedN16,
+            Some("aliked-n16rot") => aliked = posediff_learned::WeightSet::AlikedN16Rot,
+            Some("screen") => screen = true,
+            _ => anyhow::bail!(usage),
+        }
+    }
     let gt = posediff::io::export::read_cameras_json(&set.join("cameras.json"))?;
     let mut images: Vec<PathBuf> = std::fs::read_dir(set.join("images"))?
         .map(|e| e.map(|e| e.path()))
@@ -64,8 +75,17 @@ fn main() -> Result<()> {
         .iter()
         .map(|r| Ok(posediff_matching::verify(r.clone(), &config)?))
         .collect::<Result<Vec<_>>>()?;
-    println!("i j gt_angle raw inliers ratio good_fraction");
-    for ((r, v), &(i, j)) in raw.iter().zip(&verified).zip(&pairs) {
+    let screens = if screen {
+        screens(&features, &pairs, &learned)?
+    } else {
+        Vec::new()
+    };
+    let mut good_pairs = Vec::new();
+    println!(
+        "i j gt_angle raw inliers ratio good_fraction{}",
+        if screen { " mnn lg512" } else { "" }
+    );
+    for (k, ((r, v), &(i, j))) in raw.iter().zip(&verified).zip(&pairs).enumerate() {
         let (a, b) = (cams[i], cams[j]);
         let f = fundamental_from_cameras(&a, &b);
         let good = v
@@ -82,13 +102,81 @@ fn main() -> Result<()> {
             .count();
         let angle =
             rotation_angle_between_deg(&a.cam_from_world.rotation, &b.cam_from_world.rotation);
+        let good_fraction = good as f64 / v.len().max(1) as f64;
+        let scores: Vec<String> = screens.iter().map(|(_, _, s)| s[k].to_string()).collect();
         println!(
-            "{i} {j} {angle:.1} {} {} {:.3} {:.3}",
+            "{i} {j} {angle:.1} {} {} {:.3} {good_fraction:.3}{}{}",
             r.len(),
             v.len(),
             v.len() as f64 / r.len().max(1) as f64,
-            good as f64 / v.len().max(1) as f64
+            if screen { " " } else { "" },
+            scores.join(" ")
         );
+        // Kept pairs: good (≥ 80 % within 4 px²) or wrong.
+        if !v.is_empty() {
+            good_pairs.push((k, good_fraction >= 0.8, angle));
+        }
+    }
+    for (name, seconds, scores) in &screens {
+        eprintln!("screen {name}: {seconds:.1} s for {} pairs", pairs.len());
+        for threshold in [5, 10, 15, 20] {
+            let passed = scores.iter().filter(|&&s| s >= threshold).count();
+            let lost: Vec<String> = good_pairs
+                .iter()
+                .filter(|(k, good, _)| *good && scores[*k] < threshold)
+                .map(|(_, _, a)| format!("{a:.0}°"))
+                .collect();
+            let wrong_kept = good_pairs
+                .iter()
+                .filter(|(k, good, _)| !*good && scores[*k] >= threshold)
+                .count();
+            eprintln!(
+                "  >= {threshold}: passes {passed} pairs, loses {} good pairs [{}], keeps {wrong_kept} of {} wrong",
+                lost.len(),
+                lost.join(" "),
+                good_pairs.iter().filter(|(_, g, _)| !*g).count()
+            );
+        }
     }
     Ok(())
+}
+
+/// The verified counts of the two screens per pair, with their seconds.
+fn screens(
+    features: &[posediff_matching::ImageFeatures],
+    pairs: &[(usize, usize)],
+    learned: &SharedLearned,
+) -> Result<Vec<(&'static str, f64, Vec<usize>)>> {
+    let no_minimum = MatchConfig {
+        min_verified: 0,
+        ..MatchConfig::default()
+    };
+    let started = std::time::Instant::now();
+    let mnn: Vec<usize> = posediff_matching::match_pairs(features, pairs, &no_minimum)?
+        .iter()
+        .map(posediff_matching::PairMatches::len)
+        .collect();
+    let mnn_seconds = started.elapsed().as_secs_f64();
+    // ALIKED's keypoints come strongest first.
+    let strongest: Vec<_> = features
+        .iter()
+        .map(|f| {
+            let n = f.keypoints.len().min(512);
+            let mut g = f.clone();
+            g.keypoints.truncate(n);
+            if let posediff_matching::Descriptors::Float { data, dim } = &mut g.descriptors {
+                data.truncate(n * *dim);
+            }
+            g
+        })
+        .collect();
+    let started = std::time::Instant::now();
+    let lg: Vec<usize> = match_pairs(&strongest, pairs, &no_minimum, Some(learned))?
+        .iter()
+        .map(posediff_matching::PairMatches::len)
+        .collect();
+    Ok(vec![
+        ("mnn", mnn_seconds, mnn),
+        ("lg512", started.elapsed().as_secs_f64(), lg),
+    ])
 }
