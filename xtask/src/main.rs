@@ -26,8 +26,10 @@
 //! - `vendor-three`: fetch three.js again from the npm registry (pinned version and digest)
 //!   into `crates/posediff/assets/three/` (the viewer inlines it).
 //! - `deps-check`: only the dependency invariants.
-//! - `bench-matching --data ../shared/data --out report.json`: match quality and speed on the
-//!   real sets (JSON + Markdown), with the OpenCV-python baseline when python3 has cv2.
+//! - `bench-matching --data ../shared/data --out report.json [--matchers sift,orb,aliked-lightglue]
+//!   [--weights-dir D]`: match quality (kept, good and wrong pairs, by ground-truth angle) and
+//!   speed on the real sets (JSON + Markdown), with the OpenCV-python baseline when python3 has
+//!   cv2.
 //! - `bench-real --data D --subsets S [--method M] [--weights W] --out R.json` and `bench-co3d
 //!   --co3d-dir D --annotation-dir A [--categories seen|unseen|a,b] [--method M] [--weights W]
 //!   --out R.json`: the accuracy benchmarks (`posediff bench-real | bench-co3d`); the method is
@@ -135,7 +137,7 @@ fn main() -> Result<()> {
         "wheel" => wheel(&profile_arg()?).map(|_| ()),
         "py-test" => py_test(&profile_arg()?),
         "bench-matching" => cargo_run(
-            &["-p", "posediff-matching", "--example", "bench_matching"],
+            &["-p", "posediff", "--example", "bench_matching"],
             &caller_args()?,
         ),
         "bench-co3d" | "bench-real" | "train" => {
@@ -171,7 +173,7 @@ fn main() -> Result<()> {
         }
         _ => {
             eprintln!(
-                "usage: cargo xtask <demo | synth ... | cuda-build [--compute-cap 90] [--out F] | bench-network [--frames 10,20,100] [--python P | --no-pytorch] [--out D] | bench-scale [--sizes 20,50,100] [--paths orbit,forward] [--pairs P] --out D | ci | setup | deps-check | convert-checkpoint IN OUT | bench-matching --data D --out F.json | bench-real ... | bench-co3d ...>"
+                "usage: cargo xtask <demo | synth ... | cuda-build [--compute-cap 90] [--out F] | bench-network [--frames 10,20,100] [--python P | --no-pytorch] [--out D] | bench-scale [--sizes 20,50,100] [--paths orbit,forward] [--pairs P] --out D | ci | setup | deps-check | convert-checkpoint IN OUT | bench-matching --data D --out F.json [--matchers sift,orb,aliked-lightglue] [--weights-dir D] | bench-real ... | bench-co3d ...>"
             );
             bail!("unknown task {task:?}")
         }
