@@ -94,10 +94,10 @@ impl ImageFeatureExtractor {
     /// Most images per pass through the ViT. The features of each image are independent;
     /// passes of at most 10 keep every activation under mimalloc's 16 MiB large-object limit
     /// (a pass stacks the three scales' `197 + 50 + 17` tokens per image: the MLP's
-    /// `10 × 264 × 1536` floats are 16.2 MB, under 16 MiB = 16.8 MB), so the allocator reuses the buffers instead of
-    /// mapping fresh pages for each layer (one batch of 100 images spent 16 % of its time in
-    /// the kernel zeroing them, and peaked at twice the memory), while the products keep over
-    /// 1,500 rows (the linear layers' full speed from about 800).
+    /// `10 × 264 × 1536` floats are 16.2 MB, 16 MiB is 16.8 MB), so the allocator reuses the
+    /// buffers instead of mapping fresh pages for each layer (one batch of 100 images spent
+    /// 16 % of its time in the kernel zeroing them, and peaked at twice the memory), while the
+    /// products keep over 1,500 rows (the linear layers' full speed from about 800).
     pub const MAX_IMAGES_PER_PASS: usize = 10;
 
     /// The averaged features `(N, 384)` of `(N, 3, H, W)` images in `[0, 1]` (the official

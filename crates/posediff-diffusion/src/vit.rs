@@ -12,7 +12,7 @@ use crate::linear::{Linear, linear};
 use crate::norm::LayerNorm;
 
 use crate::checkpoint::{VIT_DIM, VIT_MLP_DIM, VIT_POS_TOKENS};
-use crate::error::Result;
+use crate::error::{DiffusionError, Result};
 use crate::resize::bicubic_matrix;
 
 /// Patch size.
@@ -111,34 +111,34 @@ impl Block {
     /// # Errors
     /// Rows that do not add up to the sets, tensor errors.
     pub fn forward_sets(&self, x: &Tensor, sets: &TokenSets, cls_only: bool) -> Result<Tensor> {
+        if x.dim(0)? != sets.rows() {
+            return Err(DiffusionError::Invalid(
+                "the stacked rows do not add up to the token sets",
+            ));
+        }
         let qkv = self.attn.qkv.forward(&self.norm1.forward(x)?)?;
         let head_dim = VIT_DIM / HEADS;
         let scale = (head_dim as f64).powf(-0.5);
         let mut attended = Vec::with_capacity(sets.0.len());
-        let mut residual = Vec::with_capacity(sets.0.len());
         let mut start = 0;
         for &(b, t) in &sets.0 {
             let rows = b * t;
             let set_qkv = qkv.narrow(0, start, rows)?.reshape((b, t, 3 * VIT_DIM))?;
             let out = crate::attention::self_attention(&set_qkv, HEADS, scale)?;
-            if cls_only {
-                attended.push(out.i((.., 0, ..))?);
-                residual.push(x.narrow(0, start, rows)?.reshape((b, t, VIT_DIM))?.i((
-                    ..,
-                    0,
-                    ..,
-                ))?);
+            attended.push(if cls_only {
+                out.i((.., 0, ..))?
             } else {
-                attended.push(out.reshape((rows, VIT_DIM))?);
-            }
+                out.reshape((rows, VIT_DIM))?
+            });
             start += rows;
         }
         let attended = Tensor::cat(&attended, 0)?;
         let x = if cls_only {
-            (Tensor::cat(&residual, 0)? + self.attn.proj.forward(&attended)?)?
+            sets.cls_rows(x)?
         } else {
-            (x + self.attn.proj.forward(&attended)?)?
+            x.clone()
         };
+        let x = (x + self.attn.proj.forward(&attended)?)?;
         self.mlp_residual(&x)
     }
 }
@@ -147,6 +147,37 @@ impl Block {
 /// image after image: each set's `(B, T)` (images, tokens per image).
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct TokenSets(pub Vec<(usize, usize)>);
+
+impl TokenSets {
+    /// Rows of the stacked matrix.
+    pub fn rows(&self) -> usize {
+        self.0.iter().map(|&(b, t)| b * t).sum()
+    }
+
+    /// Each image's first (CLS) row of the stacked `x`, set after set: `(Σ B, C)`.
+    ///
+    /// # Errors
+    /// Rows that do not add up to the sets, tensor errors.
+    pub fn cls_rows(&self, x: &Tensor) -> Result<Tensor> {
+        let (rows, c) = x.dims2()?;
+        if rows != self.rows() {
+            return Err(DiffusionError::Invalid(
+                "the stacked rows do not add up to the token sets",
+            ));
+        }
+        let mut cls = Vec::with_capacity(self.0.len());
+        let mut start = 0;
+        for &(b, t) in &self.0 {
+            cls.push(
+                x.narrow(0, start, b * t)?
+                    .reshape((b, t, c))?
+                    .i((.., 0, ..))?,
+            );
+            start += b * t;
+        }
+        Ok(Tensor::cat(&cls, 0)?)
+    }
+}
 
 /// The DINO ViT-S/16 trunk (`image_feature_extractor._net`).
 #[derive(Debug, Clone)]
@@ -282,17 +313,7 @@ impl VisionTransformer {
         }
         if self.blocks.is_empty() {
             // Without blocks the CLS rows are picked here.
-            let mut cls = Vec::with_capacity(sets.0.len());
-            let mut start = 0;
-            for &(b, n) in &sets.0 {
-                cls.push(
-                    t.narrow(0, start, b * n)?
-                        .reshape((b, n, VIT_DIM))?
-                        .i((.., 0, ..))?,
-                );
-                start += b * n;
-            }
-            t = Tensor::cat(&cls, 0)?;
+            t = sets.cls_rows(&t)?;
         }
         let out = self.norm.forward(&t)?;
         let mut start = 0;

@@ -99,3 +99,21 @@ fn stacked_scales_match_the_scales_run_apart() {
         0.0,
     );
 }
+
+/// Stacked rows that do not add up to the token sets are an error, not a silent mis-split.
+#[test]
+fn stacked_rows_must_add_up_to_the_sets() {
+    let path = shared_path("reference/tiny/model_tiny.safetensors");
+    let m = PoseDiffusionModel::load(&path, DType::F32, &Device::Cpu).unwrap();
+    let block = &m.extractor.vit().blocks()[0];
+    let x = Tensor::zeros((5, 384), DType::F32, &Device::Cpu).unwrap();
+    let sets = posediff_diffusion::vit::TokenSets(vec![(1, 4)]);
+    assert!(block.forward_sets(&x, &sets, false).is_err());
+    assert!(sets.cls_rows(&x).is_err());
+    let fits = posediff_diffusion::vit::TokenSets(vec![(1, 3), (1, 2)]);
+    assert_eq!(fits.cls_rows(&x).unwrap().dims(), &[2, 384]);
+    assert_eq!(
+        block.forward_sets(&x, &fits, true).unwrap().dims(),
+        &[2, 384]
+    );
+}
