@@ -80,7 +80,7 @@ fn main() -> Result<()> {
     } else {
         Vec::new()
     };
-    let mut good_pairs = Vec::new();
+    let mut kept = Vec::new();
     println!(
         "i j gt_angle raw inliers ratio good_fraction{}",
         if screen { " mnn lg512" } else { "" }
@@ -114,19 +114,19 @@ fn main() -> Result<()> {
         );
         // Kept pairs: good (≥ 80 % within 4 px²) or wrong.
         if !v.is_empty() {
-            good_pairs.push((k, good_fraction >= 0.8, angle));
+            kept.push((k, good_fraction >= 0.8, angle));
         }
     }
     for (name, seconds, scores) in &screens {
         eprintln!("screen {name}: {seconds:.1} s for {} pairs", pairs.len());
         for threshold in [5, 10, 15, 20] {
             let passed = scores.iter().filter(|&&s| s >= threshold).count();
-            let lost: Vec<String> = good_pairs
+            let lost: Vec<String> = kept
                 .iter()
                 .filter(|(k, good, _)| *good && scores[*k] < threshold)
                 .map(|(_, _, a)| format!("{a:.0}°"))
                 .collect();
-            let wrong_kept = good_pairs
+            let wrong_kept = kept
                 .iter()
                 .filter(|(k, good, _)| !*good && scores[*k] >= threshold)
                 .count();
@@ -134,7 +134,7 @@ fn main() -> Result<()> {
                 "  >= {threshold}: passes {passed} pairs, loses {} good pairs [{}], keeps {wrong_kept} of {} wrong",
                 lost.len(),
                 lost.join(" "),
-                good_pairs.iter().filter(|(_, g, _)| !*g).count()
+                kept.iter().filter(|(_, g, _)| !*g).count()
             );
         }
     }
