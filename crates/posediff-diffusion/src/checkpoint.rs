@@ -1,4 +1,5 @@
-//! Loading official PoseDiffusion checkpoints: PyTorch `.pth` (zip + pickle, read without
+//! Loading official PoseDiffusion checkpoints: PyTorch `.pth` (zip + pickle, or the legacy
+//! format of PyTorch < 1.6 that DISK's released weights use; the pickle is read without
 //! executing code) or safetensors, keys as `model_keys.txt`, with or without a `module.` prefix,
 //! F16/F32/F64 storage. The depths of the ViT and of the denoiser trunk are read from the keys.
 //!
@@ -171,8 +172,17 @@ pub fn read_tensors(path: &Path) -> Result<Vec<(String, Tensor)>> {
         let mut f = std::fs::File::open(path).map_err(|e| read_err(e.into()))?;
         f.read_exact(&mut magic).map_err(|e| read_err(e.into()))?;
     }
-    // PyTorch ≥ 1.6 writes a zip archive ("PK"); anything else must parse as safetensors.
-    if &magic == b"PK" {
+    // PyTorch ≥ 1.6 writes a zip archive ("PK"), older versions a run of pickles (protocol 2,
+    // `\x80\x02`); anything else must parse as safetensors.
+    if magic == [0x80, 0x02] {
+        let p = path.to_owned();
+        match std::panic::catch_unwind(move || read_legacy(&p)) {
+            Ok(r) => r.map_err(read_err),
+            Err(_) => Err(DiffusionError::MalformedCheckpoint {
+                path: path.to_owned(),
+            }),
+        }
+    } else if &magic == b"PK" {
         // candle's pickle reader panics on some malformed pickles (found by the `checkpoint`
         // fuzz target: an index out of bounds in its stack handling); a broken file is an
         // error, not a crash.
@@ -191,6 +201,128 @@ pub fn read_tensors(path: &Path) -> Result<Vec<(String, Tensor)>> {
             .into_iter()
             .collect())
     }
+}
+
+/// The first two pickles of PyTorch's legacy (pre-zip) serialisation, byte for byte: the magic
+/// number `0x1950a86a20f9469cfc6c` (an 80-bit LONG1, read here as bytes: it does not fit an
+/// i64) and the protocol version 1001 (BININT2).
+const LEGACY_HEADER: [u8; 21] = [
+    0x80, 0x02, 0x8a, 0x0a, 0x6c, 0xfc, 0x9c, 0x46, 0xf9, 0x20, 0x6a, 0xa8, 0x50, 0x19, 0x2e,
+    0x80, 0x02, 0x4d, 0xe9, 0x03, 0x2e,
+];
+
+/// The tensors of a legacy `.pth` (`torch.save` before PyTorch 1.6, `_legacy_save`): three
+/// small pickles (magic number, protocol version, system info), the object's pickle whose
+/// tensors name their storages by key (persistent ids), a pickle of the storage keys, then per
+/// key its element count (u64, little endian) and raw bytes. Nested dicts are flattened with
+/// `.` (DISK's `{"extractor": state_dict}` gives `extractor.unet.…`).
+fn read_legacy(path: &Path) -> candle_core::Result<Vec<(String, Tensor)>> {
+    use candle_core::pickle::{Object, Stack, TensorInfo};
+    use std::io::Read;
+    let bad = |what: String| candle_core::Error::Msg(format!("legacy PyTorch file: {what}"));
+    let mut r = std::io::BufReader::new(std::fs::File::open(path)?);
+    let pickle = |r: &mut std::io::BufReader<std::fs::File>| -> candle_core::Result<Object> {
+        let mut stack = Stack::empty();
+        stack.read_loop(r)?;
+        stack.finalize()
+    };
+    let mut header = [0u8; LEGACY_HEADER.len()];
+    r.read_exact(&mut header)?;
+    if header != LEGACY_HEADER {
+        return Err(bad("no magic number and protocol 1001".into()));
+    }
+    let _system = pickle(&mut r)?;
+    let object = pickle(&mut r)?;
+    fn collect(
+        obj: Object,
+        prefix: &str,
+        out: &mut Vec<TensorInfo>,
+    ) -> candle_core::Result<()> {
+        let Object::Dict(entries) = obj else {
+            return Ok(());
+        };
+        for (k, v) in entries {
+            let Object::Unicode(name) = k else { continue };
+            let full = if prefix.is_empty() {
+                name
+            } else {
+                format!("{prefix}.{name}")
+            };
+            if matches!(v, Object::Dict(_)) {
+                collect(v, &full, out)?;
+            } else if let Some(info) =
+                v.into_tensor_info(Object::Unicode(full), Path::new("legacy"))?
+            {
+                out.push(info);
+            }
+        }
+        Ok(())
+    }
+    let mut infos = Vec::new();
+    collect(object, "", &mut infos)?;
+    let keys = match pickle(&mut r)? {
+        Object::List(keys) => keys
+            .into_iter()
+            .map(|k| match k {
+                Object::Unicode(k) => Ok(k),
+                other => Err(bad(format!("storage key {other:?}"))),
+            })
+            .collect::<candle_core::Result<Vec<_>>>()?,
+        other => return Err(bad(format!("storage keys {other:?}"))),
+    };
+    let storage_key = |info: &TensorInfo| info.path.strip_prefix("legacy/").map(str::to_owned);
+    let mut storages: HashMap<String, Vec<u8>> = HashMap::new();
+    for key in keys {
+        let info = infos
+            .iter()
+            .find(|i| storage_key(i).as_deref() == Some(key.as_str()))
+            .ok_or_else(|| bad(format!("storage {key} belongs to no tensor")))?;
+        let mut count = [0u8; 8];
+        r.read_exact(&mut count)?;
+        let bytes = usize::try_from(u64::from_le_bytes(count))
+            .ok()
+            .and_then(|n| n.checked_mul(info.dtype.size_in_bytes()))
+            .filter(|&b| b <= 1 << 34)
+            .ok_or_else(|| bad(format!("storage {key} of implausible size")))?;
+        let mut data = vec![0u8; bytes];
+        r.read_exact(&mut data)?;
+        storages.insert(key, data);
+    }
+    infos
+        .into_iter()
+        .map(|info| {
+            let key = storage_key(&info).unwrap_or_default();
+            let data = storages
+                .get(&key)
+                .ok_or_else(|| bad(format!("no storage {key} for {}", info.name)))?;
+            let layout = &info.layout;
+            let size = info.dtype.size_in_bytes();
+            let dims = layout.dims();
+            let strides = layout.stride();
+            // The elements in C order, gathered through the stored strides (a transposed
+            // tensor keeps its storage's order on disk).
+            let count = layout.shape().elem_count();
+            let mut bytes = Vec::with_capacity(count * size);
+            let mut index = vec![0usize; dims.len()];
+            for _ in 0..count {
+                let at = layout.start_offset()
+                    + index.iter().zip(strides).map(|(i, s)| i * s).sum::<usize>() * size;
+                let element = data.get(at..at + size).ok_or_else(|| {
+                    bad(format!("{}: a stride runs past its storage", info.name))
+                })?;
+                bytes.extend_from_slice(element);
+                for d in (0..dims.len()).rev() {
+                    index[d] += 1;
+                    if index[d] < dims[d] {
+                        break;
+                    }
+                    index[d] = 0;
+                }
+            }
+            let t = Tensor::from_raw_buffer(&bytes, info.dtype, dims, &Device::Cpu)?;
+            Ok((info.name, t))
+        })
+        .collect()
 }
 
 /// Counts `prefix.{i}.` indices among the keys: `max + 1`, or 0.

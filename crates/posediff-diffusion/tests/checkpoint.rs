@@ -143,3 +143,38 @@ fn converting_pth_to_safetensors_keeps_every_tensor() {
         assert_eq!(values(b), values(&t), "{key}");
     }
 }
+
+/// The legacy (pre-zip) format of `torch.save(..., _use_new_zipfile_serialization=False)`, as
+/// DISK's released weights are stored: the same tensors as the zip fixture, nested under
+/// `extractor`, read exactly (dtypes and the transposed storage included).
+#[test]
+fn legacy_pytorch_files_are_read_exactly_with_nested_keys() {
+    let zip: HashMap<String, Tensor> = read_tensors(&fixture_path("torch/small_state_dict.pth"))
+        .unwrap()
+        .into_iter()
+        .collect();
+    let legacy: HashMap<String, Tensor> =
+        read_tensors(&fixture_path("torch/small_state_dict_legacy.pth"))
+            .unwrap()
+            .into_iter()
+            .collect();
+    assert_eq!(legacy.len(), zip.len());
+    for (key, t) in &zip {
+        let ours = &legacy[&format!("extractor.{key}")];
+        assert_eq!(ours.dtype(), t.dtype(), "{key}");
+        assert_eq!(ours.dims(), t.dims(), "{key}");
+        assert_eq!(values(ours), values(t), "{key}");
+    }
+}
+
+/// A legacy file cut short is an error naming the file, not a panic or a partial dict.
+#[test]
+fn a_truncated_legacy_file_is_an_error() {
+    let bytes = std::fs::read(fixture_path("torch/small_state_dict_legacy.pth")).unwrap();
+    let dir = posediff_fixtures::temp_dir("legacy-truncated");
+    let path = dir.join("cut.pth");
+    std::fs::write(&path, &bytes[..bytes.len() - 10]).unwrap();
+    let e = read_tensors(&path).unwrap_err().to_string();
+    assert!(e.contains("cut.pth"), "{e}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
