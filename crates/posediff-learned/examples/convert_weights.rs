@@ -1,4 +1,4 @@
-//! `convert_weights IN OUT`: a released `.pth` state dict (ALIKED or LightGlue) to safetensors,
+//! `convert_weights IN OUT`: a released `.pth` state dict (ALIKED, DISK or LightGlue) to safetensors,
 //! checked to load as its network first. Used by `cargo xtask weights`.
 
 use std::path::PathBuf;
@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use anyhow::{Context, Result, bail};
 use candle_core::Device;
 use posediff_learned::weights::convert_to_safetensors;
-use posediff_learned::{Aliked, LightGlue};
+use posediff_learned::{Aliked, Disk, LightGlue};
 
 fn main() -> Result<()> {
     let args: Vec<PathBuf> = std::env::args_os().skip(1).map(PathBuf::from).collect();
@@ -22,6 +22,8 @@ fn main() -> Result<()> {
         .unwrap_or_default();
     if name.contains("lightglue") {
         LightGlue::load(dst, &Device::Cpu)?;
+    } else if name.starts_with("disk") {
+        Disk::load(dst)?;
     } else {
         Aliked::load(dst, &Device::Cpu)?;
     }

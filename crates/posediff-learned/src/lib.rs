@@ -4,7 +4,8 @@
 //!
 //! - [`aliked`]: the ALIKED n16 network, its detector (NMS, top-k, soft-argmax) and its sparse
 //!   deformable descriptor head;
-//! - [`lightglue`]: LightGlue for ALIKED features, with adaptive depth and point pruning;
+//! - [`disk`]: DISK's U-Net and detector (kornia's), descriptors computed at the keypoints only;
+//! - [`lightglue`]: LightGlue for ALIKED or DISK features, with adaptive depth and point pruning;
 //! - [`weights`]: which files, where they are found, `.pth` → safetensors;
 //! - [`deform`]: the deformable 3×3 convolution ALIKED's last two blocks use.
 //!
@@ -17,12 +18,14 @@
 
 pub mod aliked;
 pub mod deform;
+pub mod disk;
 pub mod error;
 pub mod lightglue;
 mod sampling;
 pub mod weights;
 
 pub use aliked::{Aliked, AlikedConfig, DenseMaps, Keypoints, RgbImage};
+pub use disk::{Disk, DiskConfig};
 pub use error::{LearnedError, Result};
 pub use lightglue::{LightGlue, LightGlueConfig, LightGlueMatches, MatcherInput};
 pub use weights::{StateDict, WeightSet};

@@ -22,14 +22,20 @@ pub enum WeightSet {
     AlikedN16Rot,
     /// LightGlue trained on ALIKED features (9 layers, 256-d), Apache-2.0.
     AlikedLightGlue,
+    /// DISK's `depth` model (the U-Net, 1.1 M parameters), Apache-2.0 (cvlab-epfl/disk).
+    Disk,
+    /// LightGlue trained on DISK features (9 layers, 256-d), Apache-2.0.
+    DiskLightGlue,
 }
 
 impl WeightSet {
     /// Every set, in the order `cargo xtask weights` writes them.
-    pub const ALL: [WeightSet; 3] = [
+    pub const ALL: [WeightSet; 5] = [
         WeightSet::AlikedN16,
         WeightSet::AlikedN16Rot,
         WeightSet::AlikedLightGlue,
+        WeightSet::Disk,
+        WeightSet::DiskLightGlue,
     ];
 
     /// The file stem, as in the wheel and the upstream releases.
@@ -38,6 +44,8 @@ impl WeightSet {
             WeightSet::AlikedN16 => "aliked-n16",
             WeightSet::AlikedN16Rot => "aliked-n16rot",
             WeightSet::AlikedLightGlue => "aliked_lightglue",
+            WeightSet::Disk => "disk-depth-save",
+            WeightSet::DiskLightGlue => "disk_lightglue",
         }
     }
 
@@ -141,6 +149,11 @@ impl StateDict {
     /// As [`StateDict::get`].
     pub fn on(&self, name: &str, shape: &[usize], device: &Device) -> Result<Tensor> {
         Ok(self.get(name, shape)?.to_device(device)?)
+    }
+
+    /// Whether the file holds tensor `name`.
+    pub fn contains(&self, name: &str) -> bool {
+        self.tensors.contains_key(name)
     }
 
     /// Number of tensors.
