@@ -207,8 +207,8 @@ pub fn read_tensors(path: &Path) -> Result<Vec<(String, Tensor)>> {
 /// number `0x1950a86a20f9469cfc6c` (an 80-bit LONG1, read here as bytes: it does not fit an
 /// i64) and the protocol version 1001 (BININT2).
 const LEGACY_HEADER: [u8; 21] = [
-    0x80, 0x02, 0x8a, 0x0a, 0x6c, 0xfc, 0x9c, 0x46, 0xf9, 0x20, 0x6a, 0xa8, 0x50, 0x19, 0x2e,
-    0x80, 0x02, 0x4d, 0xe9, 0x03, 0x2e,
+    0x80, 0x02, 0x8a, 0x0a, 0x6c, 0xfc, 0x9c, 0x46, 0xf9, 0x20, 0x6a, 0xa8, 0x50, 0x19, 0x2e, 0x80,
+    0x02, 0x4d, 0xe9, 0x03, 0x2e,
 ];
 
 /// The tensors of a legacy `.pth` (`torch.save` before PyTorch 1.6, `_legacy_save`): three
@@ -233,11 +233,7 @@ fn read_legacy(path: &Path) -> candle_core::Result<Vec<(String, Tensor)>> {
     }
     let _system = pickle(&mut r)?;
     let object = pickle(&mut r)?;
-    fn collect(
-        obj: Object,
-        prefix: &str,
-        out: &mut Vec<TensorInfo>,
-    ) -> candle_core::Result<()> {
+    fn collect(obj: Object, prefix: &str, out: &mut Vec<TensorInfo>) -> candle_core::Result<()> {
         let Object::Dict(entries) = obj else {
             return Ok(());
         };
@@ -307,9 +303,9 @@ fn read_legacy(path: &Path) -> candle_core::Result<Vec<(String, Tensor)>> {
             for _ in 0..count {
                 let at = layout.start_offset()
                     + index.iter().zip(strides).map(|(i, s)| i * s).sum::<usize>() * size;
-                let element = data.get(at..at + size).ok_or_else(|| {
-                    bad(format!("{}: a stride runs past its storage", info.name))
-                })?;
+                let element = data
+                    .get(at..at + size)
+                    .ok_or_else(|| bad(format!("{}: a stride runs past its storage", info.name)))?;
                 bytes.extend_from_slice(element);
                 for d in (0..dims.len()).rev() {
                     index[d] += 1;

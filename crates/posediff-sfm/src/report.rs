@@ -98,6 +98,12 @@ pub struct MapperReport {
     pub rotation_only_pairs: usize,
     /// Pairs dropped by the rotation-consistency check.
     pub inconsistent_pairs: usize,
+    /// Pairs dropped by the cycle check before rotation averaging (every triangle through
+    /// them contradicts them).
+    pub cycle_rejected_pairs: usize,
+    /// The pairs whose relative poses the averaging used at the chosen start (after the
+    /// consistency checks), both of whose cameras are estimated.
+    pub averaged_pairs: Vec<[usize; 2]>,
     /// No pair has parallax: all centres coincide.
     pub no_parallax: bool,
     /// The images estimated.

@@ -219,6 +219,69 @@ pub fn rotation_residuals_deg(
         .collect()
 }
 
+/// The cycle check on the view graph's triangles: for each edge, whether it closes at least
+/// `min_triangles` triangles and none of them within `threshold_deg` (`R_jk R_ij R_ikᵀ` the
+/// identity up to that angle). Such an edge disagrees with every pair of other edges that could
+/// confirm it: the signature of a pair whose two-view geometry is wrong (non-overlapping views
+/// that a learned matcher still gives enough inliers). Edges in no triangle (bridges) and edges
+/// that one triangle confirms are kept. Cost: `O(Σ_edges min(deg))` with sorted adjacency.
+pub fn unconfirmed_by_cycles(
+    edges: &[RelativeRotation],
+    threshold_deg: f64,
+    min_triangles: usize,
+) -> Vec<bool> {
+    use std::collections::HashMap;
+    // rel[(a, b)] = R_b R_aᵀ for both directions.
+    let mut rel: HashMap<(usize, usize), Rotation3<f64>> = HashMap::new();
+    let mut neighbours: HashMap<usize, Vec<usize>> = HashMap::new();
+    for e in edges {
+        rel.insert((e.first, e.second), e.rotation);
+        rel.insert((e.second, e.first), e.rotation.inverse());
+        neighbours.entry(e.first).or_default().push(e.second);
+        neighbours.entry(e.second).or_default().push(e.first);
+    }
+    for list in neighbours.values_mut() {
+        list.sort_unstable();
+        list.dedup();
+    }
+    let empty = Vec::new();
+    edges
+        .iter()
+        .map(|e| {
+            let (i, j) = (e.first, e.second);
+            let (ni, nj) = (
+                neighbours.get(&i).unwrap_or(&empty),
+                neighbours.get(&j).unwrap_or(&empty),
+            );
+            let (mut triangles, mut confirmed) = (0, 0);
+            // Sorted intersection of the two neighbour lists.
+            let (mut a, mut b) = (0, 0);
+            while a < ni.len() && b < nj.len() {
+                match ni[a].cmp(&nj[b]) {
+                    std::cmp::Ordering::Less => a += 1,
+                    std::cmp::Ordering::Greater => b += 1,
+                    std::cmp::Ordering::Equal => {
+                        let k = ni[a];
+                        let (Some(jk), Some(ki)) = (rel.get(&(j, k)), rel.get(&(k, i))) else {
+                            a += 1;
+                            b += 1;
+                            continue;
+                        };
+                        triangles += 1;
+                        let cycle = ki * jk * e.rotation;
+                        if rotation_angle(&cycle).to_degrees() <= threshold_deg {
+                            confirmed += 1;
+                        }
+                        a += 1;
+                        b += 1;
+                    }
+                }
+            }
+            triangles >= min_triangles.max(1) && confirmed == 0
+        })
+        .collect()
+}
+
 /// For each image with a value, its position among the unknowns (the reference is fixed).
 pub(crate) fn unknown_index<T>(values: &[Option<T>], reference: usize) -> Vec<Option<usize>> {
     let mut next = 0;
@@ -399,5 +462,43 @@ mod tests {
             average_rotations(3, &[e], 0, &RotationAveragingOptions::default()).unwrap();
         assert!(got[0].is_some() && got[1].is_some() && got[2].is_none());
         assert_eq!(report.images, 2);
+    }
+
+    #[test]
+    fn a_pair_that_every_triangle_contradicts_is_unconfirmed() {
+        // Five cameras, every pair measured exactly, except (0, 2) turned by 40°.
+        let absolute: Vec<Rotation3<f64>> = (0..5)
+            .map(|i| Rotation3::from_euler_angles(0.1 * i as f64, 0.3 * i as f64, -0.05 * i as f64))
+            .collect();
+        let mut edges = Vec::new();
+        for i in 0..5 {
+            for j in i + 1..5 {
+                let mut rotation = absolute[j] * absolute[i].inverse();
+                if (i, j) == (0, 2) {
+                    rotation =
+                        Rotation3::from_euler_angles(0.0, 40f64.to_radians(), 0.0) * rotation;
+                }
+                edges.push(RelativeRotation {
+                    first: i,
+                    second: j,
+                    rotation,
+                    weight: 1.0,
+                });
+            }
+        }
+        let flagged = unconfirmed_by_cycles(&edges, 5.0, 2);
+        let which: Vec<(usize, usize)> = edges
+            .iter()
+            .zip(&flagged)
+            .filter(|(_, f)| **f)
+            .map(|(e, _)| (e.first, e.second))
+            .collect();
+        // Every other pair has triangles that do not use (0, 2) and close exactly.
+        assert_eq!(which, vec![(0, 2)]);
+        // With more triangles required than the pair closes (3), nothing is dropped.
+        assert!(unconfirmed_by_cycles(&edges, 5.0, 4).iter().all(|f| !f));
+        // A bridge (in no triangle) is never dropped.
+        let chain = &edges[..1];
+        assert_eq!(unconfirmed_by_cycles(chain, 5.0, 0), vec![false]);
     }
 }

@@ -73,7 +73,7 @@ fn main() -> anyhow::Result<()> {
     // Every learned matcher's weights are checked (and loaded) before any image is read.
     let mut learned = Vec::new();
     for m in &matchers {
-        learned.push(match m.aliked_weights() {
+        learned.push(match m.extractor_weights() {
             Some(set) => Some(SharedLearned(std::sync::Arc::new(
                 LearnedMatcher::load_with(&weights_dir, set)?,
             ))),

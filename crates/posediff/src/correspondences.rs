@@ -1,13 +1,14 @@
 //! Which matcher finds the correspondences, for both paths (GGS and the checkpoint-free
 //! mapper): OpenCV's SIFT or ORB with mutual nearest neighbours (`posediff-matching`), or ALIKED
-//! keypoints matched by LightGlue (`posediff-learned`). Either way the keypoints are in pixels
+//! or DISK keypoints matched by LightGlue (`posediff-learned`). Either way the keypoints are in pixels
 //! of the original image and every pair goes through the same MAGSAC verification and
 //! minimum of verified matches ([`MatchConfig::verification`], [`MatchConfig::min_verified`]).
 //!
 //! The learned matcher follows the reference pipeline: each image resized (OpenCV INTER_AREA) to
-//! a long side of [`LEARNED_IMAGE_SIDE`], ALIKED's top [`LEARNED_MAX_KEYPOINTS`] (detection
-//! threshold 0, so weak texture still gets keypoints), LightGlue with its early exit and point
-//! pruning per selected pair, keypoints mapped back to the original pixels.
+//! a long side of [`LEARNED_IMAGE_SIDE`], ALIKED's or DISK's top [`LEARNED_MAX_KEYPOINTS`]
+//! (detection threshold 0, so weak texture still gets keypoints), the LightGlue trained on that
+//! extractor's descriptors with its early exit and point pruning per selected pair, keypoints
+//! mapped back to the original pixels.
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -17,7 +18,8 @@ use opencv::core::{Mat, Size};
 use opencv::prelude::*;
 use posediff_geometry::{ImageSize, PairMatches};
 use posediff_learned::{
-    Aliked, AlikedConfig, LightGlue, LightGlueConfig, MatcherInput, RgbImage, WeightSet,
+    Aliked, AlikedConfig, Disk, DiskConfig, LightGlue, LightGlueConfig, MatcherInput, RgbImage,
+    WeightSet,
 };
 use posediff_matching::features::to_original_pixels;
 use posediff_matching::{Descriptors, ImageFeatures, MatchConfig};
@@ -43,6 +45,8 @@ pub enum MatcherChoice {
     /// ALIKED n16rot keypoints (trained with in-plane rotations), LightGlue matches (the same
     /// LightGlue weights: both ALIKED models give 128-d descriptors).
     AlikedN16RotLightGlue,
+    /// DISK keypoints (the released `depth` model), matched by the LightGlue trained on DISK.
+    DiskLightGlue,
 }
 
 impl MatcherChoice {
@@ -53,14 +57,16 @@ impl MatcherChoice {
             Self::Orb => "orb",
             Self::AlikedLightGlue => "aliked-lightglue",
             Self::AlikedN16RotLightGlue => "aliked-n16rot-lightglue",
+            Self::DiskLightGlue => "disk-lightglue",
         }
     }
 
-    /// The ALIKED weights of a learned choice (`None` for the OpenCV ones).
-    pub fn aliked_weights(self) -> Option<WeightSet> {
+    /// The extractor weights of a learned choice (`None` for the OpenCV ones).
+    pub fn extractor_weights(self) -> Option<WeightSet> {
         match self {
             Self::AlikedLightGlue => Some(WeightSet::AlikedN16),
             Self::AlikedN16RotLightGlue => Some(WeightSet::AlikedN16Rot),
+            Self::DiskLightGlue => Some(WeightSet::Disk),
             Self::Sift | Self::Orb => None,
         }
     }
@@ -89,34 +95,55 @@ impl std::str::FromStr for MatcherChoice {
             "orb" => Ok(Self::Orb),
             "aliked-lightglue" => Ok(Self::AlikedLightGlue),
             "aliked-n16rot-lightglue" => Ok(Self::AlikedN16RotLightGlue),
+            "disk-lightglue" => Ok(Self::DiskLightGlue),
             other => Err(PosediffError::InvalidArgument(format!(
-                "matcher must be sift, orb, aliked-lightglue or aliked-n16rot-lightglue, \
-                 got {other:?}"
+                "matcher must be sift, orb, aliked-lightglue, aliked-n16rot-lightglue or \
+                 disk-lightglue, got {other:?}"
             ))),
         }
     }
 }
 
-/// ALIKED + LightGlue with their released weights, loaded once.
+/// A learned keypoint extractor.
+#[derive(Debug)]
+enum Extractor {
+    Aliked(Box<Aliked>),
+    Disk(Disk),
+}
+
+/// ALIKED or DISK + LightGlue with their released weights, loaded once.
 #[derive(Debug)]
 pub struct LearnedMatcher {
-    aliked: Aliked,
+    extractor: Extractor,
     lightglue: LightGlue,
-    /// Detection settings.
+    /// ALIKED's detection settings.
     pub aliked_config: AlikedConfig,
+    /// DISK's detection settings.
+    pub disk_config: DiskConfig,
     /// Matching settings.
     pub lightglue_config: LightGlueConfig,
     /// Long side the images are resized to.
     pub image_side: u32,
 }
 
-/// The weight files of the learned matcher with ALIKED weights `aliked` in `dir`, checked to
-/// exist (before any image is read).
+/// The LightGlue trained on the descriptors of extractor `extractor`.
+fn lightglue_for(extractor: WeightSet) -> WeightSet {
+    match extractor {
+        WeightSet::Disk => WeightSet::DiskLightGlue,
+        _ => WeightSet::AlikedLightGlue,
+    }
+}
+
+/// The weight files of the learned matcher with extractor weights `extractor` (an ALIKED set
+/// or DISK) in `dir` and its LightGlue, checked to exist (before any image is read).
 ///
 /// # Errors
 /// A missing file, with the command that fetches it.
-pub fn learned_weight_files(dir: &Path, aliked: WeightSet) -> Result<(PathBuf, PathBuf)> {
-    Ok((aliked.locate(dir)?, WeightSet::AlikedLightGlue.locate(dir)?))
+pub fn learned_weight_files(dir: &Path, extractor: WeightSet) -> Result<(PathBuf, PathBuf)> {
+    Ok((
+        extractor.locate(dir)?,
+        lightglue_for(extractor).locate(dir)?,
+    ))
 }
 
 impl LearnedMatcher {
@@ -129,25 +156,42 @@ impl LearnedMatcher {
         Self::load_with(dir, WeightSet::AlikedN16)
     }
 
-    /// As [`Self::load`] with the ALIKED weights `aliked` (`AlikedN16` or `AlikedN16Rot`).
+    /// As [`Self::load`] with the extractor weights `extractor` (`AlikedN16`, `AlikedN16Rot` or
+    /// `Disk`) and the LightGlue trained on its descriptors.
     ///
     /// # Errors
-    /// Missing or malformed weight files.
-    pub fn load_with(dir: &Path, aliked: WeightSet) -> Result<Self> {
-        let (aliked, lightglue) = learned_weight_files(dir, aliked)?;
+    /// Missing or malformed weight files; a weight set that is not an extractor.
+    pub fn load_with(dir: &Path, extractor: WeightSet) -> Result<Self> {
+        let (file, lightglue) = learned_weight_files(dir, extractor)?;
+        let extractor = match extractor {
+            WeightSet::AlikedN16 | WeightSet::AlikedN16Rot => {
+                Extractor::Aliked(Box::new(Aliked::load(&file, &Device::Cpu)?))
+            }
+            WeightSet::Disk => Extractor::Disk(Disk::load(&file)?),
+            other => {
+                return Err(PosediffError::InvalidArgument(format!(
+                    "{} is a matcher's weights, not a keypoint extractor's",
+                    other.stem()
+                )));
+            }
+        };
         Ok(Self {
-            aliked: Aliked::load(&aliked, &Device::Cpu)?,
+            extractor,
             lightglue: LightGlue::load(&lightglue, &Device::Cpu)?,
             aliked_config: AlikedConfig {
                 max_keypoints: LEARNED_MAX_KEYPOINTS,
                 ..AlikedConfig::default()
+            },
+            disk_config: DiskConfig {
+                max_keypoints: LEARNED_MAX_KEYPOINTS,
+                ..DiskConfig::default()
             },
             lightglue_config: LightGlueConfig::default(),
             image_side: LEARNED_IMAGE_SIDE,
         })
     }
 
-    /// ALIKED keypoints and descriptors of one image, in its original pixels.
+    /// The extractor's keypoints and descriptors of one image, in its original pixels.
     ///
     /// # Errors
     /// Unreadable images (named), network errors.
@@ -181,13 +225,14 @@ impl LearnedMatcher {
             height: nh as usize,
             data: rgb.data_bytes()?,
         };
-        let kp = self
-            .aliked
-            .extract(&image, &self.aliked_config)
-            .map_err(|e| PosediffError::Context {
-                what: format!("ALIKED on {}", path.display()),
-                source: Box::new(e.into()),
-            })?;
+        let (name, kp) = match &self.extractor {
+            Extractor::Aliked(net) => ("ALIKED", net.extract(&image, &self.aliked_config)),
+            Extractor::Disk(net) => ("DISK", net.extract(&image, &self.disk_config)),
+        };
+        let kp = kp.map_err(|e| PosediffError::Context {
+            what: format!("{name} on {}", path.display()),
+            source: Box::new(e.into()),
+        })?;
         let scale = [f64::from(nw) / f64::from(w), f64::from(nh) / f64::from(h)];
         Ok(ImageFeatures {
             image_size,
@@ -206,7 +251,7 @@ impl LearnedMatcher {
     /// LightGlue on one pair, then the verification of `config`.
     ///
     /// # Errors
-    /// Features that are not ALIKED's; OpenCV errors in the verification.
+    /// Features that are not the extractor's; OpenCV errors in the verification.
     pub fn match_pair(
         &self,
         a: &ImageFeatures,
@@ -227,7 +272,7 @@ impl LearnedMatcher {
                     Ok(data.clone())
                 }
                 _ => Err(PosediffError::InvalidArgument(
-                    "LightGlue needs ALIKED's 128-d float descriptors".into(),
+                    "LightGlue needs the learned extractor's 128-d float descriptors".into(),
                 )),
             }
         };

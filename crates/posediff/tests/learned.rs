@@ -36,6 +36,7 @@ fn matcher_names_round_trip() {
         MatcherChoice::Orb,
         MatcherChoice::AlikedLightGlue,
         MatcherChoice::AlikedN16RotLightGlue,
+        MatcherChoice::DiskLightGlue,
     ] {
         assert_eq!(m.as_str().parse::<MatcherChoice>().unwrap(), m);
     }
@@ -175,7 +176,7 @@ fn the_cli_estimates_with_the_learned_matcher() {
 fn the_n16rot_choice_runs_its_own_network() {
     let dir = weights_dir();
     let aliked = MatcherChoice::AlikedN16RotLightGlue
-        .aliked_weights()
+        .extractor_weights()
         .unwrap();
     assert_eq!(aliked, posediff_learned::WeightSet::AlikedN16Rot);
     let rot = SharedLearned(std::sync::Arc::new(
@@ -188,5 +189,47 @@ fn the_n16rot_choice_runs_its_own_network() {
     assert_eq!(a.keypoints.len(), b.keypoints.len());
     assert_ne!(a.keypoints, b.keypoints, "n16rot gave n16's keypoints");
     let (_, pairs) = match_images(&images, None, &MatchConfig::default(), Some(&rot)).unwrap();
+    assert!(pairs[0].len() >= 100, "{} verified matches", pairs[0].len());
+}
+
+/// `disk-lightglue` runs DISK with the LightGlue trained on it: up to 2048 keypoints inside the
+/// original image, and verified matches between neighbouring apple frames.
+#[test]
+fn the_disk_choice_runs_disk_with_its_own_lightglue() {
+    let extractor = MatcherChoice::DiskLightGlue.extractor_weights().unwrap();
+    assert_eq!(extractor, posediff_learned::WeightSet::Disk);
+    let (file, lightglue) =
+        posediff::correspondences::learned_weight_files(&weights_dir(), extractor)
+            .unwrap_or_else(|e| panic!("{e}"));
+    assert!(
+        file.to_string_lossy().contains("disk-depth-save"),
+        "{file:?}"
+    );
+    assert!(
+        lightglue.to_string_lossy().contains("disk_lightglue"),
+        "{lightglue:?}"
+    );
+    let disk = SharedLearned(std::sync::Arc::new(
+        LearnedMatcher::load_with(&weights_dir(), extractor).unwrap_or_else(|e| panic!("{e}")),
+    ));
+    let images = apple(2);
+    let (features, pairs) =
+        match_images(&images, None, &MatchConfig::default(), Some(&disk)).unwrap();
+    for f in &features {
+        assert!(
+            f.keypoints.len() > 500 && f.keypoints.len() <= 2048,
+            "{}",
+            f.keypoints.len()
+        );
+        let (w, h) = (
+            f64::from(f.image_size.width()),
+            f64::from(f.image_size.height()),
+        );
+        assert!(
+            f.keypoints
+                .iter()
+                .all(|k| k[0] >= -0.5 && k[1] >= -0.5 && k[0] < w && k[1] < h)
+        );
+    }
     assert!(pairs[0].len() >= 100, "{} verified matches", pairs[0].len());
 }

@@ -108,6 +108,9 @@ pub enum Matcher {
     /// The rotation-robust ALIKED (`aliked-n16rot`) matched by the same LightGlue.
     #[value(name = "aliked-n16rot-lightglue")]
     AlikedN16rotLightglue,
+    /// DISK keypoints matched by the LightGlue trained on DISK (released weights).
+    #[value(name = "disk-lightglue")]
+    DiskLightglue,
 }
 
 impl From<Matcher> for posediff::correspondences::MatcherChoice {
@@ -117,6 +120,7 @@ impl From<Matcher> for posediff::correspondences::MatcherChoice {
             Matcher::Orb => Self::Orb,
             Matcher::AlikedLightglue => Self::AlikedLightGlue,
             Matcher::AlikedN16rotLightglue => Self::AlikedN16RotLightGlue,
+            Matcher::DiskLightglue => Self::DiskLightGlue,
         }
     }
 }

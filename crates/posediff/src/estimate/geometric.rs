@@ -177,6 +177,11 @@ pub struct GeometricReport {
     pub rotation_only_pairs: usize,
     /// Pairs dropped by the rotation-consistency check.
     pub inconsistent_pairs: usize,
+    /// Pairs dropped by the cycle check (every triangle of the view graph through them
+    /// contradicts their relative rotation).
+    pub cycle_rejected_pairs: usize,
+    /// The pairs whose relative poses the averaging used (image indices).
+    pub averaged_pairs: Vec<[usize; 2]>,
     /// The images estimated (the largest view-graph component).
     pub estimated: Vec<usize>,
     /// The others and why.
@@ -264,6 +269,8 @@ impl GeometricReport {
         self.pairs_with_pose = m.pairs_with_pose;
         self.rotation_only_pairs = m.rotation_only_pairs;
         self.inconsistent_pairs = m.inconsistent_pairs;
+        self.averaged_pairs = m.averaged_pairs.clone();
+        self.cycle_rejected_pairs = m.cycle_rejected_pairs;
         self.estimated = m.estimated.clone();
         self.not_estimated = m
             .not_estimated

@@ -282,8 +282,8 @@ impl RunOptions {
         {
             return Err(PosediffError::NotFound(p.clone()));
         }
-        if let Some(aliked) = self.matcher.aliked_weights() {
-            learned_weight_files(&self.learned_weights_dir(), aliked)?;
+        if let Some(extractor) = self.matcher.extractor_weights() {
+            learned_weight_files(&self.learned_weights_dir(), extractor)?;
         }
         Ok(())
     }
@@ -300,12 +300,12 @@ impl RunOptions {
     /// # Errors
     /// Missing or malformed weights.
     pub fn load_learned(&self) -> Result<Option<SharedLearned>> {
-        let Some(aliked) = self.matcher.aliked_weights() else {
+        let Some(extractor) = self.matcher.extractor_weights() else {
             return Ok(None);
         };
         let dir = self.learned_weights_dir();
         Ok(Some(SharedLearned(std::sync::Arc::new(
-            LearnedMatcher::load_with(&dir, aliked)?,
+            LearnedMatcher::load_with(&dir, extractor)?,
         ))))
     }
 

@@ -1,0 +1,308 @@
+//! The checkpoint-free mapper on matches made once: the subsets of `subsets.json` for one set,
+//! scored like `bench-real`, from a cache of all the set's pairs (matched on the first run), with
+//! the pairs the averaging used classified by the ground truth ("wrong": fewer than 80 % of the
+//! pair's verified matches within 4 px² of the ground-truth epipolar geometry).
+//!
+//! `cargo run --profile ci -p posediff --example mapper_replay -- <data> <subsets.json> <set>
+//! <cache.json> [sift | aliked-lightglue | aliked-n16rot-lightglue] [weights dir]`
+//!
+//! A pair's matches do not depend on the other images (features per image, LightGlue and MAGSAC
+//! per pair), so a subset's pairs are the cached pairs among its images: the mapper can be
+//! changed and re-measured in seconds instead of re-matching every subset.
+#![allow(clippy::print_stdout)]
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result};
+use posediff::correspondences::{LearnedMatcher, MatcherChoice, SharedLearned};
+use posediff::correspondences::{extract_all, match_pairs};
+use posediff::estimate::geometric::{GeometricConfig, estimate_from_matches};
+use posediff_geometry::epipolar::{fundamental_from_cameras, sampson_error};
+use posediff_geometry::{Camera, ImageSize, PairMatches};
+use serde_json::{Value, json};
+
+/// One subset's outcome: mAA(30), fraction of kept pairs that are wrong, pairs averaged, wrong
+/// pairs averaged, pairs kept.
+type Outcome = (f64, f64, usize, usize, usize);
+
+fn save(path: &Path, sizes: &[ImageSize], pairs: &[PairMatches], raw: &[usize]) -> Result<()> {
+    let pairs: Vec<Value> = pairs
+        .iter()
+        .zip(raw)
+        .map(|(p, raw)| {
+            json!({"first": p.first, "second": p.second, "kp1": p.kp1, "kp2": p.kp2,
+                   "idx1": p.idx1, "idx2": p.idx2, "raw": raw})
+        })
+        .collect();
+    let sizes: Vec<[u32; 2]> = sizes.iter().map(|s| [s.width(), s.height()]).collect();
+    std::fs::write(
+        path,
+        serde_json::to_string(&json!({"sizes": sizes, "pairs": pairs}))?,
+    )?;
+    Ok(())
+}
+
+fn load(path: &Path) -> Result<(Vec<ImageSize>, Vec<PairMatches>, Vec<usize>)> {
+    let v: Value = serde_json::from_str(&std::fs::read_to_string(path)?)?;
+    let sizes: Vec<[u32; 2]> = serde_json::from_value(v["sizes"].clone())?;
+    let sizes = sizes
+        .iter()
+        .map(|s| ImageSize::new(s[0], s[1]))
+        .collect::<std::result::Result<Vec<_>, _>>()?;
+    let list = v["pairs"].as_array().context("no pairs")?;
+    let raw = list
+        .iter()
+        .map(|p| Ok(serde_json::from_value(p["raw"].clone())?))
+        .collect::<Result<_>>()?;
+    let pairs = list
+        .iter()
+        .map(|p| {
+            Ok(PairMatches {
+                first: serde_json::from_value(p["first"].clone())?,
+                second: serde_json::from_value(p["second"].clone())?,
+                kp1: serde_json::from_value(p["kp1"].clone())?,
+                kp2: serde_json::from_value(p["kp2"].clone())?,
+                idx1: serde_json::from_value(p["idx1"].clone())?,
+                idx2: serde_json::from_value(p["idx2"].clone())?,
+            })
+        })
+        .collect::<Result<_>>()?;
+    Ok((sizes, pairs, raw))
+}
+
+/// The fraction of `p`'s matches within 4 px² of the ground-truth epipolar geometry.
+fn correct_fraction(p: &PairMatches, a: &Camera, b: &Camera) -> f64 {
+    let f = fundamental_from_cameras(a, b);
+    let good = p
+        .kp1
+        .iter()
+        .zip(&p.kp2)
+        .filter(|(x, y)| {
+            sampson_error(
+                &f,
+                &nalgebra::Point2::new(x[0], x[1]),
+                &nalgebra::Point2::new(y[0], y[1]),
+            )
+            .is_ok_and(|e| e < 4.0)
+        })
+        .count();
+    good as f64 / p.len().max(1) as f64
+}
+
+fn main() -> Result<()> {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let [data, subsets, set, cache, rest @ ..] = args.as_slice() else {
+        anyhow::bail!(
+            "usage: mapper_replay <data> <subsets.json> <set> <cache.json> [matcher] [weights]"
+        );
+    };
+    let matcher: MatcherChoice = rest
+        .first()
+        .map_or(Ok(MatcherChoice::Sift), |m| m.parse())?;
+    let dir = Path::new(data).join(set);
+    let gt = posediff::io::export::read_cameras_json(&dir.join("cameras.json"))?;
+    let names: Vec<&str> = gt.iter().map(|c| c.image.as_str()).collect();
+    let cache = PathBuf::from(cache);
+    let (sizes, pairs, raw_counts) = if cache.exists() {
+        load(&cache)?
+    } else {
+        let mut config = GeometricConfig::default();
+        config.matching.features.detector = matcher.detector();
+        if let Some(aliked) = matcher.extractor_weights() {
+            let weights = rest
+                .get(1)
+                .map_or_else(posediff_learned::weights::default_dir, PathBuf::from);
+            config.learned = Some(SharedLearned(std::sync::Arc::new(
+                LearnedMatcher::load_with(&weights, aliked)?,
+            )));
+        }
+        let images: Vec<PathBuf> = names.iter().map(|n| dir.join(n)).collect();
+        let started = std::time::Instant::now();
+        let learned = config.learned.as_ref();
+        let features = extract_all(&images, &config.matching, learned)?;
+        let list = posediff_matching::exhaustive_pairs(images.len());
+        let raw_config = posediff_matching::MatchConfig {
+            verification: None,
+            ..config.matching
+        };
+        let raw = match_pairs(&features, &list, &raw_config, learned)?;
+        let raw_counts: Vec<usize> = raw.iter().map(PairMatches::len).collect();
+        let verified = raw
+            .into_iter()
+            .map(|r| Ok(posediff_matching::verify(r, &config.matching)?))
+            .collect::<Result<Vec<_>>>()?;
+        eprintln!(
+            "matched {} pairs of {} images in {:.1} s",
+            verified.len(),
+            images.len(),
+            started.elapsed().as_secs_f64()
+        );
+        let sizes: Vec<ImageSize> = features.iter().map(|f| f.image_size).collect();
+        save(&cache, &sizes, &verified, &raw_counts)?;
+        (sizes, verified, raw_counts)
+    };
+    anyhow::ensure!(sizes.len() == gt.len(), "the cache is of another set");
+    let by_pair: BTreeMap<(usize, usize), &PairMatches> =
+        pairs.iter().map(|p| ((p.first, p.second), p)).collect();
+    let correct: BTreeMap<(usize, usize), f64> = pairs
+        .iter()
+        .filter(|p| !p.is_empty())
+        .map(|p| {
+            let f = correct_fraction(p, &gt[p.first].camera, &gt[p.second].camera);
+            ((p.first, p.second), f)
+        })
+        .collect();
+
+    // Per kept pair of the whole set: what a pair filter could look at.
+    let mut table = String::from("i j gt_angle raw inliers ratio correct spread\n");
+    for (p, raw) in pairs.iter().zip(&raw_counts) {
+        if p.is_empty() {
+            continue;
+        }
+        let (a, b) = (&gt[p.first].camera, &gt[p.second].camera);
+        let angle = posediff_geometry::epipolar::rotation_angle_between_deg(
+            &a.cam_from_world.rotation,
+            &b.cam_from_world.rotation,
+        );
+        let spread = |pts: &[[f64; 2]], size: ImageSize| {
+            let (mut lo, mut hi) = ([f64::MAX; 2], [f64::MIN; 2]);
+            for q in pts {
+                for k in 0..2 {
+                    lo[k] = lo[k].min(q[k]);
+                    hi[k] = hi[k].max(q[k]);
+                }
+            }
+            (hi[0] - lo[0]) * (hi[1] - lo[1]) / (f64::from(size.width()) * f64::from(size.height()))
+        };
+        table += &format!(
+            "{} {} {angle:.1} {raw} {} {:.3} {:.3} {:.3}\n",
+            p.first,
+            p.second,
+            p.len(),
+            p.len() as f64 / (*raw).max(1) as f64,
+            correct[&(p.first, p.second)],
+            spread(&p.kp1, sizes[p.first]).min(spread(&p.kp2, sizes[p.second])),
+        );
+    }
+    std::fs::write(cache.with_extension("pairs.txt"), table)?;
+
+    let file: Value = serde_json::from_str(&std::fs::read_to_string(subsets)?)?;
+    let mut groups: BTreeMap<usize, Vec<Outcome>> = BTreeMap::new();
+    for subset in file["datasets"][set.as_str()]["subsets"]
+        .as_array()
+        .context("no such set in subsets.json")?
+    {
+        let members: Vec<usize> = subset["images"]
+            .as_array()
+            .context("no images")?
+            .iter()
+            .map(|i| {
+                let name = i.as_str().unwrap_or_default();
+                names
+                    .iter()
+                    .position(|n| *n == name)
+                    .with_context(|| format!("unknown image {name}"))
+            })
+            .collect::<Result<_>>()?;
+        let m = members.len();
+        let mut sub = Vec::new();
+        for a in 0..m {
+            for b in a + 1..m {
+                let (i, j) = (members[a], members[b]);
+                let pair = if let Some(p) = by_pair.get(&(i, j)) {
+                    (*p).clone()
+                } else if let Some(p) = by_pair.get(&(j, i)) {
+                    PairMatches {
+                        first: i,
+                        second: j,
+                        kp1: p.kp2.clone(),
+                        kp2: p.kp1.clone(),
+                        idx1: p.idx2.clone(),
+                        idx2: p.idx1.clone(),
+                    }
+                } else {
+                    continue;
+                };
+                sub.push(PairMatches {
+                    first: a,
+                    second: b,
+                    ..pair
+                });
+            }
+        }
+        let sub_sizes: Vec<ImageSize> = members.iter().map(|&i| sizes[i]).collect();
+        let gt_cams: Vec<Camera> = members.iter().map(|&i| gt[i].camera).collect();
+        let kept = sub.iter().filter(|p| !p.is_empty()).count();
+        let wrong_kept = sub
+            .iter()
+            .filter(|p| !p.is_empty())
+            .filter(|p| correct[&(members[p.first], members[p.second])] < 0.8)
+            .count();
+        let mut replay_config = GeometricConfig::default();
+        // CYCLE=off, or CYCLE=<degrees>,<min triangles>: the cycle check to replay with.
+        match std::env::var("CYCLE").ok().as_deref() {
+            Some("off") => replay_config.mapper.cycle_check = None,
+            Some(v) => {
+                let (d, t) = v.split_once(',').context("CYCLE=<degrees>,<triangles>")?;
+                replay_config.mapper.cycle_check = Some(posediff_sfm::mapper::CycleCheck {
+                    threshold_deg: d.parse()?,
+                    min_triangles: t.parse()?,
+                });
+            }
+            None => {}
+        }
+        let (maa, used, wrong_used) = match estimate_from_matches(&sub_sizes, sub, &replay_config) {
+            Ok(e) => {
+                let pred: Vec<_> = e
+                    .cameras
+                    .iter()
+                    .map(|c| c.map(|c| c.cam_from_world))
+                    .collect();
+                let (scores, _) = posediff::bench::score_set(&gt_cams, &pred)?;
+                let used = &e.report.averaged_pairs;
+                let wrong: Vec<String> = used
+                    .iter()
+                    .filter(|[a, b]| {
+                        let (i, j) = (members[*a], members[*b]);
+                        correct.get(&(i.min(j), i.max(j))).copied().unwrap_or(0.0) < 0.8
+                    })
+                    .map(|[a, b]| format!("{}-{}", members[*a], members[*b]))
+                    .collect();
+                if m > 10 {
+                    println!(
+                        "  {m} images: focal {:.3}, wrong pairs used: {}",
+                        e.report.focal_factor,
+                        wrong.join(" ")
+                    );
+                }
+                (scores.maa_30, used.len(), wrong.len())
+            }
+            Err(e) => {
+                println!("  subset of {m} failed: {e}");
+                (0.0, 0, 0)
+            }
+        };
+        groups.entry(m).or_default().push((
+            maa,
+            wrong_kept as f64 / kept.max(1) as f64,
+            used,
+            wrong_used,
+            kept,
+        ));
+    }
+    println!("{set}: N, mAA(30), pairs kept, wrong kept, pairs averaged, wrong averaged (means)");
+    for (m, runs) in &groups {
+        let k = runs.len() as f64;
+        let mean = |f: &dyn Fn(&Outcome) -> f64| runs.iter().map(f).sum::<f64>() / k;
+        println!(
+            "N {m:>2}: mAA {:.3}  kept {:.1}  wrong kept {:.1} %  averaged {:.1}  wrong averaged {:.2}",
+            mean(&|r| r.0),
+            mean(&|r| r.4 as f64),
+            100.0 * mean(&|r| r.1),
+            mean(&|r| r.2 as f64),
+            mean(&|r| r.3 as f64),
+        );
+    }
+    Ok(())
+}
