@@ -121,7 +121,8 @@ def estimate(images: Any, *, weights: Any = None, device: str = "cpu",
     cameras. Options, as the CLI's flags: ``focal_px``, ``intrinsics`` (a cameras.json path or
     an (N, 3, 3) array), ``init`` (``"geometric"`` or a cameras.json), ``start_step``,
     ``refine`` (``"converge"``, ``"bundle"``, ``"official"``, ``"none"``), ``matcher``
-    (``"sift"``, ``"orb"``, ``"aliked-lightglue"``, ``"aliked-n16rot-lightglue"``), ``weights_dir`` (the learned matcher's
+    (``"sift"``, ``"orb"``, ``"aliked-lightglue"``, ``"aliked-n16rot-lightglue"``,
+    ``"disk-lightglue"``), ``weights_dir`` (the learned matcher's
     weights, from ``cargo xtask weights``), ``pairs`` (``"auto"``, ``"exhaustive"``, ``"sequential:K"``,
     ``"retrieval:K"``), ``samples``, ``seed``, ``ggs``, ``device`` (``"cpu"``, ``"cuda"``),
     ``skip_bad_images``. ``progress``: ``True`` for tqdm bars when tqdm is installed, ``False``,
