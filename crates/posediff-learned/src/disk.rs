@@ -396,18 +396,22 @@ impl Disk {
                 }
             }
         }
-        let mut skips = Vec::with_capacity(DOWN.len());
-        let mut x = Map {
+        let mut skips: Vec<Map> = Vec::with_capacity(DOWN.len());
+        let mut input = Some(Map {
             data: input,
             width: wp,
             height: hp,
             channels: 3,
-        };
-        for (i, layer) in self.down.iter().enumerate() {
-            let mut pooled = if i == 0 { x } else { avg_pool2(&x) };
-            layer.gate(&mut pooled);
-            x = layer.conv(&pooled);
-            skips.push(x.clone());
+        });
+        for layer in &self.down {
+            // The first block sees the image; the others the pooled output before them.
+            let mut x = match (input.take(), skips.last()) {
+                (Some(image), _) => image,
+                (None, Some(prev)) => avg_pool2(prev),
+                (None, None) => return Err(LearnedError::NonFinite("DISK U-Net")),
+            };
+            layer.gate(&mut x);
+            skips.push(layer.conv(&x));
         }
         let mut bot = skips.pop().ok_or(LearnedError::NonFinite("DISK U-Net"))?;
         let last = self.up.len() - 1;
