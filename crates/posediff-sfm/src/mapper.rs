@@ -612,7 +612,7 @@ impl GlobalMapper {
             let residuals = rotation_residuals_deg(&rotations, &absolute);
             let mut dropped = 0;
             for (k, r) in keep.iter_mut().zip(&residuals) {
-                if r.is_some_and(|r| r > o.max_rotation_residual_deg) {
+                if *k && r.is_some_and(|r| r > o.max_rotation_residual_deg) {
                     *k = false;
                     dropped += 1;
                 }
