@@ -87,6 +87,22 @@ pub struct StageTimes {
     pub bundle: f64,
 }
 
+/// The support check: which unsupported pairs were confirmed by triangles of kept pairs.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct SupportReport {
+    /// Pairs with matches that the caller marked supported.
+    pub supported: usize,
+    /// Unsupported pairs that a triangle of two kept pairs confirmed.
+    pub confirmed: usize,
+    /// Unsupported pairs dropped (no relative pose, or no confirming triangle).
+    pub rejected: usize,
+    /// Those pairs, `[first, second]` as given.
+    pub rejected_pairs: Vec<[usize; 2]>,
+    /// The focal factor of the check's relative poses (self-calibrated on the supported
+    /// pairs, else the prior).
+    pub focal_factor: f64,
+}
+
 /// What the mapper did.
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct MapperReport {
@@ -101,6 +117,9 @@ pub struct MapperReport {
     /// Pairs dropped by the cycle check before rotation averaging (every triangle through
     /// them contradicts them).
     pub cycle_rejected_pairs: usize,
+    /// The support check's outcome, when the caller gave support flags
+    /// ([`crate::mapper::GlobalMapper::run_with_support`]).
+    pub support: Option<SupportReport>,
     /// The pairs whose relative poses the averaging used at the chosen start (after the
     /// consistency checks), both of whose cameras are estimated.
     pub averaged_pairs: Vec<[usize; 2]>,

@@ -282,6 +282,103 @@ pub fn unconfirmed_by_cycles(
         .collect()
 }
 
+/// Which edges to keep when only the `trusted` ones have independent evidence: every trusted
+/// edge, and an untrusted edge `(i, j)` once a triangle `i–k–j` of two kept edges confirms it
+/// (`R_ki R_jk R_ij` within `threshold_deg` of the identity); confirmed edges confirm others in
+/// turn (a worklist until nothing changes). An untrusted edge that no such triangle closes is
+/// dropped, even where no trusted path could have confirmed it: this is the rule for the pairs
+/// of a learned matcher that its own descriptors do not support, which on the shared sets are
+/// either wide bridges between neighbours (confirmed through the neighbours) or views of the
+/// other side of a symmetric object (whose triangles, if any, close only among themselves).
+/// Cost: `O(E · d²)` for `E` edges of largest degree `d`, with sorted adjacency.
+pub fn confirmed_by_trusted_triangles(
+    edges: &[RelativeRotation],
+    trusted: &[bool],
+    threshold_deg: f64,
+) -> Vec<bool> {
+    use std::collections::{BTreeSet, HashMap, VecDeque};
+    // An edge without a flag is untrusted.
+    let mut keep: Vec<bool> = (0..edges.len())
+        .map(|i| trusted.get(i).copied().unwrap_or(false))
+        .collect();
+    // Kept edges as rel[(a, b)] = R_b R_aᵀ both ways, and each image's kept neighbours.
+    let mut rel: HashMap<(usize, usize), Rotation3<f64>> = HashMap::new();
+    let mut kept_neighbours: HashMap<usize, BTreeSet<usize>> = HashMap::new();
+    let mut incident: HashMap<usize, Vec<usize>> = HashMap::new();
+    let insert = |e: &RelativeRotation,
+                  rel: &mut HashMap<(usize, usize), Rotation3<f64>>,
+                  kept: &mut HashMap<usize, BTreeSet<usize>>| {
+        rel.insert((e.first, e.second), e.rotation);
+        rel.insert((e.second, e.first), e.rotation.inverse());
+        kept.entry(e.first).or_default().insert(e.second);
+        kept.entry(e.second).or_default().insert(e.first);
+    };
+    for (index, e) in edges.iter().enumerate() {
+        incident.entry(e.first).or_default().push(index);
+        incident.entry(e.second).or_default().push(index);
+        if keep[index] {
+            insert(e, &mut rel, &mut kept_neighbours);
+        }
+    }
+    let mut queued: Vec<bool> = keep.iter().map(|k| !k).collect();
+    let mut queue: VecDeque<usize> = (0..edges.len()).filter(|&i| queued[i]).collect();
+    let empty = BTreeSet::new();
+    while let Some(index) = queue.pop_front() {
+        queued[index] = false;
+        if keep[index] {
+            continue;
+        }
+        let e = &edges[index];
+        let (i, j) = (e.first, e.second);
+        let ni = kept_neighbours.get(&i).unwrap_or(&empty);
+        let nj = kept_neighbours.get(&j).unwrap_or(&empty);
+        let confirmed = ni
+            .intersection(nj)
+            .any(|&k| match (rel.get(&(j, k)), rel.get(&(k, i))) {
+                (Some(jk), Some(ki)) => {
+                    rotation_angle(&(ki * jk * e.rotation)).to_degrees() <= threshold_deg
+                }
+                _ => false,
+            });
+        if !confirmed {
+            continue;
+        }
+        keep[index] = true;
+        insert(e, &mut rel, &mut kept_neighbours);
+        for image in [i, j] {
+            for &other in incident.get(&image).map_or(&[][..], Vec::as_slice) {
+                if !keep[other] && !queued[other] {
+                    queued[other] = true;
+                    queue.push_back(other);
+                }
+            }
+        }
+    }
+    keep
+}
+
+/// Adds to `keep` the dropped edges that link two groups of kept edges, strongest first (a
+/// maximum spanning forest over the groups): an edge that nothing could confirm or contradict
+/// because no other path joins its images. `n` is the number of images.
+pub fn keep_bridges(n: usize, edges: &[RelativeRotation], keep: &mut [bool]) {
+    let mut groups = crate::view_graph::UnionFind::new(n);
+    for (e, k) in edges.iter().zip(keep.iter()) {
+        if *k && e.first < n && e.second < n {
+            groups.union(e.first, e.second);
+        }
+    }
+    let mut order: Vec<usize> = (0..edges.len().min(keep.len()))
+        .filter(|&i| !keep[i])
+        .collect();
+    order.sort_by(|&a, &b| edges[b].weight.total_cmp(&edges[a].weight).then(a.cmp(&b)));
+    for i in order {
+        let e = &edges[i];
+        if e.first < n && e.second < n && groups.union(e.first, e.second) {
+            keep[i] = true;
+        }
+    }
+}
+
 /// For each image with a value, its position among the unknowns (the reference is fixed).
 pub(crate) fn unknown_index<T>(values: &[Option<T>], reference: usize) -> Vec<Option<usize>> {
     let mut next = 0;
@@ -500,5 +597,103 @@ mod tests {
         // A bridge (in no triangle) is never dropped.
         let chain = &edges[..1];
         assert_eq!(unconfirmed_by_cycles(chain, 5.0, 0), vec![false]);
+    }
+
+    #[test]
+    fn untrusted_pairs_need_a_triangle_of_kept_pairs() {
+        // Eight cameras on a ring 20° apart about one axis; trusted: the neighbours (i, i+1).
+        // Untrusted and exact: bridges that chains of trusted and confirmed pairs close, and
+        // (3, 7), which no triangle of measured pairs closes. Untrusted and wrong by 150° (the
+        // other side of a symmetric object): (1, 6) and (1, 7), which close a consistent
+        // triangle with the trusted (6, 7) — one kept edge, which must not confirm them.
+        let absolute: Vec<Rotation3<f64>> = (0..8)
+            .map(|i| Rotation3::from_euler_angles(0.0, (20.0 * i as f64).to_radians(), 0.0))
+            .collect();
+        let flip = Rotation3::from_euler_angles(0.0, 150f64.to_radians(), 0.0);
+        let edge = |i: usize, j: usize, wrong: bool| RelativeRotation {
+            first: i,
+            second: j,
+            rotation: if wrong {
+                flip * absolute[j] * absolute[i].inverse()
+            } else {
+                absolute[j] * absolute[i].inverse()
+            },
+            weight: 1.0,
+        };
+        let mut edges = Vec::new();
+        let mut trusted = Vec::new();
+        for i in 0..7 {
+            edges.push(edge(i, i + 1, false));
+            trusted.push(true);
+        }
+        // Listed so that (0, 4) and (2, 5) are examined before what confirms them.
+        for (i, j) in [(0, 4), (2, 5), (0, 2), (1, 3), (2, 4), (0, 3), (3, 7)] {
+            edges.push(edge(i, j, false));
+            trusted.push(false);
+        }
+        for (i, j) in [(1, 6), (1, 7)] {
+            edges.push(edge(i, j, true));
+            trusted.push(false);
+        }
+        let keep = confirmed_by_trusted_triangles(&edges, &trusted, 5.0);
+        let kept = |i: usize, j: usize| {
+            edges
+                .iter()
+                .zip(&keep)
+                .any(|(e, k)| *k && (e.first, e.second) == (i, j))
+        };
+        for i in 0..7 {
+            assert!(kept(i, i + 1), "a trusted pair is always kept");
+        }
+        for (i, j) in [(0, 2), (1, 3), (2, 4), (0, 3)] {
+            assert!(kept(i, j), "({i}, {j}) bridges trusted neighbours");
+        }
+        assert!(
+            kept(0, 4),
+            "(0, 4) closes with the confirmed (0, 2) and (2, 4)"
+        );
+        assert!(
+            kept(2, 5),
+            "(2, 5) closes with the confirmed (2, 4) and the trusted (4, 5)"
+        );
+        assert!(!kept(3, 7), "an edge that no triangle closes is dropped");
+        assert!(!kept(1, 6) && !kept(1, 7), "wrong pairs are dropped");
+        // The same wrong pairs with (6, 7) trusted and (1, 6) trusted: (1, 7) now closes a
+        // triangle of two kept edges, 1–6–7, consistent because the flip commutes with the
+        // ring's rotations: the rule trusts what it is told.
+        let mut told = trusted.clone();
+        let last = edges.len() - 2;
+        told[last] = true;
+        assert!(confirmed_by_trusted_triangles(&edges, &told, 5.0)[last + 1]);
+        // Nothing trusted: nothing kept; a missing flag counts as untrusted.
+        assert!(
+            confirmed_by_trusted_triangles(&edges, &[], 5.0)
+                .iter()
+                .all(|k| !k)
+        );
+    }
+
+    #[test]
+    fn bridges_join_groups_strongest_first() {
+        let edge = |first: usize, second: usize, weight: f64| RelativeRotation {
+            first,
+            second,
+            rotation: Rotation3::identity(),
+            weight,
+        };
+        // Groups {0, 1} and {2, 3} kept; three candidate links between them and one inside.
+        let edges = [
+            edge(0, 1, 100.0),
+            edge(2, 3, 100.0),
+            edge(1, 2, 30.0),
+            edge(0, 3, 50.0),
+            edge(0, 2, 40.0),
+            edge(0, 1, 80.0),
+        ];
+        let mut keep = vec![true, true, false, false, false, false];
+        keep_bridges(4, &edges, &mut keep);
+        // Only the strongest link joins the groups; the others and the edge inside a group stay
+        // dropped.
+        assert_eq!(keep, vec![true, true, false, true, false, false]);
     }
 }

@@ -9,6 +9,12 @@
 //! A pair's matches do not depend on the other images (features per image, LightGlue and MAGSAC
 //! per pair), so a subset's pairs are the cached pairs among its images: the mapper can be
 //! changed and re-measured in seconds instead of re-matching every subset.
+//!
+//! Environment: `CYCLE=off | <degrees>,<min triangles>` (the cycle check), `SUPPORT=off |
+//! <minimum>` (the support check of learned pairs; the cache holds each pair's descriptor
+//! screen count, `correspondences::descriptor_support`), `SUPPORT_DEG=<degrees>` (its
+//! triangle threshold), `SCORE_DROPPED=0|1` (`MapperOptions::score_dropped_as_missing`;
+//! default: on for learned matchers, as in the umbrella).
 #![allow(clippy::print_stdout)]
 
 use std::collections::BTreeMap;
@@ -16,8 +22,8 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 use posediff::correspondences::{LearnedMatcher, MatcherChoice, SharedLearned};
-use posediff::correspondences::{extract_all, match_pairs};
-use posediff::estimate::geometric::{GeometricConfig, estimate_from_matches};
+use posediff::correspondences::{descriptor_support, extract_all, match_pairs};
+use posediff::estimate::geometric::{GeometricConfig, estimate_from_supported_matches};
 use posediff_geometry::epipolar::{fundamental_from_cameras, sampson_error};
 use posediff_geometry::{Camera, ImageSize, PairMatches};
 use serde_json::{Value, json};
@@ -26,13 +32,18 @@ use serde_json::{Value, json};
 /// pairs averaged, pairs kept.
 type Outcome = (f64, f64, usize, usize, usize);
 
-fn save(path: &Path, sizes: &[ImageSize], pairs: &[PairMatches], raw: &[usize]) -> Result<()> {
+/// The cached set: image sizes, every pair's verified matches, raw match counts and descriptor
+/// screen counts.
+type Cache = (Vec<ImageSize>, Vec<PairMatches>, Vec<usize>, Vec<usize>);
+
+fn save(path: &Path, (sizes, pairs, raw, screen): &Cache) -> Result<()> {
     let pairs: Vec<Value> = pairs
         .iter()
         .zip(raw)
-        .map(|(p, raw)| {
+        .zip(screen)
+        .map(|((p, raw), screen)| {
             json!({"first": p.first, "second": p.second, "kp1": p.kp1, "kp2": p.kp2,
-                   "idx1": p.idx1, "idx2": p.idx2, "raw": raw})
+                   "idx1": p.idx1, "idx2": p.idx2, "raw": raw, "screen": screen})
         })
         .collect();
     let sizes: Vec<[u32; 2]> = sizes.iter().map(|s| [s.width(), s.height()]).collect();
@@ -43,7 +54,7 @@ fn save(path: &Path, sizes: &[ImageSize], pairs: &[PairMatches], raw: &[usize]) 
     Ok(())
 }
 
-fn load(path: &Path) -> Result<(Vec<ImageSize>, Vec<PairMatches>, Vec<usize>)> {
+fn load(path: &Path) -> Result<Cache> {
     let v: Value = serde_json::from_str(&std::fs::read_to_string(path)?)?;
     let sizes: Vec<[u32; 2]> = serde_json::from_value(v["sizes"].clone())?;
     let sizes = sizes
@@ -54,6 +65,17 @@ fn load(path: &Path) -> Result<(Vec<ImageSize>, Vec<PairMatches>, Vec<usize>)> {
     let raw = list
         .iter()
         .map(|p| Ok(serde_json::from_value(p["raw"].clone())?))
+        .collect::<Result<_>>()?;
+    let screen = list
+        .iter()
+        .map(|p| {
+            serde_json::from_value(p["screen"].clone()).with_context(|| {
+                format!(
+                    "{}: no screen counts (an older cache): delete it",
+                    path.display()
+                )
+            })
+        })
         .collect::<Result<_>>()?;
     let pairs = list
         .iter()
@@ -68,7 +90,7 @@ fn load(path: &Path) -> Result<(Vec<ImageSize>, Vec<PairMatches>, Vec<usize>)> {
             })
         })
         .collect::<Result<_>>()?;
-    Ok((sizes, pairs, raw))
+    Ok((sizes, pairs, raw, screen))
 }
 
 /// The fraction of `p`'s matches within 4 px² of the ground-truth epipolar geometry.
@@ -104,7 +126,7 @@ fn main() -> Result<()> {
     let gt = posediff::io::export::read_cameras_json(&dir.join("cameras.json"))?;
     let names: Vec<&str> = gt.iter().map(|c| c.image.as_str()).collect();
     let cache = PathBuf::from(cache);
-    let (sizes, pairs, raw_counts) = if cache.exists() {
+    let (sizes, pairs, raw_counts, screen) = if cache.exists() {
         load(&cache)?
     } else {
         let mut config = GeometricConfig::default();
@@ -138,13 +160,34 @@ fn main() -> Result<()> {
             images.len(),
             started.elapsed().as_secs_f64()
         );
+        let started = std::time::Instant::now();
+        let screen = descriptor_support(&features, &list, &config.matching)?;
+        eprintln!(
+            "descriptor screen of {} pairs in {:.1} s",
+            list.len(),
+            started.elapsed().as_secs_f64()
+        );
         let sizes: Vec<ImageSize> = features.iter().map(|f| f.image_size).collect();
-        save(&cache, &sizes, &verified, &raw_counts)?;
-        (sizes, verified, raw_counts)
+        let cached = (sizes, verified, raw_counts, screen);
+        save(&cache, &cached)?;
+        cached
     };
     anyhow::ensure!(sizes.len() == gt.len(), "the cache is of another set");
     let by_pair: BTreeMap<(usize, usize), &PairMatches> =
         pairs.iter().map(|p| ((p.first, p.second), p)).collect();
+    let screen_of: BTreeMap<(usize, usize), usize> = pairs
+        .iter()
+        .zip(&screen)
+        .map(|(p, s)| ((p.first, p.second), *s))
+        .collect();
+    // SUPPORT=off, or SUPPORT=<minimum>: the support check of learned pairs (default: the
+    // configuration's, off); SIFT's pairs are always their descriptors' own.
+    let support_min = match std::env::var("SUPPORT").ok().as_deref() {
+        Some("off") => None,
+        Some(v) => Some(v.parse::<usize>()?),
+        None => GeometricConfig::default().support_min_verified,
+    }
+    .filter(|_| matcher.extractor_weights().is_some());
     let correct: BTreeMap<(usize, usize), f64> = pairs
         .iter()
         .filter(|p| !p.is_empty())
@@ -155,8 +198,8 @@ fn main() -> Result<()> {
         .collect();
 
     // Per kept pair of the whole set: what a pair filter could look at.
-    let mut table = String::from("i j gt_angle raw inliers ratio correct spread\n");
-    for (p, raw) in pairs.iter().zip(&raw_counts) {
+    let mut table = String::from("i j gt_angle raw inliers ratio correct spread screen\n");
+    for ((p, raw), screen) in pairs.iter().zip(&raw_counts).zip(&screen) {
         if p.is_empty() {
             continue;
         }
@@ -176,7 +219,7 @@ fn main() -> Result<()> {
             (hi[0] - lo[0]) * (hi[1] - lo[1]) / (f64::from(size.width()) * f64::from(size.height()))
         };
         table += &format!(
-            "{} {} {angle:.1} {raw} {} {:.3} {:.3} {:.3}\n",
+            "{} {} {angle:.1} {raw} {} {:.3} {:.3} {:.3} {screen}\n",
             p.first,
             p.second,
             p.len(),
@@ -240,6 +283,14 @@ fn main() -> Result<()> {
             .filter(|p| correct[&(members[p.first], members[p.second])] < 0.8)
             .count();
         let mut replay_config = GeometricConfig::default();
+        if let Ok(v) = std::env::var("SUPPORT_DEG") {
+            replay_config.mapper.support_triangle_deg = v.parse()?;
+        }
+        // As the umbrella does with a learned matcher; SCORE_DROPPED=0|1 overrides.
+        replay_config.mapper.score_dropped_as_missing = match std::env::var("SCORE_DROPPED") {
+            Ok(v) => v == "1",
+            Err(_) => matcher.extractor_weights().is_some(),
+        };
         // CYCLE=off, or CYCLE=<degrees>,<min triangles>: the cycle check to replay with.
         match std::env::var("CYCLE").ok().as_deref() {
             Some("off") => replay_config.mapper.cycle_check = None,
@@ -252,7 +303,16 @@ fn main() -> Result<()> {
             }
             None => {}
         }
-        let (maa, used, wrong_used) = match estimate_from_matches(&sub_sizes, sub, &replay_config) {
+        let support = support_min.map(|minimum| {
+            sub.iter()
+                .map(|p| {
+                    let (i, j) = (members[p.first], members[p.second]);
+                    screen_of[&(i.min(j), i.max(j))] >= minimum
+                })
+                .collect()
+        });
+        let result = estimate_from_supported_matches(&sub_sizes, sub, support, &replay_config);
+        let (maa, used, wrong_used) = match result {
             Ok(e) => {
                 let pred: Vec<_> = e
                     .cameras
@@ -270,8 +330,14 @@ fn main() -> Result<()> {
                     .map(|[a, b]| format!("{}-{}", members[*a], members[*b]))
                     .collect();
                 if m > 10 {
+                    let support = e.report.support.map_or_else(String::new, |s| {
+                        format!(
+                            ", support: {} supported, {} confirmed, {} rejected (focal {:.3})",
+                            s.supported, s.confirmed, s.rejected, s.focal_factor
+                        )
+                    });
                     println!(
-                        "  {m} images: focal {:.3}, wrong pairs used: {}",
+                        "  {m} images: focal {:.3}, wrong pairs used: {}{support}",
                         e.report.focal_factor,
                         wrong.join(" ")
                     );

@@ -355,6 +355,37 @@ pub fn match_pairs(
         .collect()
 }
 
+/// Fewest matches of the descriptor screen ([`descriptor_support`]) for a learned pair to
+/// count as supported. Measured on the shared sets (docs/BENCHMARKS.md, "Pair screens"): every
+/// wrong ALIKED + LightGlue pair of apple (19) and temple (20) scores below 5, and the good
+/// pairs it misses are wide bridges, which the mapper's support check confirms through
+/// triangles instead.
+pub const SUPPORT_MIN_VERIFIED: usize = 5;
+
+/// The evidence of each pair that does not come from the learned matcher: the extractor's own
+/// descriptors matched by mutual nearest neighbours with Lowe's ratio and verified by the same
+/// MAGSAC, without a minimum (the verified count; 0 for a pair whose matches do not verify).
+/// Costs about 10 ms a pair at 2048 keypoints, against about a second for LightGlue.
+///
+/// # Errors
+/// Invalid pairs, OpenCV errors.
+pub fn descriptor_support(
+    features: &[ImageFeatures],
+    pairs: &[(usize, usize)],
+    config: &MatchConfig,
+) -> Result<Vec<usize>> {
+    let screen = MatchConfig {
+        ratio: Some(posediff_matching::DEFAULT_RATIO),
+        verification: Some(config.verification.unwrap_or_default()),
+        min_verified: 0,
+        ..*config
+    };
+    Ok(posediff_matching::match_pairs(features, pairs, &screen)?
+        .iter()
+        .map(PairMatches::len)
+        .collect())
+}
+
 /// Features of every image, then the matches of `pairs` (all `i < j` when `None`).
 ///
 /// # Errors

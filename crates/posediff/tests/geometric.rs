@@ -589,3 +589,61 @@ fn the_bundle_refinement_pulls_given_cameras_to_the_truth() {
         "the scale is kept"
     );
 }
+
+#[test]
+fn the_support_check_drops_a_wrong_pair_and_keeps_confirmed_bridges() {
+    use posediff::estimate::geometric::estimate_from_supported_matches;
+    // Six fountain frames, SIFT matches. Supported: the neighbours (i, i+1); every other pair
+    // is unsupported but right, and must be confirmed through triangles. One wrong pair is
+    // planted: (0, 5) carries the matches of (2, 3) (real matches of two other views, as a
+    // learned matcher's pair on the other side of a symmetric object), a relative rotation
+    // tens of degrees from the truth.
+    let (images, gt) = set("strecha_fountainP11");
+    let (images, gt) = (&images[..6], &gt[..6]);
+    let config = GeometricConfig::default();
+    let (features, mut pairs) =
+        posediff_matching::match_images(images, None, &config.matching).unwrap();
+    let sizes: Vec<_> = features.iter().map(|f| f.image_size).collect();
+    let donor = pairs
+        .iter()
+        .find(|p| (p.first, p.second) == (2, 3))
+        .unwrap()
+        .clone();
+    let planted = pairs
+        .iter_mut()
+        .find(|p| (p.first, p.second) == (0, 5))
+        .unwrap();
+    *planted = posediff_geometry::PairMatches {
+        first: 0,
+        second: 5,
+        ..donor.clone()
+    };
+    let truth = relative_pose(&gt[0].cam_from_world, &gt[5].cam_from_world).rotation;
+    let fake = relative_pose(&gt[2].cam_from_world, &gt[3].cam_from_world).rotation;
+    let apart = posediff_geometry::rotation_angle_between_deg(&truth, &fake);
+    assert!(apart > 20.0, "the planted pair is only {apart}° off");
+    assert!(pairs.iter().all(|p| p.len() >= 20), "every pair is matched");
+    let support: Vec<bool> = pairs.iter().map(|p| p.second == p.first + 1).collect();
+
+    let e = estimate_from_supported_matches(&sizes, pairs.clone(), Some(support), &config).unwrap();
+    let s = e.report.support.unwrap();
+    assert_eq!(s.supported, 5);
+    assert_eq!((s.confirmed, s.rejected), (9, 1), "{s:?}");
+    let rejected = e
+        .pairs
+        .iter()
+        .find(|p| (p.first, p.second) == (0, 5))
+        .unwrap();
+    assert!(
+        rejected.is_empty(),
+        "a rejected pair keeps no matches downstream"
+    );
+    assert!(!e.report.averaged_pairs.contains(&[0, 5]));
+    let est: Vec<Camera> = e.cameras.iter().map(|c| c.unwrap()).collect();
+    let (rot, trans) = worst_pair_errors(&est, gt);
+    assert!(rot < 1.0 && trans < 2.0, "worst pair: {rot}° / {trans}°");
+
+    // Flags of another count are an error, not a silent mismatch.
+    let err = estimate_from_supported_matches(&sizes, pairs, Some(vec![true; 3]), &config);
+    assert!(err.is_err());
+}

@@ -27,7 +27,7 @@ use posediff_sfm::{
     CameraPose, GlobalMapper, ImageIntrinsics, MapperOptions, MapperReport, SfmError,
 };
 
-use crate::correspondences::{SharedLearned, extract_all, match_pairs};
+use crate::correspondences::{SharedLearned, descriptor_support, extract_all, match_pairs};
 use crate::error::{PosediffError, Result};
 use crate::estimate::run_report::Warning;
 
@@ -74,6 +74,14 @@ pub struct GeometricConfig {
     pub refinement: Refinement,
     /// The learned matcher, when the run uses it instead of OpenCV's.
     pub learned: Option<SharedLearned>,
+    /// With a learned matcher: a pair is supported when its extractor's descriptors alone
+    /// verify at least this many matches ([`crate::correspondences::descriptor_support`]), and
+    /// the mapper keeps an unsupported pair only when a triangle of kept pairs confirms it
+    /// ([`posediff_sfm::GlobalMapper::run_with_support`]). `None`: every pair is kept as
+    /// matched (the default: measured on the shared sets, the check rejects about half of the
+    /// wrong pairs but loses good ones on small subsets, docs/BENCHMARKS.md). Without a
+    /// learned matcher it does nothing (the matches are the descriptors').
+    pub support_min_verified: Option<usize>,
 }
 
 impl Default for GeometricConfig {
@@ -89,6 +97,7 @@ impl Default for GeometricConfig {
             mapper: MapperOptions::default(),
             refinement: Refinement::Converge(SampsonRefineOptions::default()),
             learned: None,
+            support_min_verified: None,
         }
     }
 }
@@ -98,6 +107,8 @@ impl GeometricConfig {
     fn mapper_options(&self) -> MapperOptions {
         let mut o = self.mapper.clone();
         o.homography_fraction = self.two_view.homography_fraction;
+        // A learned matcher's wrong pairs must not decide the focal (MapperOptions' doc).
+        o.score_dropped_as_missing |= self.learned.is_some();
         match self.refinement {
             Refinement::Converge(r) => o.sampson = Some(r),
             Refinement::None | Refinement::Official(_) => {
@@ -180,6 +191,8 @@ pub struct GeometricReport {
     /// Pairs dropped by the cycle check (every triangle of the view graph through them
     /// contradicts their relative rotation).
     pub cycle_rejected_pairs: usize,
+    /// The support check of a learned matcher's pairs (`null` when not run).
+    pub support: Option<SupportOutcome>,
     /// The pairs whose relative poses the averaging used (image indices).
     pub averaged_pairs: Vec<[usize; 2]>,
     /// The images estimated (the largest view-graph component).
@@ -231,6 +244,19 @@ pub struct GeometricReport {
     pub times: GeometricTimes,
 }
 
+/// The support check of a learned matcher's pairs (run.json).
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
+pub struct SupportOutcome {
+    /// Pairs with matches that the extractor's descriptors support.
+    pub supported: usize,
+    /// Unsupported pairs confirmed by a triangle of kept pairs.
+    pub confirmed: usize,
+    /// Unsupported pairs dropped before the mapper used them.
+    pub rejected: usize,
+    /// The focal factor of the check's relative poses.
+    pub focal_factor: f64,
+}
+
 /// One side of a view-graph bridge moved by resection (run.json).
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct ResectedSide {
@@ -271,6 +297,12 @@ impl GeometricReport {
         self.inconsistent_pairs = m.inconsistent_pairs;
         self.averaged_pairs = m.averaged_pairs.clone();
         self.cycle_rejected_pairs = m.cycle_rejected_pairs;
+        self.support = m.support.as_ref().map(|s| SupportOutcome {
+            supported: s.supported,
+            confirmed: s.confirmed,
+            rejected: s.rejected,
+            focal_factor: s.focal_factor,
+        });
         self.estimated = m.estimated.clone();
         self.not_estimated = m
             .not_estimated
@@ -463,8 +495,8 @@ pub fn estimate_geometric(
     images: &[PathBuf],
     config: &GeometricConfig,
 ) -> Result<GeometricEstimate> {
-    let (sizes, pairs, times, selection) = match_all(images, config)?;
-    let mut estimate = estimate_from_matches(&sizes, pairs, config)?;
+    let (sizes, pairs, support, times, selection) = match_all(images, config)?;
+    let mut estimate = estimate_from_supported_matches(&sizes, pairs, support, config)?;
     estimate.report.pair_selection = selection;
     estimate.report.pairs_matched = estimate.pairs.len();
     let t = &mut estimate.report.times;
@@ -473,13 +505,19 @@ pub fn estimate_geometric(
     Ok(estimate)
 }
 
-/// Image sizes, the matches of the selected pairs, the seconds of extraction, selection and
+/// What [`match_all`] gives: image sizes, the matches of the selected pairs, their support
+/// flags (learned matchers with the support check), the seconds of extraction, selection and
 /// matching, and the selection's rules.
-#[allow(clippy::type_complexity)]
-fn match_all(
-    images: &[PathBuf],
-    config: &GeometricConfig,
-) -> Result<(Vec<ImageSize>, Vec<PairMatches>, [f64; 3], String)> {
+type Matched = (
+    Vec<ImageSize>,
+    Vec<PairMatches>,
+    Option<Vec<bool>>,
+    [f64; 3],
+    String,
+);
+
+/// Extraction, pair selection, matching and (for a learned matcher) the support screen.
+fn match_all(images: &[PathBuf], config: &GeometricConfig) -> Result<Matched> {
     if images.len() < 2 {
         return Err(PosediffError::TooFewImages {
             needed: 2,
@@ -502,10 +540,20 @@ fn match_all(
     let selection = clock.elapsed().as_secs_f64();
     let clock = Instant::now();
     let pairs = match_pairs(&features, &pair_list, &config.matching, learned)?;
+    let support = match (learned, config.support_min_verified) {
+        (Some(_), Some(minimum)) => Some(
+            descriptor_support(&features, &pair_list, &config.matching)?
+                .into_iter()
+                .map(|count| count >= minimum)
+                .collect(),
+        ),
+        _ => None,
+    };
     let sizes = features.iter().map(|f| f.image_size).collect();
     Ok((
         sizes,
         pairs,
+        support,
         [extraction, selection, clock.elapsed().as_secs_f64()],
         rules.join(","),
     ))
@@ -536,7 +584,7 @@ pub fn refine_given_cameras(
             "no initial camera is estimated".into(),
         ));
     };
-    let (sizes, pairs, times, selection) = match_all(images, config)?;
+    let (sizes, pairs, _, times, selection) = match_all(images, config)?;
     let (layout, known_phi) = intrinsics_layout(&sizes, &config.intrinsics)?;
     let given: Vec<f64> = init
         .iter()
@@ -659,20 +707,55 @@ pub fn estimate_from_matches(
     pairs: Vec<PairMatches>,
     config: &GeometricConfig,
 ) -> Result<GeometricEstimate> {
+    estimate_from_supported_matches(sizes, pairs, None, config)
+}
+
+/// [`estimate_from_matches`] with support flags, one per pair (`true`: evidence beyond the
+/// matcher's own; see [`GeometricConfig::support_min_verified`]): the mapper keeps an
+/// unsupported pair only when a triangle of kept pairs confirms it.
+///
+/// # Errors
+/// As [`estimate_from_matches`]; support flags of another count than the pairs.
+pub fn estimate_from_supported_matches(
+    sizes: &[ImageSize],
+    pairs: Vec<PairMatches>,
+    support: Option<Vec<bool>>,
+    config: &GeometricConfig,
+) -> Result<GeometricEstimate> {
     let n = sizes.len();
     if n < 2 {
         return Err(PosediffError::TooFewImages { needed: 2, got: n });
     }
     let (layout, known_phi) = intrinsics_layout(sizes, &config.intrinsics)?;
     let mapper = GlobalMapper::new(config.mapper_options());
-    let reconstruction = mapper.run(
-        &pairs,
-        layout,
-        known_phi.is_some(),
-        &OpenCvTwoView(&config.two_view),
-    )?;
+    let solver = OpenCvTwoView(&config.two_view);
+    let reconstruction = match &support {
+        Some(flags) => {
+            mapper.run_with_support(&pairs, flags, layout, known_phi.is_some(), &solver)?
+        }
+        None => mapper.run(&pairs, layout, known_phi.is_some(), &solver)?,
+    };
     let mut report = GeometricReport::default();
     report.record_mapper(&reconstruction.report);
+    let mut pairs = pairs;
+    if let Some(s) = &reconstruction.report.support {
+        // The rejected pairs keep their record without matches: nothing downstream (GGS,
+        // points, exports) may use them.
+        let rejected: std::collections::HashSet<[usize; 2]> =
+            s.rejected_pairs.iter().copied().collect();
+        for p in &mut pairs {
+            if rejected.contains(&[p.first, p.second]) {
+                *p = PairMatches {
+                    first: p.first,
+                    second: p.second,
+                    kp1: Vec::new(),
+                    kp2: Vec::new(),
+                    idx1: Vec::new(),
+                    idx2: Vec::new(),
+                };
+            }
+        }
+    }
     let mut warnings = Vec::new();
     if reconstruction.report.no_parallax {
         warnings.push(Warning::NoParallax);
