@@ -173,6 +173,41 @@ fn main() -> Result<()> {
         cached
     };
     anyhow::ensure!(sizes.len() == gt.len(), "the cache is of another set");
+    // PREFILTER=<minimum>[,2]: LightGlue only on the pairs whose descriptor screen reaches the
+    // minimum (with `,2` also on the pairs two such hops apart); the others count as unmatched.
+    let mut pairs = pairs;
+    if let Ok(v) = std::env::var("PREFILTER") {
+        let (minimum, hops) = match v.split_once(',') {
+            Some((m, h)) => (m.parse::<usize>()?, h.parse::<usize>()?),
+            None => (v.parse::<usize>()?, 1),
+        };
+        let n = sizes.len();
+        let mut near = vec![vec![false; n]; n];
+        for (p, s) in pairs.iter().zip(&screen) {
+            if *s >= minimum {
+                near[p.first][p.second] = true;
+                near[p.second][p.first] = true;
+            }
+        }
+        let candidate = |i: usize, j: usize| {
+            near[i][j] || (hops >= 2 && (0..n).any(|k| near[i][k] && near[k][j]))
+        };
+        let mut matched = 0;
+        for p in &mut pairs {
+            if candidate(p.first, p.second) {
+                matched += 1;
+            } else {
+                p.kp1.clear();
+                p.kp2.clear();
+                p.idx1.clear();
+                p.idx2.clear();
+            }
+        }
+        println!(
+            "prefilter {v}: LightGlue on {matched} of {} pairs",
+            pairs.len()
+        );
+    }
     let by_pair: BTreeMap<(usize, usize), &PairMatches> =
         pairs.iter().map(|p| ((p.first, p.second), p)).collect();
     let screen_of: BTreeMap<(usize, usize), usize> = pairs
