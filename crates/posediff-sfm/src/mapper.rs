@@ -114,10 +114,10 @@ pub struct MapperOptions {
     /// all apple frames 0.957 → 0.697, so it stays off.
     pub cycle_check: Option<CycleCheck>,
     /// With support flags ([`GlobalMapper::run_with_support`]): an unsupported pair is kept
-    /// only when a triangle of two kept pairs closes within this angle (degrees) at the
-    /// check's focal ([`crate::rotation_averaging::confirmed_by_trusted_triangles`]). Looser
-    /// than the cycle check because the check's focal is not yet refined: the wrong pairs it
-    /// is for are off by tens of degrees.
+    /// when a triangle of two kept pairs closes within this angle (degrees) at the start's
+    /// focal ([`crate::rotation_averaging::confirmed_by_trusted_triangles`]). Looser than the
+    /// cycle check because a start's focal is not yet refined; the wrong pairs it is for are
+    /// off by tens of degrees (5° and 3° measured worse, docs/BENCHMARKS.md).
     pub support_triangle_deg: f64,
     /// When the focal starts are compared, a pair that the start's consistency checks dropped
     /// (rotation residual, cycle check) costs the missing penalty per match instead of its
@@ -624,7 +624,7 @@ impl GlobalMapper {
         let rejected = r.report.support.as_ref().map_or(0, |s| s.rejected);
         r.report.support = Some(SupportReport {
             supported,
-            confirmed: unsupported.len() - rejected,
+            confirmed: unsupported.len().saturating_sub(rejected),
             rejected,
             rejected_pairs: r
                 .report
@@ -632,7 +632,6 @@ impl GlobalMapper {
                 .take()
                 .map(|s| s.rejected_pairs)
                 .unwrap_or_default(),
-            focal_factor: r.report.focal_factor_initial,
         });
         Ok(r)
     }
@@ -898,7 +897,7 @@ impl GlobalMapper {
             rotation_only_pairs,
             inconsistent_pairs,
             cycle_rejected_pairs,
-            support_rejected: support_rejected.clone(),
+            support_rejected,
             no_parallax,
             rotations: rotation_report,
             translations: translation_report,

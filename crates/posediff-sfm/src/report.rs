@@ -98,9 +98,6 @@ pub struct SupportReport {
     pub rejected: usize,
     /// Those pairs, `[first, second]` as given.
     pub rejected_pairs: Vec<[usize; 2]>,
-    /// The focal factor of the check's relative poses (self-calibrated on the supported
-    /// pairs, else the prior).
-    pub focal_factor: f64,
 }
 
 /// What the mapper did.

@@ -367,8 +367,8 @@ fn main() -> Result<()> {
                 if m > 10 {
                     let support = e.report.support.map_or_else(String::new, |s| {
                         format!(
-                            ", support: {} supported, {} confirmed, {} rejected (focal {:.3})",
-                            s.supported, s.confirmed, s.rejected, s.focal_factor
+                            ", support: {} supported, {} confirmed, {} rejected",
+                            s.supported, s.confirmed, s.rejected
                         )
                     });
                     println!(

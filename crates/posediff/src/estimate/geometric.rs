@@ -253,8 +253,6 @@ pub struct SupportOutcome {
     pub confirmed: usize,
     /// Unsupported pairs dropped before the mapper used them.
     pub rejected: usize,
-    /// The focal factor of the check's relative poses.
-    pub focal_factor: f64,
 }
 
 /// One side of a view-graph bridge moved by resection (run.json).
@@ -301,7 +299,6 @@ impl GeometricReport {
             supported: s.supported,
             confirmed: s.confirmed,
             rejected: s.rejected,
-            focal_factor: s.focal_factor,
         });
         self.estimated = m.estimated.clone();
         self.not_estimated = m
