@@ -508,10 +508,12 @@ impl GlobalMapper {
             &filtered
         };
         if !unsupported.is_empty() {
+            let rejected = best.support_rejected.len();
             report.support = Some(SupportReport {
-                rejected: best.support_rejected.len(),
+                supported: matched.len().saturating_sub(unsupported.len()),
+                confirmed: unsupported.len().saturating_sub(rejected),
+                rejected,
                 rejected_pairs: best.support_rejected.iter().map(|&(a, b)| [a, b]).collect(),
-                ..SupportReport::default()
             });
         }
         let tracks = if o.bundle.is_some() || o.resection.is_some() {
@@ -615,23 +617,11 @@ impl GlobalMapper {
             .filter(|(p, s)| !p.is_empty() && !**s)
             .map(|(p, _)| (p.first, p.second))
             .collect();
-        let supported = pairs
-            .iter()
-            .zip(support)
-            .filter(|(p, s)| !p.is_empty() && **s)
-            .count();
         let mut r = self.run_checked(pairs, &unsupported, intrinsics, known_focal, solver)?;
-        let rejected = r.report.support.as_ref().map_or(0, |s| s.rejected);
-        r.report.support = Some(SupportReport {
-            supported,
-            confirmed: unsupported.len().saturating_sub(rejected),
-            rejected,
-            rejected_pairs: r
-                .report
-                .support
-                .take()
-                .map(|s| s.rejected_pairs)
-                .unwrap_or_default(),
+        // Every pair supported: nothing was checked.
+        r.report.support.get_or_insert(SupportReport {
+            supported: r.report.pairs_with_matches,
+            ..SupportReport::default()
         });
         Ok(r)
     }

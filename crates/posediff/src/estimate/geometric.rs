@@ -78,9 +78,10 @@ pub struct GeometricConfig {
     /// verify at least this many matches ([`crate::correspondences::descriptor_support`]), and
     /// the mapper keeps an unsupported pair only when a triangle of kept pairs confirms it
     /// ([`posediff_sfm::GlobalMapper::run_with_support`]). `None`: every pair is kept as
-    /// matched (the default: measured on the shared sets, the check rejects about half of the
-    /// wrong pairs but loses good ones on small subsets, docs/BENCHMARKS.md). Without a
-    /// learned matcher it does nothing (the matches are the descriptors').
+    /// matched (the default: measured on the shared sets, as many wrong pairs reach the
+    /// averaging with the check as without, and small subsets lose good pairs,
+    /// docs/BENCHMARKS.md). Without a learned matcher it does nothing (the matches are the
+    /// descriptors').
     pub support_min_verified: Option<usize>,
 }
 
