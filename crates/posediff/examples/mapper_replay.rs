@@ -14,7 +14,13 @@
 //! <minimum>` (the support check of learned pairs; the cache holds each pair's descriptor
 //! screen count, `correspondences::descriptor_support`), `SUPPORT_DEG=<degrees>` (its
 //! triangle threshold), `SCORE_DROPPED=0|1` (`MapperOptions::score_dropped_as_missing`;
-//! default: on for learned matchers, as in the umbrella).
+//! default: on for learned matchers, as in the umbrella), `PAIRS=<selection>` (as `--pairs`:
+//! each subset matched only on the pairs the selection picks among its images; `screen:K`:
+//! each image with the K others of the highest descriptor screen count), `LG_SIDE=<pixels>`
+//! and `LG_KP=<keypoints>` (the learned matcher's image side and keypoints, for a new cache),
+//! `DENSIFY=<degrees>[,<per image>]` (the second matching pass on the first map's cameras,
+//! `geometric::Densify`), `PLAN=1` (the learned `auto` plan: exhaustive up to
+//! `LEARNED_EXHAUSTIVE_UP_TO` images, above it the first pass and the second).
 #![allow(clippy::print_stdout)]
 
 use std::collections::BTreeMap;
@@ -23,10 +29,16 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result};
 use posediff::correspondences::{LearnedMatcher, MatcherChoice, SharedLearned};
 use posediff::correspondences::{descriptor_support, extract_all, match_pairs};
-use posediff::estimate::geometric::{GeometricConfig, estimate_from_supported_matches};
+use posediff::estimate::geometric::{
+    Densify, GeometricConfig, LEARNED_EXHAUSTIVE_UP_TO, LEARNED_FIRST_PASS, densify_pairs,
+    estimate_from_supported_matches,
+};
 use posediff_geometry::epipolar::{fundamental_from_cameras, sampson_error};
 use posediff_geometry::{Camera, ImageSize, PairMatches};
 use serde_json::{Value, json};
+
+/// A set size above which `auto` is not exhaustive (asks the selection whether it needs features).
+const EXHAUSTIVE_BIG: usize = posediff_matching::pairs::EXHAUSTIVE_UP_TO;
 
 /// One subset's outcome: mAA(30), fraction of kept pairs that are wrong, pairs averaged, wrong
 /// pairs averaged, pairs kept.
@@ -135,9 +147,17 @@ fn main() -> Result<()> {
             let weights = rest
                 .get(1)
                 .map_or_else(posediff_learned::weights::default_dir, PathBuf::from);
-            config.learned = Some(SharedLearned(std::sync::Arc::new(
-                LearnedMatcher::load_with(&weights, aliked)?,
-            )));
+            let mut learned = LearnedMatcher::load_with(&weights, aliked)?;
+            // LG_SIDE=<pixels>, LG_KP=<keypoints>: the learned matcher's image side and
+            // keypoint budget (defaults 1024 and 2048).
+            if let Ok(v) = std::env::var("LG_SIDE") {
+                learned.image_side = v.parse()?;
+            }
+            if let Ok(v) = std::env::var("LG_KP") {
+                learned.aliked_config.max_keypoints = v.parse()?;
+                learned.disk_config.max_keypoints = v.parse()?;
+            }
+            config.learned = Some(SharedLearned(std::sync::Arc::new(learned)));
         }
         let images: Vec<PathBuf> = names.iter().map(|n| dir.join(n)).collect();
         let started = std::time::Instant::now();
@@ -208,6 +228,48 @@ fn main() -> Result<()> {
             pairs.len()
         );
     }
+    // PAIRS=<selection> (as `--pairs`, e.g. `retrieval:5`): each subset keeps only the pairs
+    // that the selection picks among its images (retrieval on the extractor's features,
+    // extracted once more here); the others count as unmatched.
+    // PAIRS=screen:K: each image with the K others of the highest descriptor screen count.
+    let screen_k: Option<usize> = std::env::var("PAIRS")
+        .ok()
+        .and_then(|v| v.strip_prefix("screen:").map(str::to_owned))
+        .map(|k| k.parse())
+        .transpose()?;
+    let selection: Option<posediff_matching::PairSelection> = std::env::var("PAIRS")
+        .ok()
+        .filter(|_| screen_k.is_none())
+        .map(|v| v.parse())
+        .transpose()
+        .map_err(anyhow::Error::msg)?;
+    let plan = std::env::var("PLAN").is_ok_and(|v| v == "1");
+    let selection_features = match &selection {
+        _ if plan => Some(()),
+        Some(s) if s.needs_features(2 * EXHAUSTIVE_BIG) => Some(()),
+        _ => None,
+    };
+    let selection_features = match selection_features {
+        Some(()) => {
+            let mut config = GeometricConfig::default();
+            config.matching.features.detector = matcher.detector();
+            if let Some(aliked) = matcher.extractor_weights() {
+                let weights = rest
+                    .get(1)
+                    .map_or_else(posediff_learned::weights::default_dir, PathBuf::from);
+                config.learned = Some(SharedLearned(std::sync::Arc::new(
+                    LearnedMatcher::load_with(&weights, aliked)?,
+                )));
+            }
+            let images: Vec<PathBuf> = names.iter().map(|n| dir.join(n)).collect();
+            Some(extract_all(
+                &images,
+                &config.matching,
+                config.learned.as_ref(),
+            )?)
+        }
+        _ => None,
+    };
     let by_pair: BTreeMap<(usize, usize), &PairMatches> =
         pairs.iter().map(|p| ((p.first, p.second), p)).collect();
     let screen_of: BTreeMap<(usize, usize), usize> = pairs
@@ -309,6 +371,57 @@ fn main() -> Result<()> {
                 });
             }
         }
+        let full_sub = sub.clone();
+        let mut selected = m * (m - 1) / 2;
+        // PLAN=1: what `auto` does with a learned matcher (GeometricConfig::plan): above
+        // LEARNED_EXHAUSTIVE_UP_TO images the first pass, then the second (Densify).
+        let planned = plan && m > LEARNED_EXHAUSTIVE_UP_TO;
+        let selection = if planned {
+            Some(posediff_matching::PairSelection::Rules(
+                LEARNED_FIRST_PASS.to_vec(),
+            ))
+        } else {
+            selection.clone()
+        };
+        let densify: Option<Densify> = match std::env::var("DENSIFY").ok() {
+            Some(v) => {
+                let (deg, k) = v.split_once(',').unwrap_or((&v, "5"));
+                Some(Densify {
+                    max_angle_deg: deg.parse()?,
+                    per_image: k.parse()?,
+                })
+            }
+            None => planned.then(Densify::default),
+        };
+        if let Some(selection) = &selection {
+            let features: Option<Vec<_>> = selection_features
+                .as_ref()
+                .map(|f| members.iter().map(|&i| f[i].clone()).collect());
+            let chosen: std::collections::HashSet<(usize, usize)> =
+                posediff_matching::select_pairs(m, selection, features.as_deref())?
+                    .into_iter()
+                    .collect();
+            selected = chosen.len();
+            sub.retain(|p| chosen.contains(&(p.first, p.second)));
+        }
+        if let Some(k) = screen_k {
+            let mut chosen = std::collections::HashSet::new();
+            for a in 0..m {
+                let mut others: Vec<(usize, usize)> = (0..m)
+                    .filter(|&b| b != a)
+                    .map(|b| {
+                        let (i, j) = (members[a], members[b]);
+                        (b, screen_of[&(i.min(j), i.max(j))])
+                    })
+                    .collect();
+                others.sort_by(|x, y| y.1.cmp(&x.1).then(x.0.cmp(&y.0)));
+                for &(b, _) in others.iter().take(k) {
+                    chosen.insert((a.min(b), a.max(b)));
+                }
+            }
+            selected = chosen.len();
+            sub.retain(|p| chosen.contains(&(p.first, p.second)));
+        }
         let sub_sizes: Vec<ImageSize> = members.iter().map(|&i| sizes[i]).collect();
         let gt_cams: Vec<Camera> = members.iter().map(|&i| gt[i].camera).collect();
         let kept = sub.iter().filter(|p| !p.is_empty()).count();
@@ -346,7 +459,30 @@ fn main() -> Result<()> {
                 })
                 .collect()
         });
-        let result = estimate_from_supported_matches(&sub_sizes, sub, support, &replay_config);
+        let mut result = estimate_from_supported_matches(
+            &sub_sizes,
+            sub.clone(),
+            support.clone(),
+            &replay_config,
+        );
+        // DENSIFY=<degrees>: a second pass that adds the pairs not yet matched whose estimated
+        // cameras are within <degrees> of each other (the spatial matcher's idea), then maps
+        // again.
+        if let (Some(d), Ok(e)) = (densify, result.as_ref()) {
+            let have: std::collections::HashSet<(usize, usize)> =
+                sub.iter().map(|p| (p.first, p.second)).collect();
+            let extra: std::collections::HashSet<(usize, usize)> =
+                densify_pairs(&e.cameras, &have, &d).into_iter().collect();
+            let mut more = sub.clone();
+            more.extend(
+                full_sub
+                    .iter()
+                    .filter(|p| extra.contains(&(p.first, p.second)))
+                    .cloned(),
+            );
+            selected += extra.len();
+            result = estimate_from_supported_matches(&sub_sizes, more, support, &replay_config);
+        }
         let (maa, used, wrong_used) = match result {
             Ok(e) => {
                 let pred: Vec<_> = e
@@ -372,7 +508,7 @@ fn main() -> Result<()> {
                         )
                     });
                     println!(
-                        "  {m} images: focal {:.3}, wrong pairs used: {}{support}",
+                        "  {m} images ({selected} pairs matched): focal {:.3}, wrong pairs used: {}{support}",
                         e.report.focal_factor,
                         wrong.join(" ")
                     );

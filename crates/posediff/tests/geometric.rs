@@ -647,3 +647,55 @@ fn the_support_check_drops_a_wrong_pair_and_keeps_confirmed_bridges() {
     let err = estimate_from_supported_matches(&sizes, pairs, Some(vec![true; 3]), &config);
     assert!(err.is_err());
 }
+
+/// The second matching pass on the first map's cameras: fountain matched on each image's next
+/// neighbour only (a chain), then densified — the new pairs are those the first map puts
+/// within the angle, matched and mapped, and the cameras stay within a degree.
+#[test]
+fn the_second_pass_matches_the_pairs_the_first_map_puts_close() {
+    use posediff::estimate::geometric::Densify;
+    let (images, gt) = set("strecha_fountainP11");
+    let chain = GeometricConfig {
+        pairs: "sequential:1".parse().unwrap(),
+        ..GeometricConfig::default()
+    };
+    let densify = Densify {
+        max_angle_deg: 30.0,
+        per_image: 3,
+    };
+    let config = GeometricConfig {
+        densify: Some(densify),
+        ..chain
+    };
+    let e = estimate_geometric(&images, &config).unwrap();
+    assert!(e.report.pair_selection.contains("densify:30deg,3"));
+    let added = e.report.pairs_densified;
+    assert!(
+        added > 0 && added <= 3 * images.len(),
+        "{added} pairs added"
+    );
+    assert_eq!(e.report.pairs_matched, images.len() - 1 + added);
+    // Every new pair is within the angle by the ground truth too (the first map is right to
+    // a degree), and is no chain pair.
+    for p in &e.pairs[images.len() - 1..] {
+        assert!(
+            p.second > p.first + 1,
+            "({}, {}) is a chain pair",
+            p.first,
+            p.second
+        );
+        let angle = posediff_geometry::rotation_angle_between_deg(
+            &gt[p.first].cam_from_world.rotation,
+            &gt[p.second].cam_from_world.rotation,
+        );
+        assert!(
+            angle < 31.0,
+            "({}, {}) is {angle}° apart",
+            p.first,
+            p.second
+        );
+    }
+    let est: Vec<Camera> = e.cameras.iter().map(|c| c.unwrap()).collect();
+    let (rot, trans) = worst_pair_errors(&est, &gt);
+    assert!(rot < 1.0 && trans < 1.0, "worst pair: {rot}° / {trans}°");
+}

@@ -233,3 +233,33 @@ fn the_disk_choice_runs_disk_with_its_own_lightglue() {
     }
     assert!(pairs[0].len() >= 100, "{} verified matches", pairs[0].len());
 }
+
+/// `auto` with a learned matcher: every pair up to `LEARNED_EXHAUSTIVE_UP_TO` images, above
+/// it the first pass and the second; an explicit selection is kept as given.
+#[test]
+fn the_learned_auto_plan_is_exhaustive_for_small_sets_then_two_passes() {
+    use posediff::estimate::geometric::{
+        Densify, GeometricConfig, LEARNED_EXHAUSTIVE_UP_TO, LEARNED_FIRST_PASS,
+    };
+    use posediff_matching::PairSelection;
+    let config = GeometricConfig {
+        learned: Some(SharedLearned(std::sync::Arc::new(
+            LearnedMatcher::load(&weights_dir()).unwrap_or_else(|e| panic!("{e}")),
+        ))),
+        ..GeometricConfig::default()
+    };
+    let small = config.plan(LEARNED_EXHAUSTIVE_UP_TO);
+    assert_eq!(small, (PairSelection::Auto, None));
+    assert_eq!(
+        PairSelection::Auto.rules(LEARNED_EXHAUSTIVE_UP_TO),
+        vec![posediff_matching::PairRule::Exhaustive]
+    );
+    let (selection, densify) = config.plan(LEARNED_EXHAUSTIVE_UP_TO + 1);
+    assert_eq!(selection, PairSelection::Rules(LEARNED_FIRST_PASS.to_vec()));
+    assert_eq!(densify, Some(Densify::default()));
+    let explicit = GeometricConfig {
+        pairs: "exhaustive".parse().unwrap(),
+        ..config
+    };
+    assert_eq!(explicit.plan(100), (explicit.pairs.clone(), None));
+}
