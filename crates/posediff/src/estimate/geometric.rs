@@ -568,10 +568,17 @@ pub fn estimate_geometric(
     let (features, mut pairs, mut support, mut times, selection) = matched;
     let sizes: Vec<ImageSize> = features.iter().map(|f| f.image_size).collect();
     let (_, densify) = config.plan(images.len());
-    let mut estimate =
-        estimate_from_supported_matches(&sizes, pairs.clone(), support.clone(), config)?;
+    // The features are only needed again by the second pass (SIFT's of a thousand images are
+    // gigabytes): dropped before the mapper otherwise.
+    let features = densify.map(|d| (d, features));
+    // The first pass's matches are kept for the second (a copy) only when it runs.
+    let mut estimate = if features.is_some() {
+        estimate_from_supported_matches(&sizes, pairs.clone(), support.clone(), config)?
+    } else {
+        estimate_from_supported_matches(&sizes, std::mem::take(&mut pairs), support.take(), config)?
+    };
     let mut densified = 0;
-    if let Some(d) = densify {
+    if let Some((d, features)) = features {
         let matched: HashSet<(usize, usize)> = pairs.iter().map(|p| (p.first, p.second)).collect();
         let extra = densify_pairs(&estimate.cameras, &matched, &d);
         if !extra.is_empty() {
