@@ -124,6 +124,27 @@ fn correct_fraction(p: &PairMatches, a: &Camera, b: &Camera) -> f64 {
     good as f64 / p.len().max(1) as f64
 }
 
+/// The matching configuration of `matcher` (the learned one loaded from `weights`, else the
+/// default folder). `LG_SIDE=<pixels>`, `LG_KP=<keypoints>`: the learned matcher's image side
+/// and keypoint budget (defaults 1024 and 2048).
+fn matching_config(matcher: MatcherChoice, weights: Option<&String>) -> Result<GeometricConfig> {
+    let mut config = GeometricConfig::default();
+    config.matching.features.detector = matcher.detector();
+    if let Some(aliked) = matcher.extractor_weights() {
+        let weights = weights.map_or_else(posediff_learned::weights::default_dir, PathBuf::from);
+        let mut learned = LearnedMatcher::load_with(&weights, aliked)?;
+        if let Ok(v) = std::env::var("LG_SIDE") {
+            learned.image_side = v.parse()?;
+        }
+        if let Ok(v) = std::env::var("LG_KP") {
+            learned.aliked_config.max_keypoints = v.parse()?;
+            learned.disk_config.max_keypoints = v.parse()?;
+        }
+        config.learned = Some(SharedLearned(std::sync::Arc::new(learned)));
+    }
+    Ok(config)
+}
+
 fn main() -> Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let [data, subsets, set, cache, rest @ ..] = args.as_slice() else {
@@ -141,24 +162,7 @@ fn main() -> Result<()> {
     let (sizes, pairs, raw_counts, screen) = if cache.exists() {
         load(&cache)?
     } else {
-        let mut config = GeometricConfig::default();
-        config.matching.features.detector = matcher.detector();
-        if let Some(aliked) = matcher.extractor_weights() {
-            let weights = rest
-                .get(1)
-                .map_or_else(posediff_learned::weights::default_dir, PathBuf::from);
-            let mut learned = LearnedMatcher::load_with(&weights, aliked)?;
-            // LG_SIDE=<pixels>, LG_KP=<keypoints>: the learned matcher's image side and
-            // keypoint budget (defaults 1024 and 2048).
-            if let Ok(v) = std::env::var("LG_SIDE") {
-                learned.image_side = v.parse()?;
-            }
-            if let Ok(v) = std::env::var("LG_KP") {
-                learned.aliked_config.max_keypoints = v.parse()?;
-                learned.disk_config.max_keypoints = v.parse()?;
-            }
-            config.learned = Some(SharedLearned(std::sync::Arc::new(learned)));
-        }
+        let config = matching_config(matcher, rest.get(1))?;
         let images: Vec<PathBuf> = names.iter().map(|n| dir.join(n)).collect();
         let started = std::time::Instant::now();
         let learned = config.learned.as_ref();
@@ -251,16 +255,7 @@ fn main() -> Result<()> {
     };
     let selection_features = match selection_features {
         Some(()) => {
-            let mut config = GeometricConfig::default();
-            config.matching.features.detector = matcher.detector();
-            if let Some(aliked) = matcher.extractor_weights() {
-                let weights = rest
-                    .get(1)
-                    .map_or_else(posediff_learned::weights::default_dir, PathBuf::from);
-                config.learned = Some(SharedLearned(std::sync::Arc::new(
-                    LearnedMatcher::load_with(&weights, aliked)?,
-                )));
-            }
+            let config = matching_config(matcher, rest.get(1))?;
             let images: Vec<PathBuf> = names.iter().map(|n| dir.join(n)).collect();
             Some(extract_all(
                 &images,
