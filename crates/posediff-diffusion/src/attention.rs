@@ -145,6 +145,76 @@ fn attend_head(
     }
 }
 
+/// Score elements one head's block of query rows holds at most in [`attend_heads`] (1 MiB of
+/// F32, within L2): 128 rows of 2048 keys.
+const HEAD_BLOCK: usize = 1 << 18;
+
+/// `softmax(Q Kᵀ) V` per head for row-major per-head buffers: `q` `(h, m, d)` (already
+/// scaled), `k` and `v` `(h, n, d)`, written to `out` `(h, m, d)`. Heads run in parallel over
+/// rayon's threads, each on blocks of query rows whose scores never exceed [`HEAD_BLOCK`]
+/// elements; every product is faer's (its kernel chosen at run time: AVX-512 where the CPU has
+/// it), the softmax is [`crate::softmax`]'s. LightGlue's self- and cross-attention over
+/// thousands of points, where candle's batched product runs its AVX2 kernel.
+///
+/// # Errors
+/// Buffers whose lengths do not match the shape.
+pub fn attend_heads(
+    q: &[f32],
+    k: &[f32],
+    v: &[f32],
+    out: &mut [f32],
+    (h, m, n, d): (usize, usize, usize, usize),
+) -> Result<()> {
+    if q.len() != h * m * d || k.len() != h * n * d || v.len() != h * n * d || out.len() != q.len()
+    {
+        return Err(crate::DiffusionError::Shape {
+            what: "attention buffers",
+            expected: "q and out h·m·d values, k and v h·n·d",
+            got: vec![q.len(), k.len(), v.len(), out.len()],
+        });
+    }
+    if h == 0 || m == 0 || d == 0 {
+        return Ok(());
+    }
+    if n == 0 {
+        // No keys: no message (PyTorch's softmax over nothing would give NaN rows).
+        out.fill(0.0);
+        return Ok(());
+    }
+    let rows = (HEAD_BLOCK / n).clamp(1, m);
+    let head = |(i, dst): (usize, &mut [f32])| {
+        let (qh, kh, vh) = (
+            &q[i * m * d..(i + 1) * m * d],
+            &k[i * n * d..(i + 1) * n * d],
+            &v[i * n * d..(i + 1) * n * d],
+        );
+        // Row-major N × D buffers are column-major D × N: Kᵀ, Vᵀ.
+        let kt = MatRef::from_column_major_slice(kh, d, n);
+        let vt = MatRef::from_column_major_slice(vh, d, n);
+        let mut scores = vec![0f32; rows * n];
+        for start in (0..m).step_by(rows) {
+            let len = rows.min(m - start);
+            let qt = MatRef::from_column_major_slice(&qh[start * d..(start + len) * d], d, len);
+            let s = &mut scores[..len * n];
+            // Sᵀ = K Qᵀ column-major is S row-major (len × n).
+            let st = MatMut::from_column_major_slice_mut(s, n, len);
+            faer::linalg::matmul::matmul(st, Accum::Replace, kt.transpose(), qt, 1.0, Par::Seq);
+            crate::softmax::softmax_rows_dispatch(s, n);
+            let st = MatRef::from_column_major_slice(s, n, len);
+            // Oᵀ = Vᵀ Sᵀ column-major is O row-major (len × d).
+            let ot =
+                MatMut::from_column_major_slice_mut(&mut dst[start * d..(start + len) * d], d, len);
+            faer::linalg::matmul::matmul(ot, Accum::Replace, vt, st, 1.0, Par::Seq);
+        }
+    };
+    if h > 1 && crate::threads() > 1 {
+        out.par_chunks_mut(m * d).enumerate().for_each(head);
+    } else {
+        out.chunks_mut(m * d).enumerate().for_each(head);
+    }
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use candle_core::{Device, Var};
@@ -174,6 +244,38 @@ mod tests {
                 .to_scalar::<f64>()?;
             assert!(err < 2e-5, "{b}×{n}, {heads} heads of {d}: {err:e}");
         }
+        Ok(())
+    }
+
+    /// The per-head kernel against candle's composed `softmax(Q Kᵀ) V` in F64, for shapes
+    /// with several row blocks (2048 keys: 128 rows a block), a single key and a single query.
+    #[test]
+    fn attend_heads_matches_the_composed_attention() -> anyhow::Result<()> {
+        for (h, m, n, d) in [
+            (4, 300, 2048, 64),
+            (2, 5, 1, 8),
+            (1, 1, 7, 3),
+            (3, 33, 40, 16),
+        ] {
+            let q = Tensor::randn(0f32, 0.5, (h, m, d), &Device::Cpu)?;
+            let k = Tensor::randn(0f32, 0.5, (h, n, d), &Device::Cpu)?;
+            let v = Tensor::randn(0f32, 1.0, (h, n, d), &Device::Cpu)?;
+            let flat = |t: &Tensor| t.flatten_all()?.to_vec1::<f32>();
+            let mut out = vec![f32::NAN; h * m * d];
+            attend_heads(&flat(&q)?, &flat(&k)?, &flat(&v)?, &mut out, (h, m, n, d))?;
+            let f64_ = |t: &Tensor| t.to_dtype(DType::F64);
+            let s = f64_(&q)?.matmul(&f64_(&k)?.t()?)?;
+            let truth = crate::norm::softmax_last_dim_candle(&s)?.matmul(&f64_(&v)?)?;
+            let truth = truth.flatten_all()?.to_vec1::<f64>()?;
+            let err = out
+                .iter()
+                .zip(&truth)
+                .map(|(a, b)| (f64::from(*a) - b).abs())
+                .fold(0f64, f64::max);
+            assert!(err < 2e-5, "{h} heads, {m} × {n} of {d}: {err:e}");
+        }
+        let mut out = vec![0f32; 4];
+        assert!(attend_heads(&[0.0; 4], &[0.0; 3], &[0.0; 4], &mut out, (1, 2, 2, 2)).is_err());
         Ok(())
     }
 

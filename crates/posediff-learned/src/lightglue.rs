@@ -158,16 +158,29 @@ struct Encoding {
     sin: Tensor,
 }
 
-/// Similarity elements per block of query rows: the attention of 2048 × 2048 points never
-/// holds more than this (4 MiB) at once, so its buffers are reused rather than page-faulted in
-/// anew for every layer (the whole `4 × 2048 × 2048` matrix is 64 MiB).
+/// Similarity elements per block of query rows on the candle path (devices other than the
+/// CPU): the attention of 2048 × 2048 points never holds more than this (4 MiB) at once.
 const ATTENTION_BLOCK: usize = 1 << 20;
 
-/// `softmax(q kᵀ) v` per head for `q` `(h, m, d)` (already scaled), `k`, `v` `(h, n, d)`, in
+/// `softmax(q kᵀ) v` per head for `q` `(h, m, d)` (already scaled), `k`, `v` `(h, n, d)`. F32 on
+/// the CPU: `posediff_diffusion::attention::attend_heads` (faer's products, AVX-512 where the
+/// CPU has it; candle's batched product runs its AVX2 kernel); elsewhere candle's products in
 /// blocks of query rows.
 fn attention(q: &Tensor, k: &Tensor, v: &Tensor) -> Result<Tensor> {
-    let (h, m, _) = q.dims3()?;
+    let (h, m, d) = q.dims3()?;
     let n = k.dim(1)?;
+    if q.device().is_cpu() && q.dtype() == candle_core::DType::F32 {
+        let flat = |t: &Tensor| -> Result<Vec<f32>> { Ok(t.flatten_all()?.to_vec1::<f32>()?) };
+        let mut out = vec![0f32; h * m * d];
+        posediff_diffusion::attention::attend_heads(
+            &flat(q)?,
+            &flat(k)?,
+            &flat(v)?,
+            &mut out,
+            (h, m, n, d),
+        )?;
+        return Ok(Tensor::from_vec(out, (h, m, d), q.device())?);
+    }
     let kt = k.t()?;
     let rows = (ATTENTION_BLOCK / (h * n).max(1)).max(1);
     if rows >= m {
