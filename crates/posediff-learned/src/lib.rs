@@ -17,6 +17,7 @@
 #![forbid(unsafe_code)]
 
 pub mod aliked;
+mod conv;
 pub mod deform;
 pub mod disk;
 pub mod error;
