@@ -149,6 +149,59 @@ fn attend_head(
 /// F32, within L2): 128 rows of 2048 keys.
 const HEAD_BLOCK: usize = 1 << 18;
 
+thread_local! {
+    /// [`attend_heads`]' score block of the thread, kept between calls (LightGlue calls it
+    /// four times a layer: a fresh megabyte each time was zeroed and page-faulted anew).
+    static SCORES: std::cell::RefCell<Vec<f32>> = const { std::cell::RefCell::new(Vec::new()) };
+}
+
+/// [`attend_heads`] on tensors: `q` `(h, m, d)` (already scaled), `k` and `v` `(h, n, d)`, F32
+/// on the CPU, untracked; `(h, m, d)`. The buffers are read in place (no copies in or out).
+///
+/// # Errors
+/// Other dtypes or devices, shapes that do not agree, tensor errors.
+pub fn attention_heads(q: &Tensor, k: &Tensor, v: &Tensor) -> Result<Tensor> {
+    let (h, _, d) = q.dims3()?;
+    let (hk, n, dk) = k.dims3()?;
+    if (hk, dk) != (h, d) || v.dims3()? != (h, n, d) {
+        return Err(crate::DiffusionError::Shape {
+            what: "attention k and v",
+            expected: "(h, n, d) with q's h and d",
+            got: [k.dims(), v.dims()].concat(),
+        });
+    }
+    Ok(q.contiguous()?
+        .apply_op3_no_bwd(&k.contiguous()?, &v.contiguous()?, &HeadsAttention)?)
+}
+
+struct HeadsAttention;
+
+impl candle_core::CustomOp3 for HeadsAttention {
+    fn name(&self) -> &'static str {
+        "attention-heads-f32"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+        s3: &CpuStorage,
+        l3: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let q = crate::contiguous_f32(s1, l1, "attention: q")?;
+        let k = crate::contiguous_f32(s2, l2, "attention: k")?;
+        let v = crate::contiguous_f32(s3, l3, "attention: v")?;
+        let (h, m, d) = l1.shape().dims3()?;
+        let n = l2.shape().dims3()?.1;
+        let mut out = vec![0f32; h * m * d];
+        attend_heads(q, k, v, &mut out, (h, m, n, d))
+            .map_err(|e| candle_core::Error::Msg(e.to_string()))?;
+        Ok((CpuStorage::F32(out), Shape::from((h, m, d))))
+    }
+}
+
 /// `softmax(Q Kᵀ) V` per head for row-major per-head buffers: `q` `(h, m, d)` (already
 /// scaled), `k` and `v` `(h, n, d)`, written to `out` `(h, m, d)`. Heads run in parallel over
 /// rayon's threads, each on blocks of query rows whose scores never exceed [`HEAD_BLOCK`]
@@ -191,21 +244,28 @@ pub fn attend_heads(
         // Row-major N × D buffers are column-major D × N: Kᵀ, Vᵀ.
         let kt = MatRef::from_column_major_slice(kh, d, n);
         let vt = MatRef::from_column_major_slice(vh, d, n);
-        let mut scores = vec![0f32; rows * n];
-        for start in (0..m).step_by(rows) {
-            let len = rows.min(m - start);
-            let qt = MatRef::from_column_major_slice(&qh[start * d..(start + len) * d], d, len);
-            let s = &mut scores[..len * n];
-            // Sᵀ = K Qᵀ column-major is S row-major (len × n).
-            let st = MatMut::from_column_major_slice_mut(s, n, len);
-            faer::linalg::matmul::matmul(st, Accum::Replace, kt.transpose(), qt, 1.0, Par::Seq);
-            crate::softmax::softmax_rows_dispatch(s, n);
-            let st = MatRef::from_column_major_slice(s, n, len);
-            // Oᵀ = Vᵀ Sᵀ column-major is O row-major (len × d).
-            let ot =
-                MatMut::from_column_major_slice_mut(&mut dst[start * d..(start + len) * d], d, len);
-            faer::linalg::matmul::matmul(ot, Accum::Replace, vt, st, 1.0, Par::Seq);
-        }
+        SCORES.with_borrow_mut(|scores| {
+            if scores.len() < rows * n {
+                scores.resize(rows * n, 0.0);
+            }
+            for start in (0..m).step_by(rows) {
+                let len = rows.min(m - start);
+                let qt = MatRef::from_column_major_slice(&qh[start * d..(start + len) * d], d, len);
+                let s = &mut scores[..len * n];
+                // Sᵀ = K Qᵀ column-major is S row-major (len × n).
+                let st = MatMut::from_column_major_slice_mut(s, n, len);
+                faer::linalg::matmul::matmul(st, Accum::Replace, kt.transpose(), qt, 1.0, Par::Seq);
+                crate::softmax::softmax_rows_dispatch(s, n);
+                let st = MatRef::from_column_major_slice(s, n, len);
+                // Oᵀ = Vᵀ Sᵀ column-major is O row-major (len × d).
+                let ot = MatMut::from_column_major_slice_mut(
+                    &mut dst[start * d..(start + len) * d],
+                    d,
+                    len,
+                );
+                faer::linalg::matmul::matmul(ot, Accum::Replace, vt, st, 1.0, Par::Seq);
+            }
+        });
     };
     if h > 1 && crate::threads() > 1 {
         out.par_chunks_mut(m * d).enumerate().for_each(head);
@@ -274,6 +334,19 @@ mod tests {
                 .fold(0f64, f64::max);
             assert!(err < 2e-5, "{h} heads, {m} × {n} of {d}: {err:e}");
         }
+        // The tensor form reads the same buffers (and transposed, non-contiguous inputs).
+        let q = Tensor::randn(0f32, 0.5, (3, 2, 9), &Device::Cpu)?;
+        let k = Tensor::randn(0f32, 0.5, (3, 16, 9), &Device::Cpu)?;
+        let v = Tensor::randn(0f32, 1.0, (3, 9, 16), &Device::Cpu)?.transpose(1, 2)?;
+        let ours = attention_heads(&q, &k, &v)?;
+        let truth = crate::norm::softmax_last_dim_candle(&q.matmul(&k.t()?)?)?.matmul(&v)?;
+        let err = (ours - truth)?
+            .abs()?
+            .flatten_all()?
+            .max(0)?
+            .to_scalar::<f32>()?;
+        assert!(err < 1e-5, "tensor form: {err:e}");
+        assert!(attention_heads(&q, &k, &k.narrow(1, 0, 15)?).is_err());
         let mut out = vec![0f32; 4];
         assert!(attend_heads(&[0.0; 4], &[0.0; 3], &[0.0; 4], &mut out, (1, 2, 2, 2)).is_err());
         Ok(())

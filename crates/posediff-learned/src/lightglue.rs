@@ -167,19 +167,10 @@ const ATTENTION_BLOCK: usize = 1 << 20;
 /// CPU has it; candle's batched product runs its AVX2 kernel); elsewhere candle's products in
 /// blocks of query rows.
 fn attention(q: &Tensor, k: &Tensor, v: &Tensor) -> Result<Tensor> {
-    let (h, m, d) = q.dims3()?;
+    let (h, m, _) = q.dims3()?;
     let n = k.dim(1)?;
     if q.device().is_cpu() && q.dtype() == candle_core::DType::F32 {
-        let flat = |t: &Tensor| -> Result<Vec<f32>> { Ok(t.flatten_all()?.to_vec1::<f32>()?) };
-        let mut out = vec![0f32; h * m * d];
-        posediff_diffusion::attention::attend_heads(
-            &flat(q)?,
-            &flat(k)?,
-            &flat(v)?,
-            &mut out,
-            (h, m, n, d),
-        )?;
-        return Ok(Tensor::from_vec(out, (h, m, d), q.device())?);
+        return Ok(posediff_diffusion::attention::attention_heads(q, k, v)?);
     }
     let kt = k.t()?;
     let rows = (ATTENTION_BLOCK / (h * n).max(1)).max(1);
