@@ -197,6 +197,9 @@ struct Conv {
     /// The bias on the host, for the in-place epilogue.
     bias_host: Option<Vec<f32>>,
     padding: usize,
+    /// The square kernel's weights on the host for [`crate::conv`] (`None` for 1×1 or
+    /// non-square kernels).
+    host: Option<crate::conv::Conv2dOp>,
 }
 
 impl Conv {
@@ -211,18 +214,14 @@ impl Conv {
                 .matmul(&x.reshape((c, h * w))?)?;
             return Ok(y.reshape((1, o, h, w))?);
         }
-        if b == 1 && kh == kw && x.device().is_cpu() && x.dtype() == DType::F32 {
+        if let Some(op) = &self.host
+            && b == 1
+            && x.device().is_cpu()
+            && x.dtype() == DType::F32
+        {
             // Band-wise im2col and faer's product (`crate::conv`): candle's im2col copies
             // element by element.
-            let (y, (oh, ow)) = crate::conv::conv2d(
-                &x.flatten_all()?.to_vec1::<f32>()?,
-                (c, h, w),
-                &self.weight.flatten_all()?.to_vec1::<f32>()?,
-                (o, kh),
-                self.padding,
-            )
-            .map_err(candle_core::Error::Msg)?;
-            return Ok(Tensor::from_vec(y, (1, o, oh, ow), x.device())?);
+            return Ok(x.contiguous()?.apply_op1_no_bwd(op)?);
         }
         Ok(x.conv2d(&self.weight, self.padding, 1, 1, 1)?)
     }
@@ -788,11 +787,24 @@ fn fold_conv(
     let to = |t: Tensor| -> Result<Tensor> { Ok(t.to_dtype(DType::F32)?.to_device(device)?) };
     let bias = b.map(to).transpose()?;
     let bias_host = bias.as_ref().map(|b| b.to_vec1::<f32>()).transpose()?;
+    let weight = to(w)?;
+    let (o, _, kh, kw) = weight.dims4()?;
+    let host = if kh == kw && kh > 1 {
+        Some(crate::conv::Conv2dOp {
+            weight: weight.flatten_all()?.to_vec1::<f32>()?,
+            out: o,
+            kernel: kh,
+            pad: padding,
+        })
+    } else {
+        None
+    };
     Ok(Conv {
-        weight: to(w)?,
+        weight,
         bias,
         bias_host,
         padding,
+        host,
     })
 }
 

@@ -40,10 +40,20 @@ pub fn conv2d(
     let rows = (BAND / (depth * ow).max(1)).clamp(1, oh);
     // Wᵀ as faer sees the row-major (o, c·k·k) weight: column-major (c·k·k) × o.
     let wt = MatRef::from_column_major_slice(weight, depth, o);
-    let bands: Vec<Vec<f32>> = (0..oh)
+    let plane = oh * ow;
+    let mut y = vec![0f32; o * plane];
+    // Each band's rows of every output channel: `segments[band][channel]`.
+    let mut segments: Vec<Vec<&mut [f32]>> = (0..oh.div_ceil(rows)).map(|_| Vec::new()).collect();
+    for out_plane in y.chunks_mut(plane) {
+        for (band, seg) in out_plane.chunks_mut(rows * ow).enumerate() {
+            segments[band].push(seg);
+        }
+    }
+    segments
         .into_par_iter()
-        .step_by(rows)
-        .map(|y0| {
+        .enumerate()
+        .for_each(|(band, mut dst)| {
+            let y0 = band * rows;
             let len = rows.min(oh - y0);
             let pixels = len * ow;
             // Patch matrix, row-major (c·k·k) × pixels: row (ch, ky, kx) holds input channel
@@ -67,22 +77,61 @@ pub fn conv2d(
             // Output (o × pixels) row-major = column-major pixels × o = colsᵀ · Wᵀ.
             let mut out = vec![0f32; o * pixels];
             let lhs = MatRef::from_column_major_slice(&cols, pixels, depth);
-            let dst = MatMut::from_column_major_slice_mut(&mut out, pixels, o);
-            faer::linalg::matmul::matmul(dst, Accum::Replace, lhs, wt, 1.0f32, Par::Seq);
-            out
-        })
-        .collect();
-    let plane = oh * ow;
-    let mut y = vec![0f32; o * plane];
-    y.par_chunks_mut(plane).enumerate().for_each(|(ch, dst)| {
-        let mut at = 0;
-        for band in &bands {
-            let pixels = band.len() / o;
-            dst[at..at + pixels].copy_from_slice(&band[ch * pixels..(ch + 1) * pixels]);
-            at += pixels;
-        }
-    });
+            let prod = MatMut::from_column_major_slice_mut(&mut out, pixels, o);
+            faer::linalg::matmul::matmul(prod, Accum::Replace, lhs, wt, 1.0f32, Par::Seq);
+            for (seg, row) in dst.iter_mut().zip(out.chunks_exact(pixels)) {
+                seg.copy_from_slice(row);
+            }
+        });
     Ok((y, (oh, ow)))
+}
+
+/// [`conv2d`] as a candle op on a contiguous `(1, c, h, w)` F32 CPU tensor, which it reads in
+/// place (no copy of a full-resolution input); the weights are kept row-major on the host.
+#[derive(Debug, Clone)]
+pub(crate) struct Conv2dOp {
+    /// `(o, c, k, k)` row-major.
+    pub weight: Vec<f32>,
+    /// Output channels.
+    pub out: usize,
+    /// Kernel side.
+    pub kernel: usize,
+    /// Zero padding on every side.
+    pub pad: usize,
+}
+
+impl candle_core::CustomOp1 for Conv2dOp {
+    fn name(&self) -> &'static str {
+        "conv2d-f32-bands"
+    }
+
+    fn cpu_fwd(
+        &self,
+        storage: &candle_core::CpuStorage,
+        layout: &candle_core::Layout,
+    ) -> candle_core::Result<(candle_core::CpuStorage, candle_core::Shape)> {
+        let (candle_core::CpuStorage::F32(data), Some((start, end))) =
+            (storage, layout.contiguous_offsets())
+        else {
+            candle_core::bail!("conv2d-f32-bands takes a contiguous F32 tensor");
+        };
+        let (b, c, h, w) = layout.shape().dims4()?;
+        if b != 1 {
+            candle_core::bail!("conv2d-f32-bands takes one image, got {b}");
+        }
+        let (y, (oh, ow)) = conv2d(
+            &data[start..end],
+            (c, h, w),
+            &self.weight,
+            (self.out, self.kernel),
+            self.pad,
+        )
+        .map_err(candle_core::Error::Msg)?;
+        Ok((
+            candle_core::CpuStorage::F32(y),
+            candle_core::Shape::from((1, self.out, oh, ow)),
+        ))
+    }
 }
 
 #[cfg(test)]
