@@ -204,7 +204,7 @@ impl candle_core::CustomOp3 for HeadsAttention {
 
 /// `softmax(Q Kᵀ) V` per head for row-major per-head buffers: `q` `(h, m, d)` (already
 /// scaled), `k` and `v` `(h, n, d)`, written to `out` `(h, m, d)`. Heads run in parallel over
-/// rayon's threads, each on blocks of query rows whose scores never exceed [`HEAD_BLOCK`]
+/// rayon's threads, each on blocks of query rows whose scores never exceed `HEAD_BLOCK`
 /// elements; every product is faer's (its kernel chosen at run time: AVX-512 where the CPU has
 /// it), the softmax is [`crate::softmax`]'s. LightGlue's self- and cross-attention over
 /// thousands of points, where candle's batched product runs its AVX2 kernel.
