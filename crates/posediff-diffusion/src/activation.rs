@@ -61,8 +61,8 @@ fn gelu_f32(x: f32) -> f32 {
     0.5 * x * (1.0 + erf_f32(x * std::f32::consts::FRAC_1_SQRT_2))
 }
 
-/// GELU of `values` in place, compiled for the best instruction set this CPU has (AVX2 + FMA
-/// where present) by `pulp`'s safe runtime dispatch, the portable build otherwise.
+/// GELU of `values` in place, compiled for the best instruction set this CPU has (AVX-512 or
+/// AVX2 + FMA where present) by `pulp`'s safe runtime dispatch, the portable build otherwise.
 fn gelu_slice(values: &mut [f32]) {
     pulp::Arch::new().dispatch(Blocks(values));
 }

@@ -5,7 +5,7 @@
 //! of its time there. This kernel evaluates `exp` with Cephes' single-precision polynomial
 //! after the range reduction `x = n·ln 2 + r` (`|r| ≤ ln 2 / 2`; relative error about
 //! 2·10⁻⁷, below two float ulps), written branch-free so that the loop vectorises, compiled for
-//! AVX2+FMA where the CPU has it (pulp's safe runtime dispatch). Rows are split over candle's
+//! AVX-512 or AVX2+FMA where the CPU has it (pulp's safe runtime dispatch). Rows are split over candle's
 //! threads. Other dtypes, devices and tracked tensors keep candle's op.
 
 use candle_core::{CpuStorage, CustomOp1, DType, InplaceOp1, Layout, Shape, Tensor};

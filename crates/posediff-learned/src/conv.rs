@@ -52,37 +52,44 @@ pub fn conv2d(
     segments
         .into_par_iter()
         .enumerate()
-        .for_each(|(band, mut dst)| {
-            let y0 = band * rows;
-            let len = rows.min(oh - y0);
-            let pixels = len * ow;
-            // Patch matrix, row-major (c·k·k) × pixels: row (ch, ky, kx) holds input channel
-            // ch shifted by (ky − pad, kx − pad), zeros outside.
-            let mut cols = vec![0f32; depth * pixels];
-            for (r, dst) in cols.chunks_exact_mut(pixels).enumerate() {
-                let (ch, ky, kx) = (r / (k * k), (r / k) % k, r % k);
-                let plane = &x[ch * h * w..(ch + 1) * h * w];
-                // Output column xo reads input column xo + kx − pad.
-                let lo = pad.saturating_sub(kx);
-                let hi = (w + pad).saturating_sub(kx).min(ow);
-                for (yy, out_row) in dst.chunks_exact_mut(ow).enumerate() {
-                    let sy = (y0 + yy + ky).wrapping_sub(pad);
-                    if sy >= h || lo >= hi {
-                        continue;
+        // The patch matrix and the product are reused from band to band of a worker (cleared
+        // and zero-filled, not allocated and page-faulted anew).
+        .for_each_init(
+            || (Vec::new(), Vec::new()),
+            |(cols, out): &mut (Vec<f32>, Vec<f32>), (band, mut dst)| {
+                let y0 = band * rows;
+                let len = rows.min(oh - y0);
+                let pixels = len * ow;
+                // Patch matrix, row-major (c·k·k) × pixels: row (ch, ky, kx) holds input channel
+                // ch shifted by (ky − pad, kx − pad), zeros outside.
+                cols.clear();
+                cols.resize(depth * pixels, 0.0);
+                for (r, dst) in cols.chunks_exact_mut(pixels).enumerate() {
+                    let (ch, ky, kx) = (r / (k * k), (r / k) % k, r % k);
+                    let plane = &x[ch * h * w..(ch + 1) * h * w];
+                    // Output column xo reads input column xo + kx − pad.
+                    let lo = pad.saturating_sub(kx);
+                    let hi = (w + pad).saturating_sub(kx).min(ow);
+                    for (yy, out_row) in dst.chunks_exact_mut(ow).enumerate() {
+                        let sy = (y0 + yy + ky).wrapping_sub(pad);
+                        if sy >= h || lo >= hi {
+                            continue;
+                        }
+                        let src = &plane[sy * w..(sy + 1) * w];
+                        out_row[lo..hi].copy_from_slice(&src[lo + kx - pad..hi + kx - pad]);
                     }
-                    let src = &plane[sy * w..(sy + 1) * w];
-                    out_row[lo..hi].copy_from_slice(&src[lo + kx - pad..hi + kx - pad]);
                 }
-            }
-            // Output (o × pixels) row-major = column-major pixels × o = colsᵀ · Wᵀ.
-            let mut out = vec![0f32; o * pixels];
-            let lhs = MatRef::from_column_major_slice(&cols, pixels, depth);
-            let prod = MatMut::from_column_major_slice_mut(&mut out, pixels, o);
-            faer::linalg::matmul::matmul(prod, Accum::Replace, lhs, wt, 1.0f32, Par::Seq);
-            for (seg, row) in dst.iter_mut().zip(out.chunks_exact(pixels)) {
-                seg.copy_from_slice(row);
-            }
-        });
+                // Output (o × pixels) row-major = column-major pixels × o = colsᵀ · Wᵀ.
+                out.resize(o * pixels, 0.0);
+                let out = &mut out[..o * pixels];
+                let lhs = MatRef::from_column_major_slice(cols, pixels, depth);
+                let prod = MatMut::from_column_major_slice_mut(out, pixels, o);
+                faer::linalg::matmul::matmul(prod, Accum::Replace, lhs, wt, 1.0f32, Par::Seq);
+                for (seg, row) in dst.iter_mut().zip(out.chunks_exact(pixels)) {
+                    seg.copy_from_slice(row);
+                }
+            },
+        );
     Ok((y, (oh, ow)))
 }
 
