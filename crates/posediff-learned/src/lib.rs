@@ -28,5 +28,5 @@ pub mod weights;
 pub use aliked::{Aliked, AlikedConfig, DenseMaps, Keypoints, RgbImage};
 pub use disk::{Disk, DiskConfig};
 pub use error::{LearnedError, Result};
-pub use lightglue::{LightGlue, LightGlueConfig, LightGlueMatches, MatcherInput};
+pub use lightglue::{LightGlue, LightGlueConfig, LightGlueMatches, MatcherInput, PreparedImage};
 pub use weights::{StateDict, WeightSet};

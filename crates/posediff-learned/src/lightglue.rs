@@ -96,6 +96,26 @@ pub struct Trace {
     pub assignment: Vec<f32>,
 }
 
+/// One image as [`LightGlue::prepare_image`] leaves it: `(n, 256)` descriptors after the first
+/// layer's self-attention block and the image's rotary encoding (about 1.5 KiB a keypoint).
+#[derive(Debug, Clone)]
+pub struct PreparedImage {
+    d: Tensor,
+    enc: Encoding,
+}
+
+impl PreparedImage {
+    /// Keypoints of the image.
+    pub fn len(&self) -> usize {
+        self.d.dims().first().copied().unwrap_or(0)
+    }
+
+    /// Whether the image has no keypoints.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
 /// `nn.Linear`: posediff-diffusion's layer (faer's product for F32 on the CPU).
 #[derive(Debug, Clone)]
 struct Linear(posediff_diffusion::linear::Linear);
@@ -414,6 +434,24 @@ impl LightGlue {
         Ok((desc, enc))
     }
 
+    /// What LightGlue computes from one image alone: the projected descriptors after the first
+    /// layer's self-attention block, and the rotary encoding. An image matched with several
+    /// others is prepared once ([`LightGlue::match_prepared`]); the result is the same as
+    /// [`LightGlue::match_pair`]'s, which prepares both images itself.
+    ///
+    /// # Errors
+    /// Descriptors of the wrong width, a non-positive image size, tensor errors.
+    pub fn prepare_image(&self, f: &MatcherInput) -> Result<PreparedImage> {
+        let (d, enc) = self.prepare(f)?;
+        // An image without keypoints matches nothing; the run stops before any layer.
+        let d = if f.positions.is_empty() {
+            d
+        } else {
+            self.layers[0].self_block(&d, &enc, &self.rotate_half)?
+        };
+        Ok(PreparedImage { d, enc })
+    }
+
     /// Matches two images.
     ///
     /// # Errors
@@ -422,6 +460,19 @@ impl LightGlue {
         &self,
         a: &MatcherInput,
         b: &MatcherInput,
+        config: &LightGlueConfig,
+    ) -> Result<LightGlueMatches> {
+        self.match_prepared(&self.prepare_image(a)?, &self.prepare_image(b)?, config)
+    }
+
+    /// Matches two images prepared by [`LightGlue::prepare_image`].
+    ///
+    /// # Errors
+    /// Non-finite outputs, tensor errors.
+    pub fn match_prepared(
+        &self,
+        a: &PreparedImage,
+        b: &PreparedImage,
         config: &LightGlueConfig,
     ) -> Result<LightGlueMatches> {
         Ok(self.run(a, b, config, false)?.0)
@@ -438,7 +489,12 @@ impl LightGlue {
         b: &MatcherInput,
         config: &LightGlueConfig,
     ) -> Result<(LightGlueMatches, Trace)> {
-        let (m, t) = self.run(a, b, config, true)?;
+        let (m, t) = self.run(
+            &self.prepare_image(a)?,
+            &self.prepare_image(b)?,
+            config,
+            true,
+        )?;
         Ok((
             m,
             t.unwrap_or(Trace {
@@ -450,14 +506,14 @@ impl LightGlue {
 
     fn run(
         &self,
-        a: &MatcherInput,
-        b: &MatcherInput,
+        a: &PreparedImage,
+        b: &PreparedImage,
         config: &LightGlueConfig,
         trace: bool,
     ) -> Result<(LightGlueMatches, Option<Trace>)> {
-        let (m, n) = (a.positions.len(), b.positions.len());
-        let (mut d0, mut e0) = self.prepare(a)?;
-        let (mut d1, mut e1) = self.prepare(b)?;
+        let (m, n) = (a.d.dim(0)?, b.d.dim(0)?);
+        let (mut d0, mut e0) = (a.d.clone(), a.enc.clone());
+        let (mut d1, mut e1) = (b.d.clone(), b.enc.clone());
         let mut ind0: Vec<usize> = (0..m).collect();
         let mut ind1: Vec<usize> = (0..n).collect();
         let mut prune0 = vec![1usize; m];
@@ -470,8 +526,11 @@ impl LightGlue {
             }
             last = i;
             let layer = &self.layers[i];
-            d0 = layer.self_block(&d0, &e0, &self.rotate_half)?;
-            d1 = layer.self_block(&d1, &e1, &self.rotate_half)?;
+            // The first layer's self-attention is part of the prepared images.
+            if i > 0 {
+                d0 = layer.self_block(&d0, &e0, &self.rotate_half)?;
+                d1 = layer.self_block(&d1, &e1, &self.rotate_half)?;
+            }
             (d0, d1) = layer.cross_block(&d0, &d1)?;
             if trace {
                 layers.push((d0.clone(), d1.clone()));
@@ -586,7 +645,8 @@ impl LightGlue {
         let s = (DIM as f64).powf(-0.25);
         let md0 = (proj.forward(d0)? * s)?;
         let md1 = (proj.forward(d1)? * s)?;
-        let sim = md0.matmul(&md1.t()?)?;
+        // md0 md1ᵀ as a bias-free linear layer of weight md1 (faer's product on the CPU).
+        let sim = posediff_diffusion::linear::Linear::new(md1, None)?.forward(&md0)?;
         let (m, n) = sim.dims2()?;
         let sim = sim.flatten_all()?.to_vec1::<f32>()?;
         let z0 = matchability.forward(d0)?.flatten_all()?.to_vec1::<f32>()?;
@@ -594,33 +654,56 @@ impl LightGlue {
         if sim.iter().chain(&z0).chain(&z1).any(|v| !v.is_finite()) {
             return Err(LearnedError::NonFinite("LightGlue assignment"));
         }
-        let lse = |vals: &mut dyn Iterator<Item = f32>| -> (f32, f32) {
-            let v: Vec<f32> = vals.collect();
-            let mx = v.iter().fold(f32::NEG_INFINITY, |a, &b| a.max(b));
-            let sum: f32 = v.iter().map(|&x| (x - mx).exp()).sum();
-            (mx, sum.ln())
-        };
-        let rows: Vec<(f32, f32)> = (0..m)
-            .map(|r| lse(&mut sim[r * n..(r + 1) * n].iter().copied()))
-            .collect();
-        let cols: Vec<(f32, f32)> = (0..n)
-            .map(|c| lse(&mut (0..m).map(|r| sim[r * n + c])))
-            .collect();
-        let mut out = vec![0f32; (m + 1) * (n + 1)];
-        for r in 0..m {
-            for c in 0..n {
-                let x = sim[r * n + c];
-                let s0 = x - rows[r].0 - rows[r].1;
-                let s1 = x - cols[c].0 - cols[c].1;
-                out[r * (n + 1) + c] = s0 + s1 + (log_sigmoid(z0[r]) + log_sigmoid(z1[c]));
-            }
-            out[r * (n + 1) + n] = log_sigmoid(-z0[r]);
-        }
-        for c in 0..n {
-            out[m * (n + 1) + c] = log_sigmoid(-z1[c]);
-        }
-        Ok(out)
+        Ok(double_log_softmax(&sim, m, n, &z0, &z1))
     }
+}
+
+/// The log assignment from the `m × n` similarity (row-major) and the matchability logits:
+/// `log_softmax` over each row plus over each column, plus both log-sigmoid matchabilities; the
+/// dustbin column and row hold `log σ(−z)`. Rows and columns are reduced in row order (the
+/// columns' maxima and sums accumulated row by row), so every pass reads memory in order.
+fn double_log_softmax(sim: &[f32], m: usize, n: usize, z0: &[f32], z1: &[f32]) -> Vec<f32> {
+    let exp = posediff_diffusion::softmax::exp_f32;
+    // (max, ln Σ exp(x − max)) of every row and column.
+    let mut rows = vec![(0f32, 0f32); m];
+    let mut col_max = vec![f32::NEG_INFINITY; n];
+    for (r, lse) in sim.chunks_exact(n.max(1)).zip(&mut rows) {
+        let mx = r.iter().fold(f32::NEG_INFINITY, |a, &b| a.max(b));
+        let sum: f32 = r.iter().map(|&x| exp(x - mx)).sum();
+        *lse = (mx, sum.ln());
+        for (c, &x) in col_max.iter_mut().zip(r) {
+            *c = c.max(x);
+        }
+    }
+    let mut col_sum = vec![0f32; n];
+    for r in sim.chunks_exact(n.max(1)) {
+        for ((s, &c), &x) in col_sum.iter_mut().zip(&col_max).zip(r) {
+            *s += exp(x - c);
+        }
+    }
+    let cols: Vec<(f32, f32)> = col_max
+        .iter()
+        .zip(&col_sum)
+        .map(|(&c, &s)| (c, s.ln()))
+        .collect();
+    let ls1: Vec<f32> = z1.iter().map(|&z| log_sigmoid(z)).collect();
+    let mut out = vec![0f32; (m + 1) * (n + 1)];
+    for (r, (row, o)) in sim
+        .chunks_exact(n.max(1))
+        .zip(out.chunks_exact_mut(n + 1))
+        .enumerate()
+        .take(m)
+    {
+        let (ls0, (rm, rl)) = (log_sigmoid(z0[r]), rows[r]);
+        for (((o, &x), &(cm, cl)), &l1) in o.iter_mut().zip(row).zip(&cols).zip(&ls1) {
+            *o = (x - rm - rl) + (x - cm - cl) + (ls0 + l1);
+        }
+        o[n] = log_sigmoid(-z0[r]);
+    }
+    for (o, &z) in out[m * (n + 1)..].iter_mut().zip(z1) {
+        *o = log_sigmoid(-z);
+    }
+    out
 }
 
 /// Rows `keep` of the descriptors and the encoding.
@@ -647,21 +730,27 @@ fn filter_matches(
     n: usize,
     threshold: f32,
 ) -> (Vec<(usize, usize)>, Vec<f32>) {
-    let at = |r: usize, c: usize| scores[r * (n + 1) + c];
-    // torch's max: the first index of the maximum.
-    let argmax = |len: usize, f: &dyn Fn(usize) -> f32| -> (usize, f32) {
-        (0..len).fold((0, f32::NEG_INFINITY), |(bi, bv), k| {
-            let v = f(k);
-            if v > bv { (k, v) } else { (bi, bv) }
-        })
-    };
-    let best0: Vec<(usize, f32)> = (0..m).map(|r| argmax(n, &|c| at(r, c))).collect();
-    let best1: Vec<usize> = (0..n).map(|c| argmax(m, &|r| at(r, c)).0).collect();
+    // torch's max: the first index of the maximum (strictly greater replaces), rows and
+    // columns reduced in one pass in row order.
+    let mut best0: Vec<(usize, f32)> = Vec::with_capacity(m);
+    let mut best1: Vec<(usize, f32)> = vec![(0, f32::NEG_INFINITY); n];
+    for (r, row) in scores.chunks_exact(n + 1).take(m).enumerate() {
+        let mut best = (0, f32::NEG_INFINITY);
+        for (c, (&v, b1)) in row[..n].iter().zip(&mut best1).enumerate() {
+            if v > best.1 {
+                best = (c, v);
+            }
+            if v > b1.1 {
+                *b1 = (r, v);
+            }
+        }
+        best0.push(best);
+    }
     let mut matches = Vec::new();
     let mut out_scores = Vec::new();
     for (r, &(c, v)) in best0.iter().enumerate() {
         let p = v.exp();
-        if best1[c] == r && p > threshold {
+        if best1.get(c).is_some_and(|b| b.0 == r) && p > threshold {
             matches.push((r, c));
             out_scores.push(p);
         }
@@ -685,6 +774,60 @@ mod tests {
         assert!((log_sigmoid(0.0) - 0.5f32.ln()).abs() < 1e-7);
         assert!((log_sigmoid(-100.0) + 100.0).abs() < 1e-4);
         assert!(log_sigmoid(100.0).abs() < 1e-7);
+    }
+
+    #[test]
+    fn double_log_softmax_matches_the_direct_formula() {
+        let (m, n) = (5, 7);
+        let sim: Vec<f32> = (0..m * n)
+            .map(|k| ((k * 37 % 23) as f32 - 11.0) * 0.7)
+            .collect();
+        let z0: Vec<f32> = (0..m).map(|k| k as f32 - 2.0).collect();
+        let z1: Vec<f32> = (0..n).map(|k| 1.5 - k as f32 * 0.5).collect();
+        let out = double_log_softmax(&sim, m, n, &z0, &z1);
+        let ls = |x: f64| -(1.0 + (-x).exp()).ln();
+        for r in 0..m {
+            let row_lse = (0..n)
+                .map(|c| f64::from(sim[r * n + c]).exp())
+                .sum::<f64>()
+                .ln();
+            for c in 0..n {
+                let col_lse = (0..m)
+                    .map(|q| f64::from(sim[q * n + c]).exp())
+                    .sum::<f64>()
+                    .ln();
+                let x = f64::from(sim[r * n + c]);
+                let want =
+                    2.0 * x - row_lse - col_lse + ls(f64::from(z0[r])) + ls(f64::from(z1[c]));
+                let got = f64::from(out[r * (n + 1) + c]);
+                assert!((got - want).abs() < 1e-5, "({r}, {c}): {got} vs {want}");
+            }
+            let dust = f64::from(out[r * (n + 1) + n]);
+            assert!((dust - ls(-f64::from(z0[r]))).abs() < 1e-6);
+        }
+        for c in 0..n {
+            let dust = f64::from(out[m * (n + 1) + c]);
+            assert!((dust - ls(-f64::from(z1[c]))).abs() < 1e-6);
+        }
+    }
+
+    #[test]
+    fn ties_go_to_the_first_index_as_in_torch() {
+        let p = |x: f32| x.ln();
+        // Row 0 ties between columns 0 and 1; column 0 ties between rows 0 and 1.
+        let scores = [
+            p(0.4),
+            p(0.4),
+            0.0, //
+            p(0.4),
+            p(0.2),
+            0.0, //
+            0.0,
+            0.0,
+            0.0,
+        ];
+        let (m, _) = filter_matches(&scores, 2, 2, 0.1);
+        assert_eq!(m, vec![(0, 0)]);
     }
 
     #[test]

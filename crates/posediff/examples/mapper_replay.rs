@@ -341,6 +341,10 @@ fn main() -> Result<()> {
             })
             .collect::<Result<_>>()?;
         let m = members.len();
+        // ONLY=<N>: the subsets of that size alone (e.g. the whole set, timed).
+        if std::env::var("ONLY").is_ok_and(|v| v.parse::<usize>().is_ok_and(|k| k != m)) {
+            continue;
+        }
         let mut sub = Vec::new();
         for a in 0..m {
             for b in a + 1..m {
@@ -454,6 +458,7 @@ fn main() -> Result<()> {
                 })
                 .collect()
         });
+        let mapper_clock = std::time::Instant::now();
         let mut result = estimate_from_supported_matches(
             &sub_sizes,
             sub.clone(),
@@ -464,6 +469,13 @@ fn main() -> Result<()> {
         // cameras are within <degrees> of each other (the spatial matcher's idea), then maps
         // again.
         if let (Some(d), Ok(e)) = (densify, result.as_ref()) {
+            if std::env::var("ONLY").is_ok() {
+                println!(
+                    "  first pass: mapper {:.1} s, {:?}",
+                    mapper_clock.elapsed().as_secs_f64(),
+                    e.report.times
+                );
+            }
             let have: std::collections::HashSet<(usize, usize)> =
                 sub.iter().map(|p| (p.first, p.second)).collect();
             let extra: std::collections::HashSet<(usize, usize)> =
@@ -478,6 +490,7 @@ fn main() -> Result<()> {
             selected += extra.len();
             result = estimate_from_supported_matches(&sub_sizes, more, support, &replay_config);
         }
+        let mapper_s = mapper_clock.elapsed().as_secs_f64();
         let (maa, used, wrong_used) = match result {
             Ok(e) => {
                 let pred: Vec<_> = e
@@ -503,7 +516,8 @@ fn main() -> Result<()> {
                         )
                     });
                     println!(
-                        "  {m} images ({selected} pairs matched): focal {:.3}, wrong pairs used: {}{support}",
+                        "  {m} images ({selected} pairs matched, mapper {mapper_s:.1} s, times {:?}): focal {:.3}, wrong pairs used: {}{support}",
+                        e.report.times,
                         e.report.focal_factor,
                         wrong.join(" ")
                     );

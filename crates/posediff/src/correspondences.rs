@@ -18,8 +18,8 @@ use opencv::core::{Mat, Size};
 use opencv::prelude::*;
 use posediff_geometry::{ImageSize, PairMatches};
 use posediff_learned::{
-    Aliked, AlikedConfig, Disk, DiskConfig, LightGlue, LightGlueConfig, MatcherInput, RgbImage,
-    WeightSet,
+    Aliked, AlikedConfig, Disk, DiskConfig, LightGlue, LightGlueConfig, MatcherInput,
+    PreparedImage, RgbImage, WeightSet,
 };
 use posediff_matching::features::to_original_pixels;
 use posediff_matching::{Descriptors, ImageFeatures, MatchConfig};
@@ -248,6 +248,32 @@ impl LearnedMatcher {
         })
     }
 
+    /// What LightGlue computes from one image alone ([`LightGlue::prepare_image`]), so that an
+    /// image matched with several others is prepared once.
+    ///
+    /// # Errors
+    /// Features that are not the extractor's; network errors.
+    pub fn prepare(&self, f: &ImageFeatures) -> Result<PreparedImage> {
+        let data = match &f.descriptors {
+            Descriptors::Float { data, dim } if *dim == self.lightglue.input_dim() => data,
+            _ => {
+                return Err(PosediffError::InvalidArgument(
+                    "LightGlue needs the learned extractor's 128-d float descriptors".into(),
+                ));
+            }
+        };
+        let positions: Vec<[f32; 2]> = f
+            .keypoints
+            .iter()
+            .map(|k| [k[0] as f32, k[1] as f32])
+            .collect();
+        Ok(self.lightglue.prepare_image(&MatcherInput {
+            positions: &positions,
+            descriptors: data,
+            image_size: [f.image_size.width() as f32, f.image_size.height() as f32],
+        })?)
+    }
+
     /// LightGlue on one pair, then the verification of `config`.
     ///
     /// # Errors
@@ -260,38 +286,35 @@ impl LearnedMatcher {
         second: usize,
         config: &MatchConfig,
     ) -> Result<PairMatches> {
-        let positions = |f: &ImageFeatures| -> Vec<[f32; 2]> {
-            f.keypoints
-                .iter()
-                .map(|k| [k[0] as f32, k[1] as f32])
-                .collect()
-        };
-        let desc = |f: &ImageFeatures| -> Result<Vec<f32>> {
-            match &f.descriptors {
-                Descriptors::Float { data, dim } if *dim == self.lightglue.input_dim() => {
-                    Ok(data.clone())
-                }
-                _ => Err(PosediffError::InvalidArgument(
-                    "LightGlue needs the learned extractor's 128-d float descriptors".into(),
-                )),
-            }
-        };
-        let size = |f: &ImageFeatures| [f.image_size.width() as f32, f.image_size.height() as f32];
-        let (pa, pb) = (positions(a), positions(b));
-        let (da, db) = (desc(a)?, desc(b)?);
-        let m = self.lightglue.match_pair(
-            &MatcherInput {
-                positions: &pa,
-                descriptors: &da,
-                image_size: size(a),
-            },
-            &MatcherInput {
-                positions: &pb,
-                descriptors: &db,
-                image_size: size(b),
-            },
-            &self.lightglue_config,
-        )?;
+        let (pa, pb) = (self.prepare(a)?, self.prepare(b)?);
+        self.match_prepared((a, &pa), (b, &pb), first, second, config)
+    }
+
+    /// [`Self::match_pair`] on images already [prepared](Self::prepare).
+    ///
+    /// # Errors
+    /// OpenCV errors in the verification, network errors.
+    pub fn match_prepared(
+        &self,
+        (a, pa): (&ImageFeatures, &PreparedImage),
+        (b, pb): (&ImageFeatures, &PreparedImage),
+        first: usize,
+        second: usize,
+        config: &MatchConfig,
+    ) -> Result<PairMatches> {
+        if pa.len() != a.keypoints.len() || pb.len() != b.keypoints.len() {
+            return Err(PosediffError::InvalidArgument(format!(
+                "pair ({first}, {second}): prepared images of {} and {} keypoints for features \
+                 of {} and {}",
+                pa.len(),
+                pb.len(),
+                a.keypoints.len(),
+                b.keypoints.len()
+            )));
+        }
+        let m = self
+            .lightglue
+            .match_prepared(pa, pb, &self.lightglue_config)?;
         let raw = posediff_matching::raw_matches(a, b, first, second, &m.matches);
         Ok(posediff_matching::verify(raw, config)?)
     }
@@ -349,10 +372,74 @@ pub fn match_pairs(
         return Ok(posediff_matching::match_pairs(features, pairs, config)?);
     };
     posediff_matching::check_pairs(features.len(), pairs)?;
-    pairs
-        .par_iter()
-        .map(|&(i, j)| l.0.match_pair(&features[i], &features[j], i, j, config))
-        .collect()
+    let mut out: Vec<Option<PairMatches>> = vec![None; pairs.len()];
+    for window in prepared_windows(pairs, PREPARED_IMAGES) {
+        // Each image of the window once, then its pairs.
+        let mut images: Vec<usize> = window
+            .iter()
+            .flat_map(|&k| [pairs[k].0, pairs[k].1])
+            .collect();
+        images.sort_unstable();
+        images.dedup();
+        let mut prepared: Vec<Option<PreparedImage>> = vec![None; features.len()];
+        let made: Vec<PreparedImage> = images
+            .par_iter()
+            .map(|&i| l.0.prepare(&features[i]))
+            .collect::<Result<_>>()?;
+        for (&i, p) in images.iter().zip(made) {
+            prepared[i] = Some(p);
+        }
+        let of = |i: usize| -> Result<&PreparedImage> {
+            prepared[i].as_ref().ok_or_else(|| {
+                PosediffError::InvalidArgument(format!("image {i} was not prepared"))
+            })
+        };
+        let matched: Vec<PairMatches> = window
+            .par_iter()
+            .map(|&k| {
+                let (i, j) = pairs[k];
+                l.0.match_prepared((&features[i], of(i)?), (&features[j], of(j)?), i, j, config)
+            })
+            .collect::<Result<_>>()?;
+        for (&k, m) in window.iter().zip(matched) {
+            out[k] = Some(m);
+        }
+    }
+    Ok(out.into_iter().flatten().collect())
+}
+
+/// Most images whose LightGlue preparation is held at once in [`match_pairs`] (about 3 MiB each
+/// at 2048 keypoints): the memory stays bounded however many images a run has.
+const PREPARED_IMAGES: usize = 24;
+
+/// The pairs (indices into `pairs`) in windows that touch at most `max_images` images each, in
+/// the order of their images (`(min, max)` ascending), so that an image's pairs mostly share a
+/// window and it is prepared once. Every index appears exactly once.
+fn prepared_windows(pairs: &[(usize, usize)], max_images: usize) -> Vec<Vec<usize>> {
+    let key = |k: usize| {
+        let (i, j) = pairs[k];
+        (i.min(j), i.max(j))
+    };
+    let mut order: Vec<usize> = (0..pairs.len()).collect();
+    order.sort_by_key(|&k| key(k));
+    let mut windows = Vec::new();
+    let mut window: Vec<usize> = Vec::new();
+    let mut images = std::collections::BTreeSet::new();
+    for k in order {
+        let (i, j) = pairs[k];
+        let new = usize::from(!images.contains(&i)) + usize::from(!images.contains(&j));
+        if !window.is_empty() && images.len() + new > max_images.max(2) {
+            windows.push(std::mem::take(&mut window));
+            images.clear();
+        }
+        images.insert(i);
+        images.insert(j);
+        window.push(k);
+    }
+    if !window.is_empty() {
+        windows.push(window);
+    }
+    windows
 }
 
 /// Fewest matches of the descriptor screen ([`descriptor_support`]) for a learned pair to
@@ -409,4 +496,62 @@ pub fn match_images(
     let features = extract_all(images, config, learned)?;
     let matches = match_pairs(&features, pairs, config, learned)?;
     Ok((features, matches))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn windows_cover_every_pair_once_within_the_image_bound() {
+        let n = 30;
+        let mut pairs: Vec<(usize, usize)> = Vec::new();
+        for i in 0..n {
+            for j in i + 1..n {
+                // Some pairs given in the other order, and a shuffled list.
+                pairs.push(if (i + j) % 3 == 0 { (j, i) } else { (i, j) });
+            }
+        }
+        pairs.reverse();
+        for bound in [2, 5, 24, 100] {
+            let windows = prepared_windows(&pairs, bound);
+            let mut seen = vec![0usize; pairs.len()];
+            for w in &windows {
+                assert!(!w.is_empty());
+                let mut images: Vec<usize> =
+                    w.iter().flat_map(|&k| [pairs[k].0, pairs[k].1]).collect();
+                images.sort_unstable();
+                images.dedup();
+                assert!(
+                    images.len() <= bound,
+                    "{} images at bound {bound}",
+                    images.len()
+                );
+                for &k in w {
+                    seen[k] += 1;
+                }
+            }
+            assert!(seen.iter().all(|&c| c == 1), "bound {bound}");
+            if bound >= n {
+                assert_eq!(windows.len(), 1);
+            }
+        }
+        // Sequential pairs of a long video: each window holds about `bound` consecutive frames,
+        // so each frame is prepared about once, not once per pair.
+        let seq: Vec<(usize, usize)> = (0..1000)
+            .flat_map(|i| (1..=3).map(move |d| (i, i + d)))
+            .collect();
+        let windows = prepared_windows(&seq, 24);
+        let prepared: usize = windows
+            .iter()
+            .map(|w| {
+                let mut images: Vec<usize> = w.iter().flat_map(|&k| [seq[k].0, seq[k].1]).collect();
+                images.sort_unstable();
+                images.dedup();
+                images.len()
+            })
+            .sum();
+        assert!(prepared < 1300, "{prepared} preparations for 1003 frames");
+        assert!(prepared_windows(&[], 24).is_empty());
+    }
 }

@@ -111,6 +111,31 @@ fn learned_matches_of_neighbouring_frames_are_verified_and_in_original_pixels() 
     );
 }
 
+/// `match_pairs` prepares each image once for all its pairs; the matches are the ones of each
+/// pair matched alone, in the order the pairs were asked for.
+#[test]
+fn prepared_images_give_each_pairs_own_matches() {
+    let learned = SharedLearned(std::sync::Arc::new(
+        LearnedMatcher::load(&weights_dir()).unwrap_or_else(|e| panic!("{e}")),
+    ));
+    let images = apple(3);
+    let config = MatchConfig::default();
+    let asked = [(1, 2), (0, 2), (0, 1)];
+    let (features, pairs) = match_images(&images, Some(&asked), &config, Some(&learned)).unwrap();
+    assert_eq!(pairs.len(), asked.len());
+    for (p, &(i, j)) in pairs.iter().zip(&asked) {
+        assert_eq!((p.first, p.second), (i, j));
+        let alone = learned
+            .0
+            .match_pair(&features[i], &features[j], i, j, &config)
+            .unwrap();
+        assert!(!alone.is_empty());
+        assert_eq!(p.idx1, alone.idx1, "pair ({i}, {j})");
+        assert_eq!(p.idx2, alone.idx2, "pair ({i}, {j})");
+        assert_eq!(p.kp1, alone.kp1, "pair ({i}, {j})");
+    }
+}
+
 #[test]
 fn missing_weights_fail_before_any_image_is_read_and_name_the_command() {
     let dir = posediff_fixtures::temp_dir("learned-no-weights");
