@@ -152,7 +152,9 @@ const HEAD_BLOCK: usize = 1 << 18;
 thread_local! {
     /// [`attend_heads`]' score block of the thread, kept between calls (LightGlue calls it
     /// four times a layer: a fresh megabyte each time was zeroed and page-faulted anew).
-    static SCORES: std::cell::RefCell<Vec<f32>> = const { std::cell::RefCell::new(Vec::new()) };
+    /// With it, the rows' reciprocal sums.
+    static SCORES: std::cell::RefCell<(Vec<f32>, Vec<f32>)> =
+        const { std::cell::RefCell::new((Vec::new(), Vec::new())) };
 }
 
 /// [`attend_heads`] on tensors: `q` `(h, m, d)` (already scaled), `k` and `v` `(h, n, d)`, F32
@@ -244,9 +246,12 @@ pub fn attend_heads(
         // Row-major N × D buffers are column-major D × N: Kᵀ, Vᵀ.
         let kt = MatRef::from_column_major_slice(kh, d, n);
         let vt = MatRef::from_column_major_slice(vh, d, n);
-        SCORES.with_borrow_mut(|scores| {
+        SCORES.with_borrow_mut(|(scores, inv_sums)| {
             if scores.len() < rows * n {
                 scores.resize(rows * n, 0.0);
+            }
+            if inv_sums.len() < rows {
+                inv_sums.resize(rows, 0.0);
             }
             for start in (0..m).step_by(rows) {
                 let len = rows.min(m - start);
@@ -255,15 +260,18 @@ pub fn attend_heads(
                 // Sᵀ = K Qᵀ column-major is S row-major (len × n).
                 let st = MatMut::from_column_major_slice_mut(s, n, len);
                 faer::linalg::matmul::matmul(st, Accum::Replace, kt.transpose(), qt, 1.0, Par::Seq);
-                crate::softmax::softmax_rows_dispatch(s, n);
+                // exp(S − max) per row; the rows' 1/Σ scale the output rows afterwards (d
+                // multiplications a row instead of n).
+                let inv = &mut inv_sums[..len];
+                crate::softmax::exp_rows_dispatch(s, n, inv);
                 let st = MatRef::from_column_major_slice(s, n, len);
+                let o = &mut dst[start * d..(start + len) * d];
                 // Oᵀ = Vᵀ Sᵀ column-major is O row-major (len × d).
-                let ot = MatMut::from_column_major_slice_mut(
-                    &mut dst[start * d..(start + len) * d],
-                    d,
-                    len,
-                );
+                let ot = MatMut::from_column_major_slice_mut(o, d, len);
                 faer::linalg::matmul::matmul(ot, Accum::Replace, vt, st, 1.0, Par::Seq);
+                for (row, &c) in o.chunks_exact_mut(d).zip(inv.iter()) {
+                    row.iter_mut().for_each(|x| *x *= c);
+                }
             }
         });
     };

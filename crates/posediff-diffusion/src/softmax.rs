@@ -106,6 +106,72 @@ fn softmax_rows(values: &mut [f32], row: usize) {
     }
 }
 
+/// The unnormalised softmax of every `row`-long row of `values`, in place: `exp(x − max)`
+/// (terms below [`flush_below`] set to zero, as in [`softmax_rows`]), with each row's
+/// `1 / Σ` written to `inv_sums`. The exponentials and the sum share one pass; the caller
+/// scales what it computes from the rows instead of the rows themselves (attention scales the
+/// `d`-wide output rows, not the `n`-wide weights).
+#[inline(always)]
+fn exp_rows(values: &mut [f32], row: usize, inv_sums: &mut [f32]) {
+    for (r, inv) in values.chunks_exact_mut(row).zip(inv_sums) {
+        let mut lanes = [f32::NEG_INFINITY; LANES];
+        let mut blocks = r.chunks_exact(LANES);
+        for b in &mut blocks {
+            for (m, &v) in lanes.iter_mut().zip(b) {
+                *m = m.max(v);
+            }
+        }
+        let max = blocks
+            .remainder()
+            .iter()
+            .chain(&lanes)
+            .fold(f32::NEG_INFINITY, |m, &v| m.max(v));
+        let cut = flush_below(r.len());
+        let mut sums = [0f32; LANES];
+        let mut blocks = r.chunks_exact_mut(LANES);
+        for b in &mut blocks {
+            for (s, v) in sums.iter_mut().zip(b.iter_mut()) {
+                let d = *v - max;
+                let e = exp_f32(d);
+                *v = if d < cut { 0.0 } else { e };
+                *s += *v;
+            }
+        }
+        let mut sum: f32 = sums.iter().sum();
+        for v in blocks.into_remainder() {
+            let d = *v - max;
+            let e = exp_f32(d);
+            *v = if d < cut { 0.0 } else { e };
+            sum += *v;
+        }
+        *inv = 1.0 / sum;
+    }
+}
+
+struct ExpRows<'a> {
+    values: &'a mut [f32],
+    row: usize,
+    inv_sums: &'a mut [f32],
+}
+
+impl pulp::WithSimd for ExpRows<'_> {
+    type Output = ();
+
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _simd: S) {
+        exp_rows(self.values, self.row, self.inv_sums);
+    }
+}
+
+/// [`exp_rows`] on the calling thread, compiled for the CPU's features.
+pub(crate) fn exp_rows_dispatch(values: &mut [f32], row: usize, inv_sums: &mut [f32]) {
+    pulp::Arch::new().dispatch(ExpRows {
+        values,
+        row,
+        inv_sums,
+    });
+}
+
 /// The rows for pulp's dispatch: `with_simd` is inlined into a function compiled for the CPU's
 /// features (a plain closure is not, and would run the baseline code).
 struct Rows<'a> {
