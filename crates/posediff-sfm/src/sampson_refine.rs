@@ -266,8 +266,11 @@ impl LeastSquares for Problem<'_> {
                         df[(k, q)] = *v;
                     }
                 }
-                let mut hp = SMatrix::<f64, 13, 13>::zeros();
-                let mut gp = SVector::<f64, 13>::zeros();
+                // Summed over the matches in F's 9 entries, then carried to the 13 parameters
+                // once: Σ w Dᵀg gᵀD = Dᵀ (Σ w g gᵀ) D (the matches' sum costs 45 products
+                // each instead of 13 × 13 + 13 × 9).
+                let mut h9 = [[0.0f64; 9]; 9];
+                let mut g9 = [0.0f64; 9];
                 for (x1, x2) in p.kp1.iter().zip(&p.kp2) {
                     let Some((r, gr)) = sampson_residual(&f0, *x1, *x2) else {
                         continue;
@@ -275,11 +278,18 @@ impl LeastSquares for Problem<'_> {
                     if loss.gate.is_some_and(|g| r.abs() >= g) {
                         continue;
                     }
-                    let j = df.transpose() * SVector::<f64, 9>::from(gr);
                     let w = 1.0 / (1.0 + r * r / c2);
-                    hp += j * j.transpose() * w;
-                    gp += j * (w * r);
+                    for (a, row) in h9.iter_mut().enumerate() {
+                        let wa = w * gr[a];
+                        for (h, &gb) in row.iter_mut().zip(&gr).take(a + 1) {
+                            *h += wa * gb;
+                        }
+                        g9[a] += wa * r;
+                    }
                 }
+                let h9 = SMatrix::<f64, 9, 9>::from_fn(|a, b| h9[a.max(b)][a.min(b)]);
+                let hp = df.transpose() * h9 * df;
+                let gp = df.transpose() * SVector::<f64, 9>::from(g9);
                 Some((hp, gp))
             })
             .collect();

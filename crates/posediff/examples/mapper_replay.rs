@@ -499,6 +499,12 @@ fn main() -> Result<()> {
                     .map(|c| c.map(|c| c.cam_from_world))
                     .collect();
                 let (scores, _) = posediff::bench::score_set(&gt_cams, &pred)?;
+                if std::env::var("ONLY").is_ok() {
+                    println!(
+                        "  RRA@5/15/30 {:?}, RTA@5/15/30 {:?}",
+                        scores.rra, scores.rta
+                    );
+                }
                 let used = &e.report.averaged_pairs;
                 let wrong: Vec<String> = used
                     .iter()

@@ -67,7 +67,7 @@ pub struct Args {
     /// Which image pairs are matched by the checkpoint-free path: `auto` (every pair up to
     /// 60 images, `sequential:10,retrieval:20` above; with a learned matcher every pair up to
     /// 12 images, above `sequential:3,retrieval:3` and then a second pass on the first map's
-    /// cameras: each image with up to 5 unmatched images within 60°), `exhaustive`,
+    /// cameras: each image with up to 5 unmatched images within 45°), `exhaustive`,
     /// `sequential:K` (each image with the next K), `retrieval:K` (its K most similar by a bag
     /// of visual words), or a union such as `sequential:10,retrieval:20`.
     #[arg(long, default_value = "auto")]

@@ -97,8 +97,10 @@ pub struct GeometricConfig {
 /// within `max_angle_deg` of its own (nearest first; COLMAP's spatial matcher on estimated
 /// poses), and the mapper runs again on all pairs. It recovers the wide bridges a sparse first
 /// selection misses (apple, 20 frames, ALIKED + LightGlue: `sequential:3,retrieval:3` alone
-/// 0.824 mAA(30), with this pass 0.888 on 96 pairs, exhaustive 0.883 on 190;
-/// docs/BENCHMARKS.md). At most `per_image · n` more pairs.
+/// 0.824 mAA(30), with this pass 0.888 on 80 pairs, exhaustive 0.883 on 190;
+/// docs/BENCHMARKS.md). At most `per_image · n` more pairs. 45°: the same accuracy as 60°
+/// (96 pairs) and 30° (68 pairs) on apple, the view pairs of the first map with the most
+/// overlap.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Densify {
     /// Largest rotation between the two estimated cameras, degrees.
@@ -110,7 +112,7 @@ pub struct Densify {
 impl Default for Densify {
     fn default() -> Self {
         Self {
-            max_angle_deg: 60.0,
+            max_angle_deg: 45.0,
             per_image: 5,
         }
     }
