@@ -208,6 +208,79 @@ fn attention(q: &Tensor, k: &Tensor, v: &Tensor) -> Result<Tensor> {
     Ok(Tensor::cat(&blocks, 1)?)
 }
 
+/// [`split_rope_f32`] composed of tensor operations (devices other than the CPU).
+fn split_rope_candle(
+    qkv: &Tensor,
+    enc: &Encoding,
+    rot: &Tensor,
+    scale: f64,
+) -> Result<(Tensor, Tensor, Tensor)> {
+    let n = qkv.dim(0)?;
+    // unflatten(-1, (heads, -1, 3)): column h·192 + d·3 + s holds q (s=0), k, v.
+    let qkv = qkv
+        .reshape((n, HEADS, HEAD_DIM, 3))?
+        .permute((3, 1, 0, 2))?;
+    let rope = |t: Tensor| -> Result<Tensor> {
+        let t = t.contiguous()?;
+        let rotated = t.broadcast_matmul(rot)?;
+        Ok((t.broadcast_mul(&enc.cos)? + rotated.broadcast_mul(&enc.sin)?)?)
+    };
+    Ok((
+        (rope(qkv.i(0)?)? * scale)?,
+        rope(qkv.i(1)?)?,
+        qkv.i(2)?.contiguous()?,
+    ))
+}
+
+/// The self-attention's `(n, 768)` projection (column `h·192 + d·3 + s` holds q for `s = 0`,
+/// k, v) split into `(heads, n, 64)` q, k and v in one pass over the host values, with the
+/// rotary encoding `t·cos + rotate_half(t)·sin` on q and k and `scale` on q — the same F32
+/// operations in the same order as the composed tensor path (`rotate_half` is exact), without
+/// its dozen intermediate tensors.
+fn split_rope_f32(qkv: &Tensor, enc: &Encoding, scale: f32) -> Result<(Tensor, Tensor, Tensor)> {
+    let (n, width) = qkv.dims2()?;
+    if width != 3 * DIM || enc.cos.dims() != [n, HEAD_DIM] || enc.sin.dims() != [n, HEAD_DIM] {
+        return Err(LearnedError::BadFeatures(format!(
+            "self-attention projection {:?} with an encoding of {:?}",
+            qkv.dims(),
+            enc.cos.dims()
+        )));
+    }
+    let values = qkv.flatten_all()?.to_vec1::<f32>()?;
+    let cos = enc.cos.flatten_all()?.to_vec1::<f32>()?;
+    let sin = enc.sin.flatten_all()?.to_vec1::<f32>()?;
+    let mut q = vec![0f32; n * DIM];
+    let mut k = vec![0f32; n * DIM];
+    let mut v = vec![0f32; n * DIM];
+    for i in 0..n {
+        let row = &values[i * 3 * DIM..(i + 1) * 3 * DIM];
+        let (c, s) = (
+            &cos[i * HEAD_DIM..(i + 1) * HEAD_DIM],
+            &sin[i * HEAD_DIM..(i + 1) * HEAD_DIM],
+        );
+        for h in 0..HEADS {
+            let src = &row[h * 3 * HEAD_DIM..(h + 1) * 3 * HEAD_DIM];
+            let at = (h * n + i) * HEAD_DIM;
+            for d in 0..HEAD_DIM {
+                // rotate_half: out[2j] = −t[2j+1], out[2j+1] = t[2j].
+                let pair = d ^ 1;
+                let sign = if d % 2 == 0 { -1.0f32 } else { 1.0 };
+                let (tq, rq) = (src[d * 3], sign * src[pair * 3]);
+                let (tk, rk) = (src[d * 3 + 1], sign * src[pair * 3 + 1]);
+                q[at + d] = (tq * c[d] + rq * s[d]) * scale;
+                k[at + d] = tk * c[d] + rk * s[d];
+                v[at + d] = src[d * 3 + 2];
+            }
+        }
+    }
+    let device = qkv.device();
+    Ok((
+        Tensor::from_vec(q, (HEADS, n, HEAD_DIM), device)?,
+        Tensor::from_vec(k, (HEADS, n, HEAD_DIM), device)?,
+        Tensor::from_vec(v, (HEADS, n, HEAD_DIM), device)?,
+    ))
+}
+
 /// `(n, heads·64)` → `(heads, n, 64)`.
 fn split_heads(x: &Tensor) -> Result<Tensor> {
     let n = x.dim(0)?;
@@ -239,21 +312,13 @@ impl Layer {
 
     fn self_block(&self, x: &Tensor, enc: &Encoding, rot: &Tensor) -> Result<Tensor> {
         let n = x.dim(0)?;
-        // unflatten(-1, (heads, -1, 3)): column h·192 + d·3 + s holds q (s=0), k, v.
-        let qkv = self
-            .wqkv
-            .forward(x)?
-            .reshape((n, HEADS, HEAD_DIM, 3))?
-            .permute((3, 1, 0, 2))?;
-        let rope = |t: Tensor| -> Result<Tensor> {
-            let t = t.contiguous()?;
-            let rotated = t.broadcast_matmul(rot)?;
-            Ok((t.broadcast_mul(&enc.cos)? + rotated.broadcast_mul(&enc.sin)?)?)
-        };
         let scale = (HEAD_DIM as f64).powf(-0.5);
-        let q = (rope(qkv.i(0)?)? * scale)?;
-        let k = rope(qkv.i(1)?)?;
-        let v = qkv.i(2)?.contiguous()?;
+        let qkv = self.wqkv.forward(x)?;
+        let (q, k, v) = if qkv.device().is_cpu() && qkv.dtype() == candle_core::DType::F32 {
+            split_rope_f32(&qkv, enc, scale as f32)?
+        } else {
+            split_rope_candle(&qkv, enc, rot, scale)?
+        };
         let context = attention(&q, &k, &v)?;
         let message = self.out_proj.forward(&merge_heads(&context)?)?;
         self.self_ffn.residual(x, &message)
@@ -774,6 +839,45 @@ mod tests {
         assert!((log_sigmoid(0.0) - 0.5f32.ln()).abs() < 1e-7);
         assert!((log_sigmoid(-100.0) + 100.0).abs() < 1e-4);
         assert!(log_sigmoid(100.0).abs() < 1e-7);
+    }
+
+    #[test]
+    fn fused_rope_equals_the_composed_tensor_path() -> Result<()> {
+        let dev = Device::Cpu;
+        let n = 7;
+        let qkv = Tensor::randn(0f32, 1.0, (n, 3 * DIM), &dev)?;
+        let enc = Encoding {
+            cos: Tensor::randn(0f32, 1.0, (n, HEAD_DIM), &dev)?,
+            sin: Tensor::randn(0f32, 1.0, (n, HEAD_DIM), &dev)?,
+        };
+        let mut rot = vec![0f32; HEAD_DIM * HEAD_DIM];
+        for i in 0..HEAD_DIM / 2 {
+            rot[(2 * i + 1) * HEAD_DIM + 2 * i] = -1.0;
+            rot[2 * i * HEAD_DIM + 2 * i + 1] = 1.0;
+        }
+        let rot = Tensor::from_vec(rot, (HEAD_DIM, HEAD_DIM), &dev)?;
+        let scale = 0.125;
+        let fused = split_rope_f32(&qkv, &enc, scale as f32)?;
+        let composed = split_rope_candle(&qkv, &enc, &rot, scale)?;
+        for (a, b) in [
+            (fused.0, composed.0),
+            (fused.1, composed.1),
+            (fused.2, composed.2),
+        ] {
+            assert_eq!(a.dims(), [HEADS, n, HEAD_DIM]);
+            let (a, b) = (
+                a.flatten_all()?.to_vec1::<f32>()?,
+                b.flatten_all()?.to_vec1::<f32>()?,
+            );
+            let worst = a
+                .iter()
+                .zip(&b)
+                .map(|(x, y)| (x - y).abs())
+                .fold(0f32, f32::max);
+            assert!(worst <= 1e-6, "{worst}");
+        }
+        assert!(split_rope_f32(&qkv.narrow(1, 0, DIM)?, &enc, 1.0).is_err());
+        Ok(())
     }
 
     #[test]
