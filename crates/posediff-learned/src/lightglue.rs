@@ -311,7 +311,6 @@ impl Layer {
     }
 
     fn self_block(&self, x: &Tensor, enc: &Encoding, rot: &Tensor) -> Result<Tensor> {
-        let n = x.dim(0)?;
         let scale = (HEAD_DIM as f64).powf(-0.5);
         let qkv = self.wqkv.forward(x)?;
         let (q, k, v) = if qkv.device().is_cpu() && qkv.dtype() == candle_core::DType::F32 {
