@@ -64,53 +64,27 @@ const ROUNDER: f32 = 12_582_912.0;
 /// Lanes of the manual reductions (one AVX register of f32).
 const LANES: usize = 8;
 
-/// Softmax of every `row`-long row of `values`, in place. The maximum and the sum run in
-/// [`LANES`] partial lanes (a sequential float reduction would not vectorise); `exp` is a pure
-/// map.
+/// Softmax of every `row`-long row of `values`, in place: [`exp_rows`], then each row scaled
+/// by its `1 / Σ`.
 #[inline(always)]
 fn softmax_rows(values: &mut [f32], row: usize) {
     for r in values.chunks_exact_mut(row) {
-        let mut lanes = [f32::NEG_INFINITY; LANES];
-        let mut blocks = r.chunks_exact(LANES);
-        for b in &mut blocks {
-            for (m, &v) in lanes.iter_mut().zip(b) {
-                *m = m.max(v);
-            }
-        }
-        let max = blocks
-            .remainder()
-            .iter()
-            .chain(&lanes)
-            .fold(f32::NEG_INFINITY, |m, &v| m.max(v));
-        // A term whose normalised value would be subnormal is zero (below): subnormal floats
-        // take microcode assists on Intel cores in the product with the values, and without
-        // this a fifth of LightGlue's attention weights were subnormal.
-        let cut = flush_below(r.len());
+        let mut inv = [0f32];
+        exp_rows(r, row, &mut inv);
         for v in r.iter_mut() {
-            let d = *v - max;
-            let e = exp_f32(d);
-            *v = if d < cut { 0.0 } else { e };
-        }
-        let mut sums = [0f32; LANES];
-        let mut blocks = r.chunks_exact(LANES);
-        for b in &mut blocks {
-            for (s, &v) in sums.iter_mut().zip(b) {
-                *s += v;
-            }
-        }
-        let sum: f32 = sums.iter().chain(blocks.remainder()).sum();
-        let inv = 1.0 / sum;
-        for v in r.iter_mut() {
-            *v *= inv;
+            *v *= inv[0];
         }
     }
 }
 
-/// The unnormalised softmax of every `row`-long row of `values`, in place: `exp(x − max)`
-/// (terms below [`flush_below`] set to zero, as in [`softmax_rows`]), with each row's
-/// `1 / Σ` written to `inv_sums`. The exponentials and the sum share one pass; the caller
-/// scales what it computes from the rows instead of the rows themselves (attention scales the
-/// `d`-wide output rows, not the `n`-wide weights).
+/// The unnormalised softmax of every `row`-long row of `values`, in place: `exp(x − max)`, with
+/// each row's `1 / Σ` written to `inv_sums`. The maximum and the sum run in [`LANES`] partial
+/// lanes (a sequential float reduction would not vectorise); `exp` is a pure map. A term whose
+/// normalised value would be subnormal is zero ([`flush_below`]): subnormal floats take
+/// microcode assists on Intel cores in the product with the values, and without this a fifth
+/// of LightGlue's attention weights were subnormal. The exponentials and the sum share one
+/// pass; attention scales its `d`-wide output rows by `1 / Σ` instead of the `n`-wide
+/// weights.
 #[inline(always)]
 fn exp_rows(values: &mut [f32], row: usize, inv_sums: &mut [f32]) {
     for (r, inv) in values.chunks_exact_mut(row).zip(inv_sums) {
