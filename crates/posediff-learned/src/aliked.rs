@@ -46,7 +46,8 @@ fn selu(x: &Tensor) -> Result<Tensor> {
     Ok((x.elu(SELU_ALPHA)? * SELU_SCALE)?)
 }
 
-/// SELU of one value (host side, the SDDH offset head).
+/// SELU of one value (host side: the conv epilogue, the SDDH offset head).
+#[inline(always)]
 fn selu_f32(x: f32) -> f32 {
     let (a, s) = (SELU_ALPHA as f32, SELU_SCALE as f32);
     // The polynomial exp, clamped to the normal range: libm's `expf` of an input below −87
@@ -306,12 +307,30 @@ impl candle_core::InplaceOp1 for BiasSelu {
             .zip(&self.bias)
             .for_each(|(plane, &b)| {
                 if self.selu {
-                    plane.iter_mut().for_each(|v| *v = selu_f32(*v + b));
+                    pulp::Arch::new().dispatch(SeluPlane { plane, bias: b });
                 } else if b != 0.0 {
                     plane.iter_mut().for_each(|v| *v += b);
                 }
             });
         Ok(())
+    }
+}
+
+/// `selu(x + b)` over one channel plane, for pulp's dispatch: the loop is compiled for the
+/// CPU's features (AVX-512 or AVX2 with FMA), where a plain closure ran SSE2 code (18 % of an
+/// extraction profile).
+struct SeluPlane<'a> {
+    plane: &'a mut [f32],
+    bias: f32,
+}
+
+impl pulp::WithSimd for SeluPlane<'_> {
+    type Output = ();
+
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _simd: S) {
+        let b = self.bias;
+        self.plane.iter_mut().for_each(|v| *v = selu_f32(*v + b));
     }
 }
 
