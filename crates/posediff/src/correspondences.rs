@@ -27,6 +27,21 @@ use rayon::prelude::*;
 
 use crate::error::{PosediffError, Result};
 
+/// Steps of a long stage reported from any thread (the CLI's progress bars; the learned
+/// matcher's images and pairs take about half a second each).
+pub trait StepCounter: Sync {
+    /// A stage begins with `total` steps (0: not counted).
+    fn stage(&self, _name: &str, _total: u64) {}
+    /// One step of the current stage is done.
+    fn step(&self) {}
+}
+
+/// Counts nothing.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct NoCounter;
+
+impl StepCounter for NoCounter {}
+
 /// Long side the learned matcher resizes every image to (the reference setting).
 pub const LEARNED_IMAGE_SIDE: u32 = 1024;
 /// ALIKED keypoints per image (the reference setting measured in `docs/BENCHMARKS.md`).
@@ -340,12 +355,26 @@ pub fn extract_all(
     config: &MatchConfig,
     learned: Option<&SharedLearned>,
 ) -> Result<Vec<ImageFeatures>> {
+    extract_all_counted(images, config, learned, &NoCounter)
+}
+
+/// [`extract_all`], counting the learned extractor's images on `counter` (stage "features").
+///
+/// # Errors
+/// As [`extract_all`].
+pub fn extract_all_counted(
+    images: &[PathBuf],
+    config: &MatchConfig,
+    learned: Option<&SharedLearned>,
+    counter: &dyn StepCounter,
+) -> Result<Vec<ImageFeatures>> {
     log::info!(
         "{}extracting features of {} images",
         crate::estimate::run::WORK_STARTS,
         images.len()
     );
     let Some(l) = learned else {
+        counter.stage("features", 0);
         return Ok(posediff_matching::extract_all(images, config)?);
     };
     if images.len() < 2 {
@@ -357,13 +386,18 @@ pub fn extract_all(
     // A few images at a time: the network's own parallelism uses two cores at 1.3×, two
     // images side by side at about 1.8×; the bound keeps the memory of a many-core machine to
     // a few images' feature maps (about 0.2 GB each at 1024 px).
+    counter.stage("features", images.len() as u64);
     let at_once = rayon::current_num_threads().clamp(1, EXTRACT_AT_ONCE);
     let mut out = Vec::with_capacity(images.len());
     for chunk in images.chunks(at_once) {
         out.extend(
             chunk
                 .par_iter()
-                .map(|p| l.0.extract(p))
+                .map(|p| {
+                    let f = l.0.extract(p);
+                    counter.step();
+                    f
+                })
                 .collect::<Result<Vec<_>>>()?,
         );
     }
@@ -380,9 +414,25 @@ pub fn match_pairs(
     config: &MatchConfig,
     learned: Option<&SharedLearned>,
 ) -> Result<Vec<PairMatches>> {
+    match_pairs_counted(features, pairs, config, learned, (&NoCounter, "matching"))
+}
+
+/// [`match_pairs`], counting the learned matcher's pairs on `counter` as stage `name`.
+///
+/// # Errors
+/// As [`match_pairs`].
+pub fn match_pairs_counted(
+    features: &[ImageFeatures],
+    pairs: &[(usize, usize)],
+    config: &MatchConfig,
+    learned: Option<&SharedLearned>,
+    (counter, name): (&dyn StepCounter, &str),
+) -> Result<Vec<PairMatches>> {
     let Some(l) = learned else {
+        counter.stage(name, 0);
         return Ok(posediff_matching::match_pairs(features, pairs, config)?);
     };
+    counter.stage(name, pairs.len() as u64);
     posediff_matching::check_pairs(features.len(), pairs)?;
     let mut out: Vec<Option<PairMatches>> = vec![None; pairs.len()];
     for window in prepared_windows(pairs, PREPARED_IMAGES) {
@@ -410,7 +460,15 @@ pub fn match_pairs(
             .par_iter()
             .map(|&k| {
                 let (i, j) = pairs[k];
-                l.0.match_prepared((&features[i], of(i)?), (&features[j], of(j)?), i, j, config)
+                let m = l.0.match_prepared(
+                    (&features[i], of(i)?),
+                    (&features[j], of(j)?),
+                    i,
+                    j,
+                    config,
+                );
+                counter.step();
+                m
             })
             .collect::<Result<_>>()?;
         for (&k, m) in window.iter().zip(matched) {

@@ -288,3 +288,46 @@ fn the_learned_auto_plan_is_exhaustive_for_small_sets_then_two_passes() {
     };
     assert_eq!(explicit.plan(100), (explicit.pairs.clone(), None));
 }
+
+/// What the CLI's progress bars see: each stage of the geometric path in order, the learned
+/// matcher's images and pairs counted one step each (from whichever thread did them).
+#[test]
+fn the_geometric_stages_count_images_and_pairs() {
+    use posediff::correspondences::StepCounter;
+    use posediff::estimate::geometric::{GeometricConfig, estimate_geometric_counted};
+    #[derive(Default)]
+    struct Record {
+        stages: std::sync::Mutex<Vec<(String, u64, usize)>>,
+    }
+    impl StepCounter for Record {
+        fn stage(&self, name: &str, total: u64) {
+            self.stages
+                .lock()
+                .unwrap()
+                .push((name.to_owned(), total, 0));
+        }
+        fn step(&self) {
+            if let Some(last) = self.stages.lock().unwrap().last_mut() {
+                last.2 += 1;
+            }
+        }
+    }
+    let config = GeometricConfig {
+        learned: Some(SharedLearned(std::sync::Arc::new(
+            LearnedMatcher::load(&weights_dir()).unwrap_or_else(|e| panic!("{e}")),
+        ))),
+        ..GeometricConfig::default()
+    };
+    let record = Record::default();
+    let estimate = estimate_geometric_counted(&apple(3), &config, &record).unwrap();
+    assert!(estimate.cameras.iter().filter(|c| c.is_some()).count() >= 2);
+    let stages = record.stages.into_inner().unwrap();
+    assert_eq!(
+        stages,
+        vec![
+            ("features".to_owned(), 3, 3),
+            ("matching".to_owned(), 3, 3),
+            ("mapping".to_owned(), 0, 0),
+        ]
+    );
+}

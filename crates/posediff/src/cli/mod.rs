@@ -16,6 +16,7 @@ use std::path::Path;
 use anyhow::Context;
 use clap::{Subcommand, ValueEnum};
 use posediff::Progress;
+use posediff::correspondences::StepCounter;
 use posediff::io::export::ImageCamera;
 
 /// Every command.
@@ -159,18 +160,19 @@ impl DeviceArg {
     }
 }
 
-/// Progress bars on stderr (drawn only on a terminal).
+/// Progress bars on stderr (drawn only on a terminal). Steps may finish on any thread
+/// ([`StepCounter`]): the bar sits behind a lock.
 #[derive(Default)]
 pub struct Bars {
-    bar: Option<indicatif::ProgressBar>,
+    bar: std::sync::Mutex<Option<indicatif::ProgressBar>>,
 }
 
-impl Progress for Bars {
-    fn start(&mut self, stage: &str, total: u64) {
+impl Bars {
+    fn bar(stage: &str, total: u64) -> indicatif::ProgressBar {
         let bar = if total > 0 {
             let b = indicatif::ProgressBar::new(total);
             if let Ok(style) = indicatif::ProgressStyle::with_template(
-                "{msg:>10} [{bar:40}] {pos}/{len} {elapsed}",
+                "{msg:>11} [{bar:40}] {pos}/{len} {elapsed}",
             ) {
                 b.set_style(style.progress_chars("=> "));
             }
@@ -181,19 +183,49 @@ impl Progress for Bars {
             b
         };
         bar.set_message(stage.to_owned());
-        self.bar = Some(bar);
+        bar
     }
 
-    fn advance(&mut self) {
-        if let Some(b) = &self.bar {
+    /// Replaces the current bar (cleared) by `next`.
+    fn replace(&self, next: Option<indicatif::ProgressBar>) {
+        if let Ok(mut current) = self.bar.lock() {
+            if let Some(b) = current.take() {
+                b.finish_and_clear();
+            }
+            *current = next;
+        }
+    }
+}
+
+impl StepCounter for Bars {
+    fn stage(&self, name: &str, total: u64) {
+        self.replace(Some(Self::bar(name, total)));
+    }
+
+    fn step(&self) {
+        if let Ok(current) = self.bar.lock()
+            && let Some(b) = current.as_ref()
+        {
             b.inc(1);
         }
     }
+}
+
+impl Progress for Bars {
+    fn start(&mut self, stage: &str, total: u64) {
+        StepCounter::stage(self, stage, total);
+    }
+
+    fn advance(&mut self) {
+        self.step();
+    }
 
     fn finish(&mut self) {
-        if let Some(b) = self.bar.take() {
-            b.finish_and_clear();
-        }
+        self.replace(None);
+    }
+
+    fn counter(&self) -> &dyn StepCounter {
+        self
     }
 }
 

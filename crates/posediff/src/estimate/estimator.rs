@@ -90,6 +90,11 @@ pub trait Progress {
     fn advance(&mut self) {}
     /// The current stage is done.
     fn finish(&mut self) {}
+    /// The same output for stages whose steps finish on any thread (the geometric path's
+    /// features and pairs); counts nothing unless overridden.
+    fn counter(&self) -> &dyn crate::correspondences::StepCounter {
+        &crate::correspondences::NoCounter
+    }
 }
 
 /// No progress output.

@@ -30,7 +30,10 @@ use posediff_sfm::{
     CameraPose, GlobalMapper, ImageIntrinsics, MapperOptions, MapperReport, SfmError,
 };
 
-use crate::correspondences::{SharedLearned, descriptor_support, extract_all, match_pairs};
+use crate::correspondences::{
+    NoCounter, SharedLearned, StepCounter, descriptor_support, extract_all_counted, match_pairs,
+    match_pairs_counted,
+};
 use crate::error::{PosediffError, Result};
 use crate::estimate::run_report::Warning;
 
@@ -567,7 +570,21 @@ pub fn estimate_geometric(
     images: &[PathBuf],
     config: &GeometricConfig,
 ) -> Result<GeometricEstimate> {
-    let matched = match_all(images, config)?;
+    estimate_geometric_counted(images, config, &NoCounter)
+}
+
+/// [`estimate_geometric`], reporting its stages on `counter`: "features" and "matching" (the
+/// learned matcher's images and pairs counted), "mapping", and with a second pass "second
+/// pass" and "mapping" again.
+///
+/// # Errors
+/// As [`estimate_geometric`].
+pub fn estimate_geometric_counted(
+    images: &[PathBuf],
+    config: &GeometricConfig,
+    counter: &dyn StepCounter,
+) -> Result<GeometricEstimate> {
+    let matched = match_all(images, config, counter)?;
     let (features, mut pairs, mut support, mut times, selection) = matched;
     let sizes: Vec<ImageSize> = features.iter().map(|f| f.image_size).collect();
     let (_, densify) = config.plan(images.len());
@@ -575,6 +592,7 @@ pub fn estimate_geometric(
     // gigabytes): dropped before the mapper otherwise.
     let features = densify.map(|d| (d, features));
     // The first pass's matches are kept for the second (a copy) only when it runs.
+    counter.stage("mapping", 0);
     let mut estimate = if features.is_some() {
         estimate_from_supported_matches(&sizes, pairs.clone(), support.clone(), config)?
     } else {
@@ -587,7 +605,13 @@ pub fn estimate_geometric(
         if !extra.is_empty() {
             let clock = Instant::now();
             let learned = config.learned.as_ref();
-            pairs.extend(match_pairs(&features, &extra, &config.matching, learned)?);
+            pairs.extend(match_pairs_counted(
+                &features,
+                &extra,
+                &config.matching,
+                learned,
+                (counter, "second pass"),
+            )?);
             if let (Some(flags), Some(minimum)) = (&mut support, config.support_min_verified) {
                 flags.extend(
                     descriptor_support(&features, &extra, &config.matching)?
@@ -598,6 +622,7 @@ pub fn estimate_geometric(
             times[2] += clock.elapsed().as_secs_f64();
             densified = extra.len();
             let first = estimate.report.times;
+            counter.stage("mapping", 0);
             estimate = estimate_from_supported_matches(&sizes, pairs, support, config)?;
             estimate.report.times.add_mapping(&first);
         }
@@ -660,7 +685,11 @@ type Matched = (
 );
 
 /// Extraction, pair selection, matching and (for a learned matcher) the support screen.
-fn match_all(images: &[PathBuf], config: &GeometricConfig) -> Result<Matched> {
+fn match_all(
+    images: &[PathBuf],
+    config: &GeometricConfig,
+    counter: &dyn StepCounter,
+) -> Result<Matched> {
     if images.len() < 2 {
         return Err(PosediffError::TooFewImages {
             needed: 2,
@@ -669,7 +698,7 @@ fn match_all(images: &[PathBuf], config: &GeometricConfig) -> Result<Matched> {
     }
     let clock = Instant::now();
     let learned = config.learned.as_ref();
-    let features = extract_all(images, &config.matching, learned)?;
+    let features = extract_all_counted(images, &config.matching, learned, counter)?;
     let extraction = clock.elapsed().as_secs_f64();
     let clock = Instant::now();
     let n = images.len();
@@ -681,7 +710,13 @@ fn match_all(images: &[PathBuf], config: &GeometricConfig) -> Result<Matched> {
     }
     let selection = clock.elapsed().as_secs_f64();
     let clock = Instant::now();
-    let pairs = match_pairs(&features, &pair_list, &config.matching, learned)?;
+    let pairs = match_pairs_counted(
+        &features,
+        &pair_list,
+        &config.matching,
+        learned,
+        (counter, "matching"),
+    )?;
     let support = match (learned, config.support_min_verified) {
         (Some(_), Some(minimum)) => Some(
             descriptor_support(&features, &pair_list, &config.matching)?
@@ -725,7 +760,7 @@ pub fn refine_given_cameras(
             "no initial camera is estimated".into(),
         ));
     };
-    let (features, mut pairs, _, mut times, selection) = match_all(images, config)?;
+    let (features, mut pairs, _, mut times, selection) = match_all(images, config, &NoCounter)?;
     let sizes: Vec<ImageSize> = features.iter().map(|f| f.image_size).collect();
     // The second pass needs no first map here: the given cameras say which images overlap.
     let mut densified = 0;

@@ -20,8 +20,8 @@ use crate::correspondences::{LearnedMatcher, MatcherChoice, SharedLearned, learn
 use crate::error::{PosediffError, Result};
 use crate::estimate::estimator::{EstimateInput, Estimator, Progress, relative_name};
 use crate::estimate::geometric::{
-    GeometricConfig, KnownIntrinsics, Refinement, bundle_refine_cameras, estimate_geometric,
-    refine_given_cameras,
+    GeometricConfig, KnownIntrinsics, Refinement, bundle_refine_cameras,
+    estimate_geometric_counted, refine_given_cameras,
 };
 use crate::estimate::run_report::{
     MethodReport, NetworkReport, NetworkSeconds, PairCount, PointsSummary, RunReport, SampleSpread,
@@ -465,7 +465,7 @@ pub fn run(
             progress.start("geometry", 0);
             let result = match &init {
                 Some(Init::Given(cams)) => refine_given_cameras(files, cams, &geometric),
-                _ => estimate_geometric(files, &geometric),
+                _ => estimate_geometric_counted(files, &geometric, progress.counter()),
             };
             progress.finish();
             let result = result?;
@@ -542,7 +542,7 @@ fn network_run(
             let given = match source {
                 Init::Geometric => {
                     progress.start("geometry", 0);
-                    let g = estimate_geometric(files, geometric);
+                    let g = estimate_geometric_counted(files, geometric, progress.counter());
                     progress.finish();
                     let g = g?;
                     warnings.extend(g.warnings);
