@@ -14,6 +14,7 @@ use numpy::PyReadonlyArray3;
 use numpy::ndarray::{Array1, Array2, Array3};
 use numpy::{IntoPyArray, PyArray1, PyArray2, PyArray3, PyReadonlyArray1, PyReadonlyArray2};
 use posediff::PosediffError;
+use posediff::correspondences::StepCounter;
 use posediff::estimate::run::{
     InitSource, Inputs, IntrinsicsSource, Network, RefineMode, Run, RunOptions, load_estimator, run,
 };
@@ -71,9 +72,16 @@ fn value_err(message: impl Into<String>) -> PyErr {
     PyValueError::new_err(message.into())
 }
 
-/// Progress reported to a Python callable `callback(stage, done, total, finished)`.
+/// Progress reported to a Python callable `callback(stage, done, total, finished)`. Steps of
+/// the geometric path finish on worker threads ([`StepCounter`]), so the state sits behind a
+/// lock; the callback runs with the GIL held, one call at a time.
 struct PyProgress {
     callback: Option<Py<PyAny>>,
+    state: std::sync::Mutex<ProgressState>,
+}
+
+#[derive(Default)]
+struct ProgressState {
     stage: String,
     done: u64,
     total: u64,
@@ -85,43 +93,67 @@ impl PyProgress {
     fn new(callback: Option<Py<PyAny>>) -> Self {
         Self {
             callback,
-            stage: String::new(),
-            done: 0,
-            total: 0,
-            error: None,
+            state: std::sync::Mutex::new(ProgressState::default()),
         }
     }
 
-    fn emit(&mut self, finished: bool) {
+    /// The first exception the callback raised.
+    fn take_error(&mut self) -> Option<PyErr> {
+        self.state.get_mut().ok().and_then(|s| s.error.take())
+    }
+
+    /// Updates the state with `change` and reports it.
+    fn update(&self, finished: bool, change: impl FnOnce(&mut ProgressState)) {
+        let Ok(mut state) = self.state.lock() else {
+            return;
+        };
+        change(&mut state);
         let Some(cb) = &self.callback else { return };
-        if self.error.is_some() {
+        if state.error.is_some() {
             return;
         }
         let r = Python::attach(|py| {
-            cb.call1(py, (self.stage.as_str(), self.done, self.total, finished))
-                .map(|_| ())
+            cb.call1(
+                py,
+                (state.stage.as_str(), state.done, state.total, finished),
+            )
+            .map(|_| ())
         });
         if let Err(e) = r {
-            self.error = Some(e);
+            state.error = Some(e);
         }
+    }
+}
+
+impl StepCounter for PyProgress {
+    fn stage(&self, name: &str, total: u64) {
+        self.update(false, |s| {
+            name.clone_into(&mut s.stage);
+            s.done = 0;
+            s.total = total;
+        });
+    }
+
+    fn step(&self) {
+        self.update(false, |s| s.done += 1);
     }
 }
 
 impl Progress for PyProgress {
     fn start(&mut self, stage: &str, total: u64) {
-        stage.clone_into(&mut self.stage);
-        self.done = 0;
-        self.total = total;
-        self.emit(false);
+        StepCounter::stage(self, stage, total);
     }
 
     fn advance(&mut self) {
-        self.done += 1;
-        self.emit(false);
+        self.step();
     }
 
     fn finish(&mut self) {
-        self.emit(true);
+        self.update(true, |_| {});
+    }
+
+    fn counter(&self) -> &dyn StepCounter {
+        self
     }
 }
 
@@ -796,7 +828,7 @@ fn estimate_with(
     let mut progress = PyProgress::new(progress);
     let options = call.options;
     let result = py.detach(|| run(&inputs, &options, network, &mut progress));
-    if let Some(e) = progress.error.take() {
+    if let Some(e) = progress.take_error() {
         return Err(e);
     }
     Ok(PyReconstruction {

@@ -220,6 +220,9 @@ def test_progress_reaches_a_callback() -> None:
     calls: list[tuple[str, int, int, bool]] = []
     posediff.estimate(images_of("middlebury_templeSR"), progress=lambda *a: calls.append(a))
     assert calls[0] == ("geometry", 0, 0, False) and calls[-1][3] is True
+    # The geometric path's own stages follow, in order (SIFT: not counted).
+    stages = [c[0] for i, c in enumerate(calls) if i == 0 or c[0] != calls[i - 1][0]]
+    assert stages[:4] == ["geometry", "features", "matching", "mapping"], stages
 
 
 def test_score_is_the_cli_score(cli: Path, tmp_path: Path) -> None:

@@ -31,7 +31,7 @@ use posediff_sfm::{
 };
 
 use crate::correspondences::{
-    NoCounter, SharedLearned, StepCounter, descriptor_support, extract_all_counted, match_pairs,
+    NoCounter, SharedLearned, StepCounter, descriptor_support, extract_all_counted,
     match_pairs_counted,
 };
 use crate::error::{PosediffError, Result};
@@ -748,6 +748,20 @@ pub fn refine_given_cameras(
     init: &[Option<Camera>],
     config: &GeometricConfig,
 ) -> Result<GeometricEstimate> {
+    refine_given_cameras_counted(images, init, config, &NoCounter)
+}
+
+/// [`refine_given_cameras`], reporting its matching stages on `counter` as
+/// [`estimate_geometric_counted`] does.
+///
+/// # Errors
+/// As [`refine_given_cameras`].
+pub fn refine_given_cameras_counted(
+    images: &[PathBuf],
+    init: &[Option<Camera>],
+    config: &GeometricConfig,
+    counter: &dyn StepCounter,
+) -> Result<GeometricEstimate> {
     if init.len() != images.len() {
         return Err(PosediffError::InvalidArgument(format!(
             "{} initial cameras for {} images",
@@ -760,7 +774,7 @@ pub fn refine_given_cameras(
             "no initial camera is estimated".into(),
         ));
     };
-    let (features, mut pairs, _, mut times, selection) = match_all(images, config, &NoCounter)?;
+    let (features, mut pairs, _, mut times, selection) = match_all(images, config, counter)?;
     let sizes: Vec<ImageSize> = features.iter().map(|f| f.image_size).collect();
     // The second pass needs no first map here: the given cameras say which images overlap.
     let mut densified = 0;
@@ -768,15 +782,17 @@ pub fn refine_given_cameras(
         let matched: HashSet<(usize, usize)> = pairs.iter().map(|p| (p.first, p.second)).collect();
         let extra = densify_pairs(init, &matched, &d);
         let clock = Instant::now();
-        pairs.extend(match_pairs(
+        pairs.extend(match_pairs_counted(
             &features,
             &extra,
             &config.matching,
             config.learned.as_ref(),
+            (counter, "second pass"),
         )?);
         times[2] += clock.elapsed().as_secs_f64();
         densified = extra.len();
     }
+    counter.stage("refining", 0);
     let (layout, known_phi) = intrinsics_layout(&sizes, &config.intrinsics)?;
     let given: Vec<f64> = init
         .iter()

@@ -21,7 +21,7 @@ use crate::error::{PosediffError, Result};
 use crate::estimate::estimator::{EstimateInput, Estimator, Progress, relative_name};
 use crate::estimate::geometric::{
     GeometricConfig, KnownIntrinsics, Refinement, bundle_refine_cameras,
-    estimate_geometric_counted, refine_given_cameras,
+    estimate_geometric_counted, refine_given_cameras_counted,
 };
 use crate::estimate::run_report::{
     MethodReport, NetworkReport, NetworkSeconds, PairCount, PointsSummary, RunReport, SampleSpread,
@@ -464,7 +464,9 @@ pub fn run(
         None => {
             progress.start("geometry", 0);
             let result = match &init {
-                Some(Init::Given(cams)) => refine_given_cameras(files, cams, &geometric),
+                Some(Init::Given(cams)) => {
+                    refine_given_cameras_counted(files, cams, &geometric, progress.counter())
+                }
                 _ => estimate_geometric_counted(files, &geometric, progress.counter()),
             };
             progress.finish();
