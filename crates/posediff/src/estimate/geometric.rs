@@ -6,8 +6,9 @@
 //! averaging, Sampson refinement, tracks, bundle adjustment) → OpenCV cameras in original
 //! pixels. Principal points are the image centres (`((W−1)/2, (H−1)/2)`) unless given.
 
-use std::collections::HashSet;
+use std::collections::{HashMap, HashSet};
 use std::path::PathBuf;
+use std::sync::Mutex;
 use std::time::Instant;
 
 use nalgebra::{Matrix3, Rotation3};
@@ -501,8 +502,59 @@ pub struct GeometricEstimate {
     pub warnings: Vec<Warning>,
 }
 
-/// OpenCV two-view geometry for the mapper.
-struct OpenCvTwoView<'a>(&'a TwoViewConfig);
+/// OpenCV two-view geometry for the mapper, with the results of earlier mapper runs of the same
+/// estimate when it has a cache.
+struct OpenCvTwoView<'a> {
+    config: &'a TwoViewConfig,
+    cache: Option<&'a TwoViewCache>,
+}
+
+#[cfg(test)]
+impl<'a> OpenCvTwoView<'a> {
+    fn new(config: &'a TwoViewConfig) -> Self {
+        Self {
+            config,
+            cache: None,
+        }
+    }
+}
+
+/// A pair within one estimate: its images and its match count (a pair's matches do not change
+/// within an estimate).
+type PairKey = (usize, usize, usize);
+
+/// The two-view results of one estimate, kept between its mapper runs: the second pass maps the
+/// first pass's pairs again, at the same fixed focal starts. The solvers are deterministic
+/// (OpenCV's RANSAC seeds its own generator), so a cached result is the one a new call would
+/// give; the cache only saves the time.
+#[derive(Default)]
+struct TwoViewCache {
+    homography: Mutex<HashMap<PairKey, Option<(Matrix3<f64>, f64)>>>,
+    fundamental: Mutex<HashMap<PairKey, Option<Matrix3<f64>>>>,
+    /// Also keyed by both calibrations' bits.
+    relative: Mutex<HashMap<(PairKey, [u64; 18]), Option<RelativePose>>>,
+}
+
+fn pair_key(p: &PairMatches) -> PairKey {
+    (p.first, p.second, p.len())
+}
+
+/// `map[key]`, computed by `make` (outside the lock) when missing.
+fn cached<K: std::hash::Hash + Eq, V: Copy>(
+    map: Option<&Mutex<HashMap<K, V>>>,
+    key: K,
+    make: impl FnOnce() -> posediff_sfm::Result<V>,
+) -> posediff_sfm::Result<V> {
+    let Some(map) = map else { return make() };
+    if let Some(v) = map.lock().ok().and_then(|m| m.get(&key).copied()) {
+        return Ok(v);
+    }
+    let v = make()?;
+    if let Ok(mut m) = map.lock() {
+        m.insert(key, v);
+    }
+    Ok(v)
+}
 
 fn two_view_error(p: &PairMatches, e: impl std::fmt::Display) -> SfmError {
     SfmError::TwoView {
@@ -514,11 +566,15 @@ fn two_view_error(p: &PairMatches, e: impl std::fmt::Display) -> SfmError {
 
 impl GeometrySolver for OpenCvTwoView<'_> {
     fn homography(&self, p: &PairMatches) -> posediff_sfm::Result<Option<(Matrix3<f64>, f64)>> {
-        homography_fit(&p.kp1, &p.kp2, self.0).map_err(|e| two_view_error(p, e))
+        cached(self.cache.map(|c| &c.homography), pair_key(p), || {
+            homography_fit(&p.kp1, &p.kp2, self.config).map_err(|e| two_view_error(p, e))
+        })
     }
 
     fn fundamental(&self, p: &PairMatches) -> posediff_sfm::Result<Option<Matrix3<f64>>> {
-        fundamental_least_squares(&p.kp1, &p.kp2).map_err(|e| two_view_error(p, e))
+        cached(self.cache.map(|c| &c.fundamental), pair_key(p), || {
+            fundamental_least_squares(&p.kp1, &p.kp2).map_err(|e| two_view_error(p, e))
+        })
     }
 
     fn relative_pose(
@@ -528,8 +584,14 @@ impl GeometrySolver for OpenCvTwoView<'_> {
         k_a: &Matrix3<f64>,
         k_b: &Matrix3<f64>,
     ) -> posediff_sfm::Result<Option<RelativePose>> {
-        relative_pose_with_homography(&p.kp1, &p.kp2, homography, k_a, k_b, self.0)
-            .map_err(|e| two_view_error(p, e))
+        let mut bits = [0u64; 18];
+        for (b, v) in bits.iter_mut().zip(k_a.iter().chain(k_b.iter())) {
+            *b = v.to_bits();
+        }
+        cached(self.cache.map(|c| &c.relative), (pair_key(p), bits), || {
+            relative_pose_with_homography(&p.kp1, &p.kp2, homography, k_a, k_b, self.config)
+                .map_err(|e| two_view_error(p, e))
+        })
     }
 
     fn absolute_pose(
@@ -593,10 +655,17 @@ pub fn estimate_geometric_counted(
     let features = densify.map(|d| (d, features));
     // The first pass's matches are kept for the second (a copy) only when it runs.
     counter.stage("mapping", 0);
+    let cache = TwoViewCache::default();
     let mut estimate = if features.is_some() {
-        estimate_from_supported_matches(&sizes, pairs.clone(), support.clone(), config)?
+        map_supported_matches(&sizes, pairs.clone(), support.clone(), config, &cache)?
     } else {
-        estimate_from_supported_matches(&sizes, std::mem::take(&mut pairs), support.take(), config)?
+        map_supported_matches(
+            &sizes,
+            std::mem::take(&mut pairs),
+            support.take(),
+            config,
+            &cache,
+        )?
     };
     let mut densified = 0;
     if let Some((d, features)) = features {
@@ -623,7 +692,7 @@ pub fn estimate_geometric_counted(
             densified = extra.len();
             let first = estimate.report.times;
             counter.stage("mapping", 0);
-            estimate = estimate_from_supported_matches(&sizes, pairs, support, config)?;
+            estimate = map_supported_matches(&sizes, pairs, support, config, &cache)?;
             estimate.report.times.add_mapping(&first);
         }
     }
@@ -931,13 +1000,28 @@ pub fn estimate_from_supported_matches(
     support: Option<Vec<bool>>,
     config: &GeometricConfig,
 ) -> Result<GeometricEstimate> {
+    map_supported_matches(sizes, pairs, support, config, &TwoViewCache::default())
+}
+
+/// [`estimate_from_supported_matches`] with the two-view results of the estimate's earlier
+/// mapper runs.
+fn map_supported_matches(
+    sizes: &[ImageSize],
+    pairs: Vec<PairMatches>,
+    support: Option<Vec<bool>>,
+    config: &GeometricConfig,
+    cache: &TwoViewCache,
+) -> Result<GeometricEstimate> {
     let n = sizes.len();
     if n < 2 {
         return Err(PosediffError::TooFewImages { needed: 2, got: n });
     }
     let (layout, known_phi) = intrinsics_layout(sizes, &config.intrinsics)?;
     let mapper = GlobalMapper::new(config.mapper_options());
-    let solver = OpenCvTwoView(&config.two_view);
+    let solver = OpenCvTwoView {
+        config: &config.two_view,
+        cache: Some(cache),
+    };
     let reconstruction = match &support {
         Some(flags) => {
             mapper.run_with_support(&pairs, flags, layout, known_phi.is_some(), &solver)?
@@ -1395,7 +1479,7 @@ mod tests {
             1.0,
             cameras,
             edges,
-            &OpenCvTwoView(&config),
+            &OpenCvTwoView::new(&config),
             options,
         )
         .unwrap()
