@@ -523,16 +523,19 @@ impl<'a> OpenCvTwoView<'a> {
 /// within an estimate).
 type PairKey = (usize, usize, usize);
 
+/// One kind of two-view result per key.
+type Results<K, V> = Mutex<HashMap<K, Option<V>>>;
+
 /// The two-view results of one estimate, kept between its mapper runs: the second pass maps the
 /// first pass's pairs again, at the same fixed focal starts. The solvers are deterministic
 /// (OpenCV's RANSAC seeds its own generator), so a cached result is the one a new call would
 /// give; the cache only saves the time.
 #[derive(Default)]
 struct TwoViewCache {
-    homography: Mutex<HashMap<PairKey, Option<(Matrix3<f64>, f64)>>>,
-    fundamental: Mutex<HashMap<PairKey, Option<Matrix3<f64>>>>,
+    homography: Results<PairKey, (Matrix3<f64>, f64)>,
+    fundamental: Results<PairKey, Matrix3<f64>>,
     /// Also keyed by both calibrations' bits.
-    relative: Mutex<HashMap<(PairKey, [u64; 18]), Option<RelativePose>>>,
+    relative: Results<(PairKey, [u64; 18]), RelativePose>,
 }
 
 fn pair_key(p: &PairMatches) -> PairKey {
