@@ -283,6 +283,181 @@ pub fn attend_heads(
     Ok(())
 }
 
+/// Bidirectional cross-attention with one similarity per head, as LightGlue's reference
+/// computes it: for `a` `(h, m, d)` and `b` `(h, n, d)` (both already scaled) and values `va`
+/// `(h, m, d)`, `vb` `(h, n, d)`, with `S = a bᵀ`, writes `out_a = softmax_rows(S) vb`
+/// `(h, m, d)` and `out_b = softmax_rows(Sᵀ) va` `(h, n, d)`.
+///
+/// Each block of `S`'s rows is computed once and serves both directions: its rows' softmax
+/// directly, its columns' through a running maximum and sum per column (the flash-attention
+/// rescaling), so the `n`-side never needs the whole matrix. Three products per block instead of
+/// the four of two [`attend_heads`] calls. Terms whose weight would be subnormal are zero, as
+/// in the softmax.
+///
+/// # Errors
+/// Buffers whose lengths do not match the shape.
+pub fn cross_attend_heads(
+    (a, b): (&[f32], &[f32]),
+    (va, vb): (&[f32], &[f32]),
+    out: &mut [f32],
+    (h, m, n, d): (usize, usize, usize, usize),
+) -> Result<()> {
+    if a.len() != h * m * d
+        || va.len() != h * m * d
+        || b.len() != h * n * d
+        || vb.len() != h * n * d
+        || out.len() != h * (m + n) * d
+    {
+        return Err(crate::DiffusionError::Shape {
+            what: "cross-attention buffers",
+            expected: "a and va h·m·d values, b and vb h·n·d, out h·(m + n)·d",
+            got: vec![a.len(), b.len(), va.len(), vb.len(), out.len()],
+        });
+    }
+    if h == 0 || d == 0 {
+        return Ok(());
+    }
+    if m == 0 || n == 0 {
+        // No keys on one side: no message on the other (as `attend_heads`).
+        out.fill(0.0);
+        return Ok(());
+    }
+    let rows = (HEAD_BLOCK / n).clamp(1, m);
+    let head = |(i, dst): (usize, &mut [f32])| {
+        let (dst_a, dst_b) = dst.split_at_mut(m * d);
+        let (ah, vah) = (
+            &a[i * m * d..(i + 1) * m * d],
+            &va[i * m * d..(i + 1) * m * d],
+        );
+        let (bh, vbh) = (
+            &b[i * n * d..(i + 1) * n * d],
+            &vb[i * n * d..(i + 1) * n * d],
+        );
+        let bt = MatRef::from_column_major_slice(bh, d, n);
+        let vbt = MatRef::from_column_major_slice(vbh, d, n);
+        // The n side: running column maxima and sums, and the unnormalised output (n × d,
+        // row-major, i.e. d × n column-major).
+        let mut col_max = vec![f32::NEG_INFINITY; n];
+        let mut col_sum = vec![0f32; n];
+        dst_b.fill(0.0);
+        let cut = crate::softmax::flush_below(m);
+        CROSS.with_borrow_mut(|(scores, weights, inv)| {
+            scores.resize(rows * n, 0.0);
+            weights.resize(rows * n, 0.0);
+            inv.resize(rows, 0.0);
+            for start in (0..m).step_by(rows) {
+                let len = rows.min(m - start);
+                let at = &ah[start * d..(start + len) * d];
+                let s = &mut scores[..len * n];
+                let st = MatMut::from_column_major_slice_mut(s, n, len);
+                let at_ = MatRef::from_column_major_slice(at, d, len);
+                faer::linalg::matmul::matmul(
+                    st,
+                    Accum::Replace,
+                    bt.transpose(),
+                    at_,
+                    1.0,
+                    Par::Seq,
+                );
+                // Columns: raise the maxima, rescale what was accumulated, weights of this block.
+                let w = &mut weights[..len * n];
+                let mut block_max = vec![f32::NEG_INFINITY; n];
+                for row in s.chunks_exact(n) {
+                    for (bm, &x) in block_max.iter_mut().zip(row) {
+                        *bm = bm.max(x);
+                    }
+                }
+                for (j, bm) in block_max.iter().enumerate() {
+                    if *bm > col_max[j] {
+                        let alpha = crate::softmax::exp_f32(col_max[j] - bm);
+                        // A factor that would leave subnormal sums clears them instead.
+                        let alpha = if col_max[j] - bm < cut { 0.0 } else { alpha };
+                        col_sum[j] *= alpha;
+                        dst_b[j * d..(j + 1) * d]
+                            .iter_mut()
+                            .for_each(|x| *x *= alpha);
+                        col_max[j] = *bm;
+                    }
+                }
+                crate::softmax::exp_offsets_dispatch(s, w, n, &col_max, cut, &mut col_sum);
+                // out_b (d × n column-major) += vaᵀ (d × len) · W (len × n).
+                let vat =
+                    MatRef::from_column_major_slice(&vah[start * d..(start + len) * d], d, len);
+                let wt = MatRef::from_column_major_slice(w, n, len);
+                let ob = MatMut::from_column_major_slice_mut(dst_b, d, n);
+                faer::linalg::matmul::matmul(ob, Accum::Add, vat, wt.transpose(), 1.0, Par::Seq);
+                // Rows: the softmax of this block, as `attend_heads`.
+                let inv = &mut inv[..len];
+                crate::softmax::exp_rows_dispatch(s, n, inv);
+                let st = MatRef::from_column_major_slice(s, n, len);
+                let o = &mut dst_a[start * d..(start + len) * d];
+                let ot = MatMut::from_column_major_slice_mut(o, d, len);
+                faer::linalg::matmul::matmul(ot, Accum::Replace, vbt, st, 1.0, Par::Seq);
+                for (row, &c) in o.chunks_exact_mut(d).zip(inv.iter()) {
+                    row.iter_mut().for_each(|x| *x *= c);
+                }
+            }
+        });
+        for (row, &sum) in dst_b.chunks_exact_mut(d).zip(&col_sum) {
+            let c = 1.0 / sum;
+            row.iter_mut().for_each(|x| *x *= c);
+        }
+    };
+    if h > 1 && crate::threads() > 1 {
+        out.par_chunks_mut((m + n) * d).enumerate().for_each(head);
+    } else {
+        out.chunks_mut((m + n) * d).enumerate().for_each(head);
+    }
+    Ok(())
+}
+
+/// [`cross_attend_heads`] on tensors: `a` `(h, m, d)`, `b` `(h, n, d)` (already scaled), `va`
+/// `(h, m, d)`, `vb` `(h, n, d)`, F32 on the CPU; returns `(out_a, out_b)`.
+///
+/// # Errors
+/// Other dtypes or devices, shapes that do not agree, tensor errors.
+pub fn cross_attention_heads(
+    a: &Tensor,
+    b: &Tensor,
+    va: &Tensor,
+    vb: &Tensor,
+) -> Result<(Tensor, Tensor)> {
+    let (h, m, d) = a.dims3()?;
+    let (hb, n, db) = b.dims3()?;
+    if (hb, db) != (h, d) || va.dims3()? != (h, m, d) || vb.dims3()? != (h, n, d) {
+        return Err(crate::DiffusionError::Shape {
+            what: "cross-attention b, va and vb",
+            expected: "(h, n, d), (h, m, d), (h, n, d) with a's h, m and d",
+            got: [b.dims(), va.dims(), vb.dims()].concat(),
+        });
+    }
+    let host = |t: &Tensor| -> Result<Vec<f32>> {
+        if t.dtype() != DType::F32 || !t.device().is_cpu() {
+            return Err(crate::DiffusionError::Shape {
+                what: "cross-attention inputs (F32 on the CPU)",
+                expected: "F32 on the CPU",
+                got: t.dims().to_vec(),
+            });
+        }
+        Ok(t.flatten_all()?.to_vec1::<f32>()?)
+    };
+    let mut out = vec![0f32; h * (m + n) * d];
+    cross_attend_heads(
+        (&host(a)?, &host(b)?),
+        (&host(va)?, &host(vb)?),
+        &mut out,
+        (h, m, n, d),
+    )?;
+    let out = Tensor::from_vec(out, (h, m + n, d), a.device())?;
+    Ok((out.narrow(1, 0, m)?, out.narrow(1, m, n)?))
+}
+
+thread_local! {
+    /// [`cross_attend_heads`]' score block, weight block and reciprocal row sums.
+    static CROSS: std::cell::RefCell<(Vec<f32>, Vec<f32>, Vec<f32>)> =
+        const { std::cell::RefCell::new((Vec::new(), Vec::new(), Vec::new())) };
+}
+
 #[cfg(test)]
 mod tests {
     use candle_core::{Device, Var};
@@ -312,6 +487,42 @@ mod tests {
                 .to_scalar::<f64>()?;
             assert!(err < 2e-5, "{b}×{n}, {heads} heads of {d}: {err:e}");
         }
+        Ok(())
+    }
+
+    /// Both directions of one shared similarity against two separate attentions in F64, for
+    /// shapes with several row blocks (2048 keys: 128 rows a block), scores spread wide enough
+    /// that later blocks raise the columns' maxima, a single row and a single column.
+    #[test]
+    fn cross_attention_matches_two_separate_attentions() -> anyhow::Result<()> {
+        for (h, m, n, d, spread) in [
+            (4, 600, 2048, 64, 2.0),
+            (2, 5, 1, 8, 0.5),
+            (1, 1, 7, 3, 0.5),
+            (3, 300, 40, 16, 6.0),
+        ] {
+            let a = Tensor::randn(0f32, spread, (h, m, d), &Device::Cpu)?;
+            let b = Tensor::randn(0f32, 0.5, (h, n, d), &Device::Cpu)?;
+            let va = Tensor::randn(0f32, 1.0, (h, m, d), &Device::Cpu)?;
+            let vb = Tensor::randn(0f32, 1.0, (h, n, d), &Device::Cpu)?;
+            let (oa, ob) = cross_attention_heads(&a, &b, &va, &vb)?;
+            let f64_ = |t: &Tensor| t.to_dtype(DType::F64);
+            let s = f64_(&a)?.matmul(&f64_(&b)?.t()?)?;
+            let ta = crate::norm::softmax_last_dim_candle(&s)?.matmul(&f64_(&vb)?)?;
+            let tb =
+                crate::norm::softmax_last_dim_candle(&s.t()?.contiguous()?)?.matmul(&f64_(&va)?)?;
+            for (ours, truth, what) in [(oa, ta, "a"), (ob, tb, "b")] {
+                let err = (ours.to_dtype(DType::F64)? - truth)?
+                    .abs()?
+                    .flatten_all()?
+                    .max(0)?
+                    .to_scalar::<f64>()?;
+                assert!(err < 2e-5, "{h}×{m}×{n}×{d}, side {what}: {err:e}");
+            }
+        }
+        let x = Tensor::zeros((2, 3, 4), DType::F32, &Device::Cpu)?;
+        let y = Tensor::zeros((2, 5, 4), DType::F32, &Device::Cpu)?;
+        assert!(cross_attention_heads(&x, &y, &y, &y).is_err());
         Ok(())
     }
 

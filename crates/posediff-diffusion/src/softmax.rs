@@ -54,7 +54,7 @@ pub fn exp_f32(x: f32) -> f32 {
 /// below `e · len · exp(MIN_X)` (7e-35 for 2048 terms), far under an ulp of any row's
 /// largest term (1).
 #[inline(always)]
-fn flush_below(len: usize) -> f32 {
+pub(crate) fn flush_below(len: usize) -> f32 {
     MIN_X + (len.max(1) as f32).ln() + 1.0
 }
 
@@ -143,6 +143,71 @@ pub(crate) fn exp_rows_dispatch(values: &mut [f32], row: usize, inv_sums: &mut [
         values,
         row,
         inv_sums,
+    });
+}
+
+/// `weights = exp(scores − offsets[column])` for row-major `row`-wide blocks, terms below `cut`
+/// zero, each column's sum added to `sums` (cross-attention's column direction).
+#[inline(always)]
+fn exp_offsets(
+    scores: &[f32],
+    weights: &mut [f32],
+    row: usize,
+    offsets: &[f32],
+    cut: f32,
+    sums: &mut [f32],
+) {
+    for (r, w) in scores.chunks_exact(row).zip(weights.chunks_exact_mut(row)) {
+        for (((w, &x), &o), s) in w.iter_mut().zip(r).zip(offsets).zip(sums.iter_mut()) {
+            let d = x - o;
+            let e = exp_f32(d);
+            *w = if d < cut { 0.0 } else { e };
+            *s += *w;
+        }
+    }
+}
+
+struct ExpOffsets<'a> {
+    scores: &'a [f32],
+    weights: &'a mut [f32],
+    row: usize,
+    offsets: &'a [f32],
+    cut: f32,
+    sums: &'a mut [f32],
+}
+
+impl pulp::WithSimd for ExpOffsets<'_> {
+    type Output = ();
+
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _simd: S) {
+        exp_offsets(
+            self.scores,
+            self.weights,
+            self.row,
+            self.offsets,
+            self.cut,
+            self.sums,
+        );
+    }
+}
+
+/// [`exp_offsets`] on the calling thread, compiled for the CPU's features.
+pub(crate) fn exp_offsets_dispatch(
+    scores: &[f32],
+    weights: &mut [f32],
+    row: usize,
+    offsets: &[f32],
+    cut: f32,
+    sums: &mut [f32],
+) {
+    pulp::Arch::new().dispatch(ExpOffsets {
+        scores,
+        weights,
+        row,
+        offsets,
+        cut,
+        sums,
     });
 }
 

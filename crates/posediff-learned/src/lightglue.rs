@@ -329,10 +329,14 @@ impl Layer {
         let qk1 = (split_heads(&self.to_qk.forward(x1)?)? * s)?;
         let v0 = split_heads(&self.to_v.forward(x0)?)?;
         let v1 = split_heads(&self.to_v.forward(x1)?)?;
-        // One similarity matrix in the reference, read row-wise for image 0 and column-wise for
-        // image 1; here each direction computes its own blocks (the same products).
-        let m0 = attention(&qk0, &qk1, &v1)?;
-        let m1 = attention(&qk1, &qk0, &v0)?;
+        // One similarity matrix, read row-wise for image 0 and column-wise for image 1 (on the
+        // CPU each block of it serves both directions; elsewhere each direction computes its
+        // own blocks, the same products).
+        let (m0, m1) = if qk0.device().is_cpu() && qk0.dtype() == candle_core::DType::F32 {
+            posediff_diffusion::attention::cross_attention_heads(&qk0, &qk1, &v0, &v1)?
+        } else {
+            (attention(&qk0, &qk1, &v1)?, attention(&qk1, &qk0, &v0)?)
+        };
         let m0 = self.to_out.forward(&merge_heads(&m0)?)?;
         let m1 = self.to_out.forward(&merge_heads(&m1)?)?;
         Ok((
