@@ -260,18 +260,8 @@ pub fn attend_heads(
                 // Sᵀ = K Qᵀ column-major is S row-major (len × n).
                 let st = MatMut::from_column_major_slice_mut(s, n, len);
                 faer::linalg::matmul::matmul(st, Accum::Replace, kt.transpose(), qt, 1.0, Par::Seq);
-                // exp(S − max) per row; the rows' 1/Σ scale the output rows afterwards (d
-                // multiplications a row instead of n).
-                let inv = &mut inv_sums[..len];
-                crate::softmax::exp_rows_dispatch(s, n, inv);
-                let st = MatRef::from_column_major_slice(s, n, len);
                 let o = &mut dst[start * d..(start + len) * d];
-                // Oᵀ = Vᵀ Sᵀ column-major is O row-major (len × d).
-                let ot = MatMut::from_column_major_slice_mut(o, d, len);
-                faer::linalg::matmul::matmul(ot, Accum::Replace, vt, st, 1.0, Par::Seq);
-                for (row, &c) in o.chunks_exact_mut(d).zip(inv.iter()) {
-                    row.iter_mut().for_each(|x| *x *= c);
-                }
+                softmax_times(s, &mut inv_sums[..len], vt, o);
             }
         });
     };
@@ -281,6 +271,22 @@ pub fn attend_heads(
         out.chunks_mut(m * d).enumerate().for_each(head);
     }
     Ok(())
+}
+
+/// `o = softmax_rows(S) V` for one block of `inv.len()` score rows `s` (row-major, `n` wide,
+/// overwritten), with `vt` = `Vᵀ` (`d × n` column-major) and `o` the block's `d`-wide output
+/// rows: `exp(S − max)` per row, the product, then each output row scaled by its row's `1/Σ`
+/// (`d` multiplications a row instead of `n`).
+fn softmax_times(s: &mut [f32], inv: &mut [f32], vt: MatRef<'_, f32>, o: &mut [f32]) {
+    let (d, n, len) = (vt.nrows(), vt.ncols(), inv.len());
+    crate::softmax::exp_rows_dispatch(s, n, inv);
+    let st = MatRef::from_column_major_slice(s, n, len);
+    // Oᵀ = Vᵀ Sᵀ column-major is O row-major (len × d).
+    let ot = MatMut::from_column_major_slice_mut(o, d, len);
+    faer::linalg::matmul::matmul(ot, Accum::Replace, vt, st, 1.0, Par::Seq);
+    for (row, &c) in o.chunks_exact_mut(d).zip(inv.iter()) {
+        row.iter_mut().for_each(|x| *x *= c);
+    }
 }
 
 /// Bidirectional cross-attention with one similarity per head, as LightGlue's reference
@@ -341,10 +347,11 @@ pub fn cross_attend_heads(
         let mut col_sum = vec![0f32; n];
         dst_b.fill(0.0);
         let cut = crate::softmax::flush_below(m);
-        CROSS.with_borrow_mut(|(scores, weights, inv)| {
+        CROSS.with_borrow_mut(|(scores, weights, inv, block_max)| {
             scores.resize(rows * n, 0.0);
             weights.resize(rows * n, 0.0);
             inv.resize(rows, 0.0);
+            block_max.resize(n, 0.0);
             for start in (0..m).step_by(rows) {
                 let len = rows.min(m - start);
                 let at = &ah[start * d..(start + len) * d];
@@ -361,7 +368,7 @@ pub fn cross_attend_heads(
                 );
                 // Columns: raise the maxima, rescale what was accumulated, weights of this block.
                 let w = &mut weights[..len * n];
-                let mut block_max = vec![f32::NEG_INFINITY; n];
+                block_max.fill(f32::NEG_INFINITY);
                 for row in s.chunks_exact(n) {
                     for (bm, &x) in block_max.iter_mut().zip(row) {
                         *bm = bm.max(x);
@@ -387,15 +394,8 @@ pub fn cross_attend_heads(
                 let ob = MatMut::from_column_major_slice_mut(dst_b, d, n);
                 faer::linalg::matmul::matmul(ob, Accum::Add, vat, wt.transpose(), 1.0, Par::Seq);
                 // Rows: the softmax of this block, as `attend_heads`.
-                let inv = &mut inv[..len];
-                crate::softmax::exp_rows_dispatch(s, n, inv);
-                let st = MatRef::from_column_major_slice(s, n, len);
                 let o = &mut dst_a[start * d..(start + len) * d];
-                let ot = MatMut::from_column_major_slice_mut(o, d, len);
-                faer::linalg::matmul::matmul(ot, Accum::Replace, vbt, st, 1.0, Par::Seq);
-                for (row, &c) in o.chunks_exact_mut(d).zip(inv.iter()) {
-                    row.iter_mut().for_each(|x| *x *= c);
-                }
+                softmax_times(s, &mut inv[..len], vbt, o);
             }
         });
         for (row, &sum) in dst_b.chunks_exact_mut(d).zip(&col_sum) {
@@ -431,13 +431,12 @@ pub fn cross_attention_heads(
             got: [b.dims(), va.dims(), vb.dims()].concat(),
         });
     }
+    // The inputs are copied to the host (four (h, n, d) buffers: a small part of the work).
     let host = |t: &Tensor| -> Result<Vec<f32>> {
         if t.dtype() != DType::F32 || !t.device().is_cpu() {
-            return Err(crate::DiffusionError::Shape {
-                what: "cross-attention inputs (F32 on the CPU)",
-                expected: "F32 on the CPU",
-                got: t.dims().to_vec(),
-            });
+            return Err(crate::DiffusionError::Invalid(
+                "cross_attention_heads takes F32 tensors on the CPU",
+            ));
         }
         Ok(t.flatten_all()?.to_vec1::<f32>()?)
     };
@@ -452,10 +451,14 @@ pub fn cross_attention_heads(
     Ok((out.narrow(1, 0, m)?, out.narrow(1, m, n)?))
 }
 
+/// Scores, weights, reciprocal row sums, column maxima of a block.
+type CrossScratch = (Vec<f32>, Vec<f32>, Vec<f32>, Vec<f32>);
+
 thread_local! {
-    /// [`cross_attend_heads`]' score block, weight block and reciprocal row sums.
-    static CROSS: std::cell::RefCell<(Vec<f32>, Vec<f32>, Vec<f32>)> =
-        const { std::cell::RefCell::new((Vec::new(), Vec::new(), Vec::new())) };
+    /// [`cross_attend_heads`]' score block, weight block, reciprocal row sums and the block's
+    /// column maxima, kept between calls.
+    static CROSS: std::cell::RefCell<CrossScratch> =
+        const { std::cell::RefCell::new((Vec::new(), Vec::new(), Vec::new(), Vec::new())) };
 }
 
 #[cfg(test)]

@@ -579,7 +579,7 @@ impl LightGlue {
         config: &LightGlueConfig,
         trace: bool,
     ) -> Result<(LightGlueMatches, Option<Trace>)> {
-        let (m, n) = (a.d.dim(0)?, b.d.dim(0)?);
+        let (m, n) = (a.len(), b.len());
         let (mut d0, mut e0) = (a.d.clone(), a.enc.clone());
         let (mut d1, mut e1) = (b.d.clone(), b.enc.clone());
         let mut ind0: Vec<usize> = (0..m).collect();

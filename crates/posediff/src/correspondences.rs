@@ -443,18 +443,19 @@ pub fn match_pairs_counted(
             .collect();
         images.sort_unstable();
         images.dedup();
-        let mut prepared: Vec<Option<PreparedImage>> = vec![None; features.len()];
-        let made: Vec<PreparedImage> = images
+        let prepared: Vec<PreparedImage> = images
             .par_iter()
             .map(|&i| l.0.prepare(&features[i]))
             .collect::<Result<_>>()?;
-        for (&i, p) in images.iter().zip(made) {
-            prepared[i] = Some(p);
-        }
+        // By the sorted image list: no slot per image of the whole set in every window.
         let of = |i: usize| -> Result<&PreparedImage> {
-            prepared[i].as_ref().ok_or_else(|| {
-                PosediffError::InvalidArgument(format!("image {i} was not prepared"))
-            })
+            images
+                .binary_search(&i)
+                .ok()
+                .and_then(|k| prepared.get(k))
+                .ok_or_else(|| {
+                    PosediffError::InvalidArgument(format!("image {i} was not prepared"))
+                })
         };
         let matched: Vec<PairMatches> = window
             .par_iter()
