@@ -15,6 +15,7 @@ use faer::{Accum, MatMut, MatRef, Par};
 use rayon::prelude::*;
 
 use crate::error::Result;
+use crate::tiles::MatmulPrecision;
 
 /// `softmax(scale · Q Kᵀ) V` per head for `qkv` `(B, N, 3·C)` with `heads` heads: `(B, N, C)`.
 ///
@@ -147,13 +148,13 @@ fn attend_head(
 
 /// Score elements one head's block of query rows holds at most in [`attend_heads`] (1 MiB of
 /// F32, within L2): 128 rows of 2048 keys.
-const HEAD_BLOCK: usize = 1 << 18;
+pub(crate) const HEAD_BLOCK: usize = 1 << 18;
 
 thread_local! {
     /// [`attend_heads`]' score block of the thread, kept between calls (LightGlue calls it
     /// four times a layer: a fresh megabyte each time was zeroed and page-faulted anew).
     /// With it, the rows' reciprocal sums.
-    static SCORES: std::cell::RefCell<(Vec<f32>, Vec<f32>)> =
+    pub(crate) static SCORES: std::cell::RefCell<(Vec<f32>, Vec<f32>)> =
         const { std::cell::RefCell::new((Vec::new(), Vec::new())) };
 }
 
@@ -163,6 +164,19 @@ thread_local! {
 /// # Errors
 /// Other dtypes or devices, shapes that do not agree, tensor errors.
 pub fn attention_heads(q: &Tensor, k: &Tensor, v: &Tensor) -> Result<Tensor> {
+    attention_heads_with(q, k, v, MatmulPrecision::Highest)
+}
+
+/// [`attention_heads`] with the products at `precision` ([`attend_heads_with`]).
+///
+/// # Errors
+/// As [`attention_heads`].
+pub fn attention_heads_with(
+    q: &Tensor,
+    k: &Tensor,
+    v: &Tensor,
+    precision: MatmulPrecision,
+) -> Result<Tensor> {
     let (h, _, d) = q.dims3()?;
     let (hk, n, dk) = k.dims3()?;
     if (hk, dk) != (h, d) || v.dims3()? != (h, n, d) {
@@ -172,11 +186,14 @@ pub fn attention_heads(q: &Tensor, k: &Tensor, v: &Tensor) -> Result<Tensor> {
             got: [k.dims(), v.dims()].concat(),
         });
     }
-    Ok(q.contiguous()?
-        .apply_op3_no_bwd(&k.contiguous()?, &v.contiguous()?, &HeadsAttention)?)
+    Ok(q.contiguous()?.apply_op3_no_bwd(
+        &k.contiguous()?,
+        &v.contiguous()?,
+        &HeadsAttention(precision),
+    )?)
 }
 
-struct HeadsAttention;
+struct HeadsAttention(MatmulPrecision);
 
 impl candle_core::CustomOp3 for HeadsAttention {
     fn name(&self) -> &'static str {
@@ -198,7 +215,7 @@ impl candle_core::CustomOp3 for HeadsAttention {
         let (h, m, d) = l1.shape().dims3()?;
         let n = l2.shape().dims3()?.1;
         let mut out = vec![0f32; h * m * d];
-        attend_heads(q, k, v, &mut out, (h, m, n, d))
+        attend_heads_with(q, k, v, &mut out, (h, m, n, d), self.0)
             .map_err(|e| candle_core::Error::Msg(e.to_string()))?;
         Ok((CpuStorage::F32(out), Shape::from((h, m, d))))
     }
@@ -218,7 +235,24 @@ pub fn attend_heads(
     k: &[f32],
     v: &[f32],
     out: &mut [f32],
+    shape: (usize, usize, usize, usize),
+) -> Result<()> {
+    attend_heads_with(q, k, v, out, shape, MatmulPrecision::Highest)
+}
+
+/// [`attend_heads`] with the products at `precision`: on AMX tiles at
+/// [`MatmulPrecision::High`] where the CPU has them ([`crate::tiles`]), faer's F32 products
+/// otherwise.
+///
+/// # Errors
+/// As [`attend_heads`]; a tile product's error.
+pub fn attend_heads_with(
+    q: &[f32],
+    k: &[f32],
+    v: &[f32],
+    out: &mut [f32],
     (h, m, n, d): (usize, usize, usize, usize),
+    precision: MatmulPrecision,
 ) -> Result<()> {
     if q.len() != h * m * d || k.len() != h * n * d || v.len() != h * n * d || out.len() != q.len()
     {
@@ -235,6 +269,9 @@ pub fn attend_heads(
         // No keys: no message (PyTorch's softmax over nothing would give NaN rows).
         out.fill(0.0);
         return Ok(());
+    }
+    if precision.uses_tiles() {
+        return crate::tiles::attend_heads(q, k, v, out, (h, m, n, d));
     }
     let rows = (HEAD_BLOCK / n).clamp(1, m);
     let head = |(i, dst): (usize, &mut [f32])| {
@@ -303,10 +340,24 @@ fn softmax_times(s: &mut [f32], inv: &mut [f32], vt: MatRef<'_, f32>, o: &mut [f
 /// # Errors
 /// Buffers whose lengths do not match the shape.
 pub fn cross_attend_heads(
+    inputs: (&[f32], &[f32]),
+    values: (&[f32], &[f32]),
+    out: &mut [f32],
+    shape: (usize, usize, usize, usize),
+) -> Result<()> {
+    cross_attend_heads_with(inputs, values, out, shape, MatmulPrecision::Highest)
+}
+
+/// [`cross_attend_heads`] with the products at `precision` (as [`attend_heads_with`]).
+///
+/// # Errors
+/// As [`cross_attend_heads`]; a tile product's error.
+pub fn cross_attend_heads_with(
     (a, b): (&[f32], &[f32]),
     (va, vb): (&[f32], &[f32]),
     out: &mut [f32],
     (h, m, n, d): (usize, usize, usize, usize),
+    precision: MatmulPrecision,
 ) -> Result<()> {
     if a.len() != h * m * d
         || va.len() != h * m * d
@@ -327,6 +378,9 @@ pub fn cross_attend_heads(
         // No keys on one side: no message on the other (as `attend_heads`).
         out.fill(0.0);
         return Ok(());
+    }
+    if precision.uses_tiles() {
+        return crate::tiles::cross_attend_heads((a, b), (va, vb), out, (h, m, n, d));
     }
     let rows = (HEAD_BLOCK / n).clamp(1, m);
     let head = |(i, dst): (usize, &mut [f32])| {
@@ -422,6 +476,20 @@ pub fn cross_attention_heads(
     va: &Tensor,
     vb: &Tensor,
 ) -> Result<(Tensor, Tensor)> {
+    cross_attention_heads_with(a, b, va, vb, MatmulPrecision::Highest)
+}
+
+/// [`cross_attention_heads`] with the products at `precision`.
+///
+/// # Errors
+/// As [`cross_attention_heads`].
+pub fn cross_attention_heads_with(
+    a: &Tensor,
+    b: &Tensor,
+    va: &Tensor,
+    vb: &Tensor,
+    precision: MatmulPrecision,
+) -> Result<(Tensor, Tensor)> {
     let (h, m, d) = a.dims3()?;
     let (hb, n, db) = b.dims3()?;
     if (hb, db) != (h, d) || va.dims3()? != (h, m, d) || vb.dims3()? != (h, n, d) {
@@ -441,11 +509,12 @@ pub fn cross_attention_heads(
         Ok(t.flatten_all()?.to_vec1::<f32>()?)
     };
     let mut out = vec![0f32; h * (m + n) * d];
-    cross_attend_heads(
+    cross_attend_heads_with(
         (&host(a)?, &host(b)?),
         (&host(va)?, &host(vb)?),
         &mut out,
         (h, m, n, d),
+        precision,
     )?;
     let out = Tensor::from_vec(out, (h, m + n, d), a.device())?;
     Ok((out.narrow(1, 0, m)?, out.narrow(1, m, n)?))
@@ -457,7 +526,7 @@ type CrossScratch = (Vec<f32>, Vec<f32>, Vec<f32>, Vec<f32>);
 thread_local! {
     /// [`cross_attend_heads`]' score block, weight block, reciprocal row sums and the block's
     /// column maxima, kept between calls.
-    static CROSS: std::cell::RefCell<CrossScratch> =
+    pub(crate) static CROSS: std::cell::RefCell<CrossScratch> =
         const { std::cell::RefCell::new((Vec::new(), Vec::new(), Vec::new(), Vec::new())) };
 }
 
@@ -531,6 +600,57 @@ mod tests {
 
     /// The per-head kernel against candle's composed `softmax(Q Kᵀ) V` in F64, for shapes
     /// with several row blocks (2048 keys: 128 rows a block), a single key and a single query.
+    /// At `MatmulPrecision::High` (AMX tiles where the CPU has them) both kernels stay within
+    /// the F32 kernels' tolerance scaled by the ratio of the unit roundoffs (2⁻¹⁶ / 2⁻²⁴ =
+    /// 256), at shapes with partial tile blocks; where tiles run, the results are not the F32
+    /// ones (the tile path was taken).
+    #[test]
+    fn tiles_keep_attention_within_their_precision() -> anyhow::Result<()> {
+        let tol = 256.0 * 2e-5;
+        for (h, m, n, d, spread) in [
+            (4, 300, 2048, 64, 2.0),
+            (2, 5, 1, 8, 0.5),
+            (3, 70, 45, 16, 6.0),
+        ] {
+            let a = Tensor::randn(0f32, spread, (h, m, d), &Device::Cpu)?;
+            let b = Tensor::randn(0f32, 0.5, (h, n, d), &Device::Cpu)?;
+            let va = Tensor::randn(0f32, 1.0, (h, m, d), &Device::Cpu)?;
+            let vb = Tensor::randn(0f32, 1.0, (h, n, d), &Device::Cpu)?;
+            let f64_ = |t: &Tensor| t.to_dtype(DType::F64);
+            let s = f64_(&a)?.matmul(&f64_(&b)?.t()?)?;
+            let ta = crate::norm::softmax_last_dim_candle(&s)?.matmul(&f64_(&vb)?)?;
+            let tb =
+                crate::norm::softmax_last_dim_candle(&s.t()?.contiguous()?)?.matmul(&f64_(&va)?)?;
+            let self_high = attention_heads_with(&a, &b, &vb, MatmulPrecision::High)?;
+            let self_f32 = attention_heads(&a, &b, &vb)?;
+            let (oa, ob) = cross_attention_heads_with(&a, &b, &va, &vb, MatmulPrecision::High)?;
+            for (ours, truth, what) in [
+                (self_high.clone(), ta.clone(), "self"),
+                (oa, ta, "cross a"),
+                (ob, tb, "cross b"),
+            ] {
+                let err = (ours.to_dtype(DType::F64)? - truth)?
+                    .abs()?
+                    .flatten_all()?
+                    .max(0)?
+                    .to_scalar::<f64>()?;
+                assert!(err < tol, "{h}×{m}×{n}×{d}, {what}: {err:e}");
+            }
+            let differ = (self_high - self_f32)?
+                .abs()?
+                .flatten_all()?
+                .max(0)?
+                .to_scalar::<f32>()?
+                > 0.0;
+            assert_eq!(
+                differ,
+                MatmulPrecision::High.uses_tiles(),
+                "{h}×{m}×{n}×{d}"
+            );
+        }
+        Ok(())
+    }
+
     #[test]
     fn attend_heads_matches_the_composed_attention() -> anyhow::Result<()> {
         for (h, m, n, d) in [

@@ -72,6 +72,9 @@ pub enum DiffusionError {
     /// A tensor operation failed.
     #[error(transparent)]
     Candle(#[from] candle_core::Error),
+    /// An AMX tile product refused its operands.
+    #[error(transparent)]
+    Tiles(#[from] posediff_amx::AmxError),
 }
 
 /// Shorthand for results of this crate.

@@ -22,6 +22,7 @@ pub mod resize;
 pub mod sampler;
 pub mod schedule;
 pub mod softmax;
+pub mod tiles;
 pub mod train;
 pub mod vit;
 
@@ -56,6 +57,7 @@ pub use error::{DiffusionError, Result};
 pub use features::ImageFeatureExtractor;
 pub use sampler::{MeanHook, NoiseSource, ReplayNoise, SeededNoise, sample, sample_from};
 pub use schedule::Schedule;
+pub use tiles::MatmulPrecision;
 
 /// The whole model: feature extractor, denoiser and schedule.
 #[derive(Debug, Clone)]

@@ -13,7 +13,10 @@ use candle_core::{CpuStorage, CustomOp2, CustomOp3, DType, Layout, Shape, Tensor
 use candle_nn::VarBuilder;
 use faer::{Accum, MatMut, MatRef, Par};
 
+use std::sync::{Arc, OnceLock};
+
 use crate::error::Result;
+use crate::tiles::MatmulPrecision;
 
 /// Products below this many multiply-adds run on the calling thread (splitting costs more).
 const PARALLEL_MIN_FLOPS: usize = 1 << 20;
@@ -23,6 +26,9 @@ const PARALLEL_MIN_FLOPS: usize = 1 << 20;
 pub struct Linear {
     weight: Tensor,
     bias: Option<Tensor>,
+    /// The weight packed for AMX tiles, made on the first product at
+    /// [`MatmulPrecision::High`] (shared by clones).
+    tiles: Arc<OnceLock<posediff_amx::PackedB>>,
 }
 
 /// `nn.Linear(in_dim, out_dim)` with a bias, from `vb` (`weight`, `bias`).
@@ -53,7 +59,11 @@ impl Linear {
         } else {
             weight
         };
-        Ok(Self { weight, bias })
+        Ok(Self {
+            weight,
+            bias,
+            tiles: Arc::default(),
+        })
     }
 
     fn fast_path(&self, x: &Tensor) -> bool {
@@ -70,6 +80,52 @@ impl Linear {
             Some(b) => y.broadcast_add(b)?,
             None => y,
         })
+    }
+
+    /// [`Self::forward`] with the product at `precision`: at [`MatmulPrecision::High`] on a CPU
+    /// with AMX tiles, `x` (F32, untracked) times the weight packed once into BF16 pairs
+    /// ([`crate::tiles`]); otherwise [`Self::forward`].
+    ///
+    /// # Errors
+    /// Mismatched shapes, tensor errors.
+    pub fn forward_with(&self, x: &Tensor, precision: MatmulPrecision) -> Result<Tensor> {
+        if !precision.uses_tiles() || !self.fast_path(x) || self.weight.rank() != 2 {
+            return self.forward(x);
+        }
+        let (out_dim, in_dim) = self.weight.dims2()?;
+        let dims = x.dims().to_vec();
+        if dims.last() != Some(&in_dim) {
+            return Err(crate::DiffusionError::Shape {
+                what: "linear input",
+                expected: "(…, in) with the weight's in",
+                got: dims,
+            });
+        }
+        let packed = match self.tiles.get() {
+            Some(p) => p,
+            None => {
+                let w = self.weight.t()?.is_contiguous();
+                let values = if w {
+                    self.weight.t()?.flatten_all()?.to_vec1::<f32>()?
+                } else {
+                    self.weight.flatten_all()?.to_vec1::<f32>()?
+                };
+                let p = crate::tiles::pack_weight(&values, w, out_dim, in_dim)?;
+                self.tiles.get_or_init(|| p)
+            }
+        };
+        let xs = x.flatten_all()?.to_vec1::<f32>()?;
+        let rows = xs.len() / in_dim.max(1);
+        let mut out = match &self.bias {
+            Some(b) => b.to_vec1::<f32>()?.repeat(rows),
+            None => vec![0f32; rows * out_dim],
+        };
+        crate::tiles::linear(&mut out, &xs, packed, rows, in_dim)?;
+        let mut shape = dims;
+        if let Some(last) = shape.last_mut() {
+            *last = out_dim;
+        }
+        Ok(Tensor::from_vec(out, shape, x.device())?)
     }
 
     /// `x Wᵀ + b` over the last dimension of `x`.
@@ -261,14 +317,32 @@ mod tests {
                 let row_major = Linear {
                     weight: w.clone(),
                     bias: layer.bias.clone(),
+                    tiles: Arc::default(),
                 };
                 let truth = Linear::new(
                     w.to_dtype(DType::F64)?,
                     bias.map(|b| b.to_dtype(DType::F64)).transpose()?,
                 )?
                 .forward(&x.to_dtype(DType::F64)?)?;
-                for (what, l) in [("column-major", &layer), ("row-major", &row_major)] {
-                    let ours = l.forward(&x)?;
+                // At MatmulPrecision::High (AMX tiles where the CPU has them) the tolerance
+                // scales with the unit roundoff: 2⁻¹⁶ / 2⁻²⁴ = 256.
+                for (what, l, precision, tol) in [
+                    ("column-major", &layer, MatmulPrecision::Highest, 1e-4),
+                    ("row-major", &row_major, MatmulPrecision::Highest, 1e-4),
+                    (
+                        "column-major, high",
+                        &layer,
+                        MatmulPrecision::High,
+                        256.0 * 1e-4,
+                    ),
+                    (
+                        "row-major, high",
+                        &row_major,
+                        MatmulPrecision::High,
+                        256.0 * 1e-4,
+                    ),
+                ] {
+                    let ours = l.forward_with(&x, precision)?;
                     assert_eq!(ours.dtype(), DType::F32);
                     assert_eq!(ours.dims(), truth.dims(), "{what}");
                     if ours.elem_count() > 0 {
@@ -277,7 +351,7 @@ mod tests {
                             .flatten_all()?
                             .max(0)?
                             .to_scalar::<f64>()?;
-                        assert!(err < 1e-4, "{what} {lead:?} {in_dim}→{out_dim}: {err:e}");
+                        assert!(err < tol, "{what} {lead:?} {in_dim}→{out_dim}: {err:e}");
                     }
                 }
             }

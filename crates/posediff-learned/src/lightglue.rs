@@ -16,6 +16,7 @@
 //!   log-sigmoid matchabilities, with a dustbin row and column; mutual arg-max matches whose
 //!   probability exceeds `filter_threshold`.
 
+use posediff_diffusion::MatmulPrecision;
 use std::path::Path;
 
 use candle_core::{D, Device, IndexOp, Tensor};
@@ -48,6 +49,9 @@ pub struct LightGlueConfig {
     pub width_confidence: Option<f32>,
     /// Minimum match probability.
     pub filter_threshold: f32,
+    /// Give up on a pair whose intermediate assignment has too few matches (not in the
+    /// reference; `None` there). See [`OverlapCheck`].
+    pub overlap_check: Option<OverlapCheck>,
 }
 
 impl Default for LightGlueConfig {
@@ -56,8 +60,29 @@ impl Default for LightGlueConfig {
             depth_confidence: Some(0.95),
             width_confidence: Some(0.99),
             filter_threshold: 0.1,
+            overlap_check: None,
         }
     }
+}
+
+/// An early look at whether a pair overlaps at all. LightGlue is trained with an assignment
+/// head after every layer (deep supervision), so after layer `after_layer` (0-based) the
+/// matches of that layer's head (mutual, above the filter threshold) estimate the final ones.
+/// A pair with fewer than `min_matches` of them stops there with no matches, saving the
+/// remaining layers of a pair that would not reach the verification's minimum anyway. A pair
+/// that exits by confidence at or before that layer is not checked.
+///
+/// Off in the pipeline: measured on every apple and temple pair (`learned_pairs … probe=2`),
+/// fewer than 20 matches after layer 2 loses no good pair, but the pairs it stops mostly exit
+/// by confidence a layer later anyway, and the check's assignment costs about what the saved
+/// layers do (20 apple frames and 15 temple images end to end: no change in time or cameras;
+/// docs/BENCHMARKS.md).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct OverlapCheck {
+    /// The layer after which the matches are counted (0-based, below the last).
+    pub after_layer: usize,
+    /// Fewer matches than this end the pair.
+    pub min_matches: usize,
 }
 
 /// Keypoints and descriptors of one image as the matcher takes them.
@@ -85,6 +110,8 @@ pub struct LightGlueMatches {
     pub prune0: Vec<usize>,
     /// The same for image 1.
     pub prune1: Vec<usize>,
+    /// The intermediate matches an [`OverlapCheck`] counted, if one was made.
+    pub early_matches: Option<usize>,
 }
 
 /// What [`LightGlue::match_traced`] also returns.
@@ -116,9 +143,10 @@ impl PreparedImage {
     }
 }
 
-/// `nn.Linear`: posediff-diffusion's layer (faer's product for F32 on the CPU).
+/// `nn.Linear`: posediff-diffusion's layer (faer's product for F32 on the CPU, AMX tiles at
+/// [`MatmulPrecision::High`] where the CPU has them).
 #[derive(Debug, Clone)]
-struct Linear(posediff_diffusion::linear::Linear);
+struct Linear(posediff_diffusion::linear::Linear, MatmulPrecision);
 
 impl Linear {
     fn new(vb: &VarBuilder, name: &str, inp: usize, out: usize, bias: bool) -> Result<Self> {
@@ -128,11 +156,14 @@ impl Linear {
         } else {
             None
         };
-        Ok(Self(posediff_diffusion::linear::Linear::new(weight, bias)?))
+        Ok(Self(
+            posediff_diffusion::linear::Linear::new(weight, bias)?,
+            MatmulPrecision::Highest,
+        ))
     }
 
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        Ok(self.0.forward(x)?)
+        Ok(self.0.forward_with(x, self.1)?)
     }
 }
 
@@ -162,6 +193,7 @@ impl Ffn {
 
 #[derive(Debug, Clone)]
 struct Layer {
+    precision: MatmulPrecision,
     wqkv: Linear,
     out_proj: Linear,
     self_ffn: Ffn,
@@ -186,11 +218,13 @@ const ATTENTION_BLOCK: usize = 1 << 20;
 /// the CPU: `posediff_diffusion::attention::attend_heads` (faer's products, AVX-512 where the
 /// CPU has it; candle's batched product runs its AVX2 kernel); elsewhere candle's products in
 /// blocks of query rows.
-fn attention(q: &Tensor, k: &Tensor, v: &Tensor) -> Result<Tensor> {
+fn attention(q: &Tensor, k: &Tensor, v: &Tensor, precision: MatmulPrecision) -> Result<Tensor> {
     let (h, m, _) = q.dims3()?;
     let n = k.dim(1)?;
     if q.device().is_cpu() && q.dtype() == candle_core::DType::F32 {
-        return Ok(posediff_diffusion::attention::attention_heads(q, k, v)?);
+        return Ok(posediff_diffusion::attention::attention_heads_with(
+            q, k, v, precision,
+        )?);
     }
     let kt = k.t()?;
     let rows = (ATTENTION_BLOCK / (h * n).max(1)).max(1);
@@ -300,6 +334,7 @@ impl Layer {
         let s = format!("transformers.{i}.self_attn");
         let c = format!("transformers.{i}.cross_attn");
         Ok(Self {
+            precision: MatmulPrecision::Highest,
             wqkv: Linear::new(vb, &format!("{s}.Wqkv"), DIM, 3 * DIM, true)?,
             out_proj: Linear::new(vb, &format!("{s}.out_proj"), DIM, DIM, true)?,
             self_ffn: Ffn::new(vb, &format!("{s}.ffn"))?,
@@ -318,7 +353,7 @@ impl Layer {
         } else {
             split_rope_candle(&qkv, enc, rot, scale)?
         };
-        let context = attention(&q, &k, &v)?;
+        let context = attention(&q, &k, &v, self.precision)?;
         let message = self.out_proj.forward(&merge_heads(&context)?)?;
         self.self_ffn.residual(x, &message)
     }
@@ -333,9 +368,18 @@ impl Layer {
         // CPU each block of it serves both directions; elsewhere each direction computes its
         // own blocks, the same products).
         let (m0, m1) = if qk0.device().is_cpu() && qk0.dtype() == candle_core::DType::F32 {
-            posediff_diffusion::attention::cross_attention_heads(&qk0, &qk1, &v0, &v1)?
+            posediff_diffusion::attention::cross_attention_heads_with(
+                &qk0,
+                &qk1,
+                &v0,
+                &v1,
+                self.precision,
+            )?
         } else {
-            (attention(&qk0, &qk1, &v1)?, attention(&qk1, &qk0, &v0)?)
+            (
+                attention(&qk0, &qk1, &v1, self.precision)?,
+                attention(&qk1, &qk0, &v0, self.precision)?,
+            )
         };
         let m0 = self.to_out.forward(&merge_heads(&m0)?)?;
         let m1 = self.to_out.forward(&merge_heads(&m1)?)?;
@@ -458,6 +502,39 @@ impl LightGlue {
             input_dim,
             device: device.clone(),
         })
+    }
+
+    /// Computes the large products at `precision` from now on: the input projection, every
+    /// layer's projections, attention and feed-forward products, and the assignment's
+    /// similarity. [`MatmulPrecision::Highest`] (the default) is the reference's F32
+    /// arithmetic, which the parity fixtures check; [`MatmulPrecision::High`] runs them on AMX
+    /// tiles where the CPU has them (docs/BENCHMARKS.md compares the matches).
+    pub fn set_precision(&mut self, precision: MatmulPrecision) {
+        self.input_proj.1 = precision;
+        for l in &mut self.layers {
+            l.precision = precision;
+            for lin in [
+                &mut l.wqkv,
+                &mut l.out_proj,
+                &mut l.to_qk,
+                &mut l.to_v,
+                &mut l.to_out,
+                &mut l.self_ffn.fc0,
+                &mut l.self_ffn.fc3,
+                &mut l.cross_ffn.fc0,
+                &mut l.cross_ffn.fc3,
+            ] {
+                lin.1 = precision;
+            }
+        }
+        for (proj, _) in &mut self.assignment {
+            proj.1 = precision;
+        }
+    }
+
+    /// The precision of the large products ([`Self::set_precision`]).
+    pub fn precision(&self) -> MatmulPrecision {
+        self.input_proj.1
     }
 
     /// The descriptor width the matcher takes.
@@ -588,6 +665,8 @@ impl LightGlue {
         let mut prune1 = vec![1usize; n];
         let mut layers = Vec::new();
         let mut last = 0;
+        let mut early = None;
+        let mut gave_up = false;
         for i in 0..LAYERS {
             if ind0.is_empty() || ind1.is_empty() {
                 break;
@@ -618,6 +697,18 @@ impl LightGlue {
                 }
                 tokens = Some((t0, t1));
             }
+            if let Some(check) = config.overlap_check.filter(|c| c.after_layer == i) {
+                let scores = self.log_assignment(i, &d0, &d1)?;
+                let count =
+                    filter_matches(&scores, ind0.len(), ind1.len(), config.filter_threshold)
+                        .0
+                        .len();
+                early = Some(count);
+                if count < check.min_matches {
+                    gave_up = true;
+                    break;
+                }
+            }
             if let Some(width) = config.width_confidence {
                 let cut = 1.0 - width;
                 let (t0, t1) = match &tokens {
@@ -642,13 +733,14 @@ impl LightGlue {
             prune0 = vec![LAYERS; m];
             prune1 = vec![LAYERS; n];
         }
-        if ind0.is_empty() || ind1.is_empty() {
+        if gave_up || ind0.is_empty() || ind1.is_empty() {
             let out = LightGlueMatches {
                 matches: Vec::new(),
                 scores: Vec::new(),
                 stop: last + 1,
                 prune0,
                 prune1,
+                early_matches: early,
             };
             return Ok((
                 out,
@@ -670,6 +762,7 @@ impl LightGlue {
             stop: last + 1,
             prune0,
             prune1,
+            early_matches: early,
         };
         Ok((
             out,
@@ -714,7 +807,8 @@ impl LightGlue {
         let md0 = (proj.forward(d0)? * s)?;
         let md1 = (proj.forward(d1)? * s)?;
         // md0 md1ᵀ as a bias-free linear layer of weight md1 (faer's product on the CPU).
-        let sim = posediff_diffusion::linear::Linear::new(md1, None)?.forward(&md0)?;
+        let sim = posediff_diffusion::linear::Linear::new(md1, None)?
+            .forward_with(&md0, self.input_proj.1)?;
         let (m, n) = sim.dims2()?;
         let sim = sim.flatten_all()?.to_vec1::<f32>()?;
         let z0 = matchability.forward(d0)?.flatten_all()?.to_vec1::<f32>()?;

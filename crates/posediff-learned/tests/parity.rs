@@ -187,6 +187,7 @@ fn lightglue_layers_assignment_and_matches_match_the_reference() {
             depth_confidence: None,
             width_confidence: None,
             filter_threshold: 0.1,
+            overlap_check: None,
         };
         let (m, trace) = net
             .match_traced(&a, &b, &full)
@@ -250,6 +251,166 @@ fn lightglue_layers_assignment_and_matches_match_the_reference() {
             &fx.tensor("match_scores").data,
             1e-4,
             0.0,
+        );
+    }
+}
+
+/// The overlap check (not in the reference) counts the matches of layer 2's head without
+/// changing the final matches, and ends the pair with none exactly when the count is below its
+/// minimum.
+#[test]
+fn an_overlap_check_ends_a_pair_only_below_its_minimum() {
+    let net = lightglue();
+    for pair in PAIRS {
+        let fx = fixture(pair);
+        let (k0, d0, s0) = matcher_input(&fx, 0);
+        let (k1, d1, s1) = matcher_input(&fx, 1);
+        let a = MatcherInput {
+            positions: &k0,
+            descriptors: &d0,
+            image_size: s0,
+        };
+        let b = MatcherInput {
+            positions: &k1,
+            descriptors: &d1,
+            image_size: s1,
+        };
+        // Every layer, so that layer 2 is always reached.
+        let full = LightGlueConfig {
+            depth_confidence: None,
+            width_confidence: None,
+            filter_threshold: 0.1,
+            overlap_check: None,
+        };
+        let with = |min_matches| LightGlueConfig {
+            overlap_check: Some(posediff_learned::lightglue::OverlapCheck {
+                after_layer: 2,
+                min_matches,
+            }),
+            ..full
+        };
+        let plain = net
+            .match_pair(&a, &b, &full)
+            .unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(plain.early_matches, None);
+        let counted = net
+            .match_pair(&a, &b, &with(0))
+            .unwrap_or_else(|e| panic!("{e}"));
+        let early = counted
+            .early_matches
+            .unwrap_or_else(|| panic!("{pair}: no count after layer 2"));
+        // Both fixture pairs overlap: layer 2 already matches a good part of the final set.
+        assert!(
+            early > plain.matches.len() / 2 && early <= LIGHTGLUE_KEYPOINTS,
+            "{pair}: {early} early, {} final",
+            plain.matches.len()
+        );
+        assert_eq!(counted.matches, plain.matches, "{pair}");
+        assert_eq!(counted.stop, plain.stop, "{pair}");
+        let at_minimum = net
+            .match_pair(&a, &b, &with(early))
+            .unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(at_minimum.matches, plain.matches, "{pair}");
+        let below = net
+            .match_pair(&a, &b, &with(early + 1))
+            .unwrap_or_else(|e| panic!("{e}"));
+        assert!(
+            below.matches.is_empty() && below.scores.is_empty(),
+            "{pair}"
+        );
+        assert_eq!(
+            (below.stop, below.early_matches),
+            (3, Some(early)),
+            "{pair}"
+        );
+    }
+}
+
+/// PyTorch's "high" F32 matmul precision (`MatmulPrecision::High`: each operand as two BF16
+/// values on AMX tiles where the CPU has them, F32 elsewhere) gives the reference's discrete
+/// results: the same matches, stopping layer and pruning record. Its values are checked with
+/// the F32 tolerances above scaled by the ratio of the unit roundoffs, 2⁻¹⁶ / 2⁻²⁴ = 256.
+#[test]
+fn high_precision_gives_the_reference_matches() {
+    let mut net = lightglue();
+    net.set_precision(posediff_diffusion::MatmulPrecision::High);
+    let ratio = 256.0;
+    for pair in PAIRS {
+        let fx = fixture(pair);
+        let (k0, d0, s0) = matcher_input(&fx, 0);
+        let (k1, d1, s1) = matcher_input(&fx, 1);
+        let a = MatcherInput {
+            positions: &k0,
+            descriptors: &d0,
+            image_size: s0,
+        };
+        let b = MatcherInput {
+            positions: &k1,
+            descriptors: &d1,
+            image_size: s1,
+        };
+        let full = LightGlueConfig {
+            depth_confidence: None,
+            width_confidence: None,
+            filter_threshold: 0.1,
+            overlap_check: None,
+        };
+        let (m, trace) = net
+            .match_traced(&a, &b, &full)
+            .unwrap_or_else(|e| panic!("{e}"));
+        let per_layer = LAYER_ROWS * 256;
+        let ref0 = fx.tensor("layer_desc0");
+        let ref1 = fx.tensor("layer_desc1");
+        for (l, (t0, t1)) in trace.layers.iter().enumerate() {
+            for (which, t, r) in [(0, t0, &ref0), (1, t1, &ref1)] {
+                let ours = t
+                    .narrow(0, 0, LAYER_ROWS)
+                    .and_then(|t| t.flatten_all())
+                    .and_then(|t| t.to_vec1::<f32>())
+                    .unwrap_or_else(|e| panic!("{e}"));
+                let expected = &r.data[l * per_layer..(l + 1) * per_layer];
+                let scale = expected.iter().fold(0f64, |m, v| m.max(v.abs()));
+                assert_close(
+                    &format!("{pair} high layer {l} desc{which}"),
+                    &f64s(&ours),
+                    expected,
+                    ratio * 1e-5 * scale * (l + 1) as f64,
+                    0.0,
+                );
+            }
+        }
+        assert_close(
+            &format!("{pair} high log assignment"),
+            &f64s(&trace.assignment),
+            &fx.tensor("full_assignment").data,
+            ratio * 2e-3,
+            0.0,
+        );
+        assert_eq!(m.matches, index_pairs(&fx, "full_matches"), "{pair} high");
+        assert_close(
+            &format!("{pair} high full match scores"),
+            &f64s(&m.scores),
+            &fx.tensor("full_match_scores").data,
+            ratio * 1e-4,
+            0.0,
+        );
+        let m = net
+            .match_pair(&a, &b, &LightGlueConfig::default())
+            .unwrap_or_else(|e| panic!("{e}"));
+        let ints = |name: &str| -> Vec<usize> {
+            fx.tensor(name).data.iter().map(|&v| v as usize).collect()
+        };
+        assert_eq!(
+            m.stop as f64,
+            fx.tensor("stop").scalar(),
+            "{pair} high stop"
+        );
+        assert_eq!(m.prune0, ints("prune0"), "{pair} high prune0");
+        assert_eq!(m.prune1, ints("prune1"), "{pair} high prune1");
+        assert_eq!(
+            m.matches,
+            index_pairs(&fx, "matches"),
+            "{pair} high matches"
         );
     }
 }

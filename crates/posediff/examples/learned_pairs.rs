@@ -3,8 +3,12 @@
 //! of the ground-truth epipolar geometry, with the pair's ground-truth rotation angle.
 //!
 //! `cargo run --release -p posediff --example learned_pairs -- <set folder> <weights dir>
-//! [aliked-n16 | aliked-n16rot] [screen]` (a set folder holds `images/` and `cameras.json`).
-//! One line per pair on stdout.
+//! [aliked-n16 | aliked-n16rot] [screen] [probe=<layer>]` (a set folder holds `images/` and
+//! `cameras.json`). One line per pair on stdout.
+//!
+//! With `probe=<layer>`, LightGlue also counts the matches of its assignment head after that
+//! layer (0-based; `LightGlueConfig::overlap_check` with no minimum, so the final matches are
+//! unchanged): the columns `early` and `stop` (layers run).
 //!
 //! With `screen`, two cheap pair screens are measured beside it, as the columns `mnn` (mutual
 //! nearest neighbours of the ALIKED descriptors with Lowe's ratio, then the same MAGSAC: the
@@ -33,7 +37,12 @@ fn main() -> Result<()> {
     };
     let mut aliked = posediff_learned::WeightSet::AlikedN16;
     let mut screen = false;
+    let mut probe = None;
     for a in rest {
+        if let Some(layer) = a.to_str().and_then(|a| a.strip_prefix("probe=")) {
+            probe = Some(layer.parse::<usize>()?);
+            continue;
+        }
         match a.to_str() {
             Some("aliked-n16") => aliked = posediff_learned::WeightSet::AlikedN16,
             Some("aliked-n16rot") => aliked = posediff_learned::WeightSet::AlikedN16Rot,
@@ -68,7 +77,13 @@ fn main() -> Result<()> {
         verification: None,
         ..MatchConfig::default()
     };
-    let raw = match_pairs(&features, &pairs, &raw_config, Some(&learned))?;
+    let (raw, probed) = match probe {
+        None => (
+            match_pairs(&features, &pairs, &raw_config, Some(&learned))?,
+            Vec::new(),
+        ),
+        Some(layer) => probe_pairs(&features, &pairs, &learned, layer)?,
+    };
     // The verification of the default configuration, on the same raw matches.
     let config = MatchConfig::default();
     let verified = raw
@@ -82,8 +97,9 @@ fn main() -> Result<()> {
     };
     let mut kept = Vec::new();
     println!(
-        "i j gt_angle raw inliers ratio good_fraction{}",
-        if screen { " mnn lg512" } else { "" }
+        "i j gt_angle raw inliers ratio good_fraction{}{}",
+        if screen { " mnn lg512" } else { "" },
+        if probe.is_some() { " early stop" } else { "" }
     );
     for (k, ((r, v), &(i, j))) in raw.iter().zip(&verified).zip(&pairs).enumerate() {
         let (a, b) = (cams[i], cams[j]);
@@ -104,8 +120,14 @@ fn main() -> Result<()> {
             rotation_angle_between_deg(&a.cam_from_world.rotation, &b.cam_from_world.rotation);
         let good_fraction = good as f64 / v.len().max(1) as f64;
         let scores: Vec<String> = screens.iter().map(|(_, _, s)| s[k].to_string()).collect();
+        let probed = probed
+            .get(k)
+            .map(|(early, stop): &(Option<usize>, usize)| {
+                format!(" {} {stop}", early.map_or(-1, |e| e as i64))
+            })
+            .unwrap_or_default();
         println!(
-            "{i} {j} {angle:.1} {} {} {:.3} {good_fraction:.3}{}{}",
+            "{i} {j} {angle:.1} {} {} {:.3} {good_fraction:.3}{}{}{probed}",
             r.len(),
             v.len(),
             v.len() as f64 / r.len().max(1) as f64,
@@ -139,6 +161,49 @@ fn main() -> Result<()> {
         }
     }
     Ok(())
+}
+
+/// LightGlue on every pair with an overlap check after `layer` and no minimum: the raw matches
+/// and, per pair, the early count (`None` where the pair exited before the layer) and the
+/// layers run.
+#[allow(clippy::type_complexity)]
+fn probe_pairs(
+    features: &[posediff_matching::ImageFeatures],
+    pairs: &[(usize, usize)],
+    learned: &SharedLearned,
+    layer: usize,
+) -> Result<(
+    Vec<posediff_matching::PairMatches>,
+    Vec<(Option<usize>, usize)>,
+)> {
+    let config = posediff_learned::LightGlueConfig {
+        overlap_check: Some(posediff_learned::lightglue::OverlapCheck {
+            after_layer: layer,
+            min_matches: 0,
+        }),
+        ..learned.0.lightglue_config
+    };
+    let prepared = features
+        .iter()
+        .map(|f| Ok(learned.0.prepare(f)?))
+        .collect::<Result<Vec<_>>>()?;
+    let mut raw = Vec::new();
+    let mut probed = Vec::new();
+    for &(i, j) in pairs {
+        let m = learned
+            .0
+            .lightglue()
+            .match_prepared(&prepared[i], &prepared[j], &config)?;
+        raw.push(posediff_matching::raw_matches(
+            &features[i],
+            &features[j],
+            i,
+            j,
+            &m.matches,
+        ));
+        probed.push((m.early_matches, m.stop));
+    }
+    Ok((raw, probed))
 }
 
 /// The verified counts of the two screens per pair, with their seconds.

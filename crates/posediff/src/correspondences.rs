@@ -47,6 +47,14 @@ pub const LEARNED_IMAGE_SIDE: u32 = 1024;
 /// ALIKED keypoints per image (the reference setting measured in `docs/BENCHMARKS.md`).
 pub const LEARNED_MAX_KEYPOINTS: usize = 2048;
 
+/// The precision of LightGlue's products: PyTorch's "high" (each F32 operand as two BF16
+/// values on AMX tiles where the CPU has them, F32 products elsewhere). It gives the reference
+/// fixtures' matches, stopping layers and pruning exactly (`high_precision_gives_the_reference_
+/// matches`), and on the dev sets the same cameras as F32 (docs/BENCHMARKS.md).
+/// `POSEDIFF_NO_AMX=1` turns the tiles off.
+pub const LEARNED_PRECISION: posediff_diffusion::MatmulPrecision =
+    posediff_diffusion::MatmulPrecision::High;
+
 /// The matcher of a run.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum MatcherChoice {
@@ -190,9 +198,11 @@ impl LearnedMatcher {
                 )));
             }
         };
+        let mut lightglue = LightGlue::load(&lightglue, &Device::Cpu)?;
+        lightglue.set_precision(LEARNED_PRECISION);
         Ok(Self {
             extractor,
-            lightglue: LightGlue::load(&lightglue, &Device::Cpu)?,
+            lightglue,
             aliked_config: AlikedConfig {
                 max_keypoints: LEARNED_MAX_KEYPOINTS,
                 ..AlikedConfig::default()
@@ -204,6 +214,11 @@ impl LearnedMatcher {
             lightglue_config: LightGlueConfig::default(),
             image_side: LEARNED_IMAGE_SIDE,
         })
+    }
+
+    /// The LightGlue network itself (for probes that need its per-pair record).
+    pub fn lightglue(&self) -> &LightGlue {
+        &self.lightglue
     }
 
     /// The extractor's keypoints and descriptors of one image, in its original pixels.

@@ -1,0 +1,477 @@
+//! The products of LightGlue-sized layers on AMX tiles at PyTorch's "high" F32 matmul
+//! precision ([`MatmulPrecision::High`]): every F32 operand as the sum of two BF16 values,
+//! products accumulated in F32 (`posediff_amx`, [`posediff_amx::Split::Two`]).
+//!
+//! The same algorithms as the F32 kernels of [`crate::attention`] and [`crate::linear`] (the
+//! same blocks of query rows, softmax and column rescaling), with each faer product replaced by
+//! packing the operands and one tile product. Operands that serve many products are packed once:
+//! a layer's weight when it is first used, a head's keys and values once per head.
+//!
+//! # Pitfalls
+//! - The results differ from the F32 path by about `2⁻¹⁶` of each dot product's `Σ|aᵢbᵢ|`, not
+//!   by F32 rounding: the reference's parity fixtures are checked on [`MatmulPrecision::Highest`].
+//! - Only where [`posediff_amx::available`] is true; everything else runs the F32 kernels.
+
+use std::cell::RefCell;
+
+use posediff_amx::{PackedA, PackedB, Split};
+use rayon::prelude::*;
+
+use crate::error::Result;
+
+/// How the F32 matrix products of a network are computed on the CPU, after PyTorch's
+/// `torch.set_float32_matmul_precision`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum MatmulPrecision {
+    /// F32 products (faer): the reference's arithmetic, what the parity fixtures check.
+    #[default]
+    Highest,
+    /// Where the CPU has AMX tiles, each F32 operand as the sum of two BF16 values (about 16
+    /// significant bits, PyTorch's "high"); F32 products elsewhere.
+    High,
+}
+
+impl MatmulPrecision {
+    /// Whether products at this precision run on AMX tiles in this process.
+    pub fn uses_tiles(self) -> bool {
+        self == MatmulPrecision::High && posediff_amx::available()
+    }
+}
+
+/// The split of [`MatmulPrecision::High`].
+pub(crate) const SPLIT: Split = Split::Two;
+
+/// `out (rows, out_dim) += x (rows, in_dim) · Wᵀ` with `W` packed (`packed_w`: `B = Wᵀ`), `out`
+/// holding the bias (or zeros). Rows are split among rayon's threads in blocks of 32, each
+/// thread packing its own rows.
+pub(crate) fn linear(
+    out: &mut [f32],
+    x: &[f32],
+    packed_w: &PackedB,
+    rows: usize,
+    in_dim: usize,
+) -> Result<()> {
+    let out_dim = packed_w.cols();
+    if rows == 0 || out_dim == 0 {
+        return Ok(());
+    }
+    let threads = crate::threads().max(1);
+    let chunk = rows.div_ceil(threads).div_ceil(posediff_amx::BLOCK).max(1) * posediff_amx::BLOCK;
+    let run = |(c, dst): (usize, &mut [f32])| -> Result<()> {
+        let r0 = c * chunk;
+        let len = dst.len() / out_dim;
+        ROWS.with_borrow_mut(|a| {
+            a.pack(&x[r0 * in_dim..(r0 + len) * in_dim], len, in_dim, in_dim)?;
+            posediff_amx::matmul(dst, out_dim, a, 0..len, packed_w, true)
+        })?;
+        Ok(())
+    };
+    if threads > 1 && rows > chunk {
+        out.par_chunks_mut(chunk * out_dim)
+            .enumerate()
+            .try_for_each(run)
+    } else {
+        out.chunks_mut(chunk * out_dim)
+            .enumerate()
+            .try_for_each(run)
+    }
+}
+
+/// Packs a weight `(out, in)` stored row-major (or column-major, `w[i·out + o]`) as `B = Wᵀ`.
+pub(crate) fn pack_weight(
+    w: &[f32],
+    column_major: bool,
+    out_dim: usize,
+    in_dim: usize,
+) -> Result<PackedB> {
+    let mut b = PackedB::new(SPLIT);
+    if column_major {
+        // Wᵀ (in × out) row-major is `w` itself.
+        b.pack(w, in_dim, out_dim, out_dim)?;
+    } else {
+        b.pack_transposed(w, out_dim, in_dim, in_dim)?;
+    }
+    Ok(b)
+}
+
+/// A head's packed operands, the packed blocks and the column side's accumulator of one thread.
+struct Scratch {
+    keys: PackedB,
+    values: PackedB,
+    /// The column side's weights of a block, `W` (`len × n`) as `B`.
+    column_weights: PackedB,
+    rows: PackedA,
+    weights: PackedA,
+    /// The block's other values transposed, `vaᵀ` (`d × len`) as `A`.
+    other_values: PackedA,
+    /// `out_bᵀ` (`d × n`), and the column rescaling of a block.
+    column_out: Vec<f32>,
+    alpha: Vec<f32>,
+}
+
+thread_local! {
+    /// The rows of `A` a thread packs for [`linear`].
+    static ROWS: RefCell<PackedA> = RefCell::new(PackedA::new(SPLIT));
+    /// [`attend_heads`]' and [`cross_attend_heads`]' packed operands.
+    static SCRATCH: RefCell<Scratch> = RefCell::new(Scratch {
+        keys: PackedB::new(SPLIT),
+        values: PackedB::new(SPLIT),
+        column_weights: PackedB::new(SPLIT),
+        rows: PackedA::new(SPLIT),
+        weights: PackedA::new(SPLIT),
+        other_values: PackedA::new(SPLIT),
+        column_out: Vec::new(),
+        alpha: Vec::new(),
+    });
+}
+
+/// Query rows per block: the F32 kernel's block, a multiple of 32 (whole tile rows).
+fn block_rows(m: usize, n: usize) -> usize {
+    let rows = (crate::attention::HEAD_BLOCK / n).max(posediff_amx::BLOCK);
+    (rows / posediff_amx::BLOCK * posediff_amx::BLOCK).min(m)
+}
+
+/// [`crate::attention::attend_heads`] on tiles; the shapes are checked by the caller (`m`,
+/// `n`, `h`, `d` all positive).
+pub(crate) fn attend_heads(
+    q: &[f32],
+    k: &[f32],
+    v: &[f32],
+    out: &mut [f32],
+    (h, m, n, d): (usize, usize, usize, usize),
+) -> Result<()> {
+    let rows = block_rows(m, n);
+    let head = |(i, dst): (usize, &mut [f32])| -> Result<()> {
+        let (qh, kh, vh) = (
+            &q[i * m * d..(i + 1) * m * d],
+            &k[i * n * d..(i + 1) * n * d],
+            &v[i * n * d..(i + 1) * n * d],
+        );
+        SCRATCH.with_borrow_mut(|t| -> Result<()> {
+            // S = Q Kᵀ: B = Kᵀ (d × n); O = P V: B = V (n × d).
+            t.keys.pack_transposed(kh, n, d, d)?;
+            t.values.pack(vh, n, d, d)?;
+            crate::attention::SCORES.with_borrow_mut(|(scores, inv)| -> Result<()> {
+                scores.resize(rows * n, 0.0);
+                inv.resize(rows, 0.0);
+                for start in (0..m).step_by(rows) {
+                    let len = rows.min(m - start);
+                    t.rows.pack(&qh[start * d..(start + len) * d], len, d, d)?;
+                    let s = &mut scores[..len * n];
+                    posediff_amx::matmul(s, n, &t.rows, 0..len, &t.keys, false)?;
+                    exp_rows_packed(s, n, &mut inv[..len], &mut t.weights)?;
+                    let o = &mut dst[start * d..(start + len) * d];
+                    posediff_amx::matmul(o, d, &t.weights, 0..len, &t.values, false)?;
+                    for (row, &c) in o.chunks_exact_mut(d).zip(inv.iter()) {
+                        row.iter_mut().for_each(|x| *x *= c);
+                    }
+                }
+                Ok(())
+            })
+        })
+    };
+    if h > 1 && crate::threads() > 1 {
+        out.par_chunks_mut(m * d).enumerate().try_for_each(head)
+    } else {
+        out.chunks_mut(m * d).enumerate().try_for_each(head)
+    }
+}
+
+/// [`crate::attention::cross_attend_heads`] on tiles; the shapes are checked by the caller
+/// (all sizes positive).
+pub(crate) fn cross_attend_heads(
+    (a, b): (&[f32], &[f32]),
+    (va, vb): (&[f32], &[f32]),
+    out: &mut [f32],
+    (h, m, n, d): (usize, usize, usize, usize),
+) -> Result<()> {
+    let rows = block_rows(m, n);
+    let head = |(i, dst): (usize, &mut [f32])| -> Result<()> {
+        let (dst_a, dst_b) = dst.split_at_mut(m * d);
+        let (ah, vah) = (
+            &a[i * m * d..(i + 1) * m * d],
+            &va[i * m * d..(i + 1) * m * d],
+        );
+        let (bh, vbh) = (
+            &b[i * n * d..(i + 1) * n * d],
+            &vb[i * n * d..(i + 1) * n * d],
+        );
+        let mut col_max = vec![f32::NEG_INFINITY; n];
+        let mut col_sum = vec![0f32; n];
+        let cut = crate::softmax::flush_below(m);
+        SCRATCH.with_borrow_mut(|t| -> Result<()> {
+            // S = A Bᵀ: B = Bᵀ (d × n); out_a = P vb: B = vb (n × d).
+            t.keys.pack_transposed(bh, n, d, d)?;
+            t.values.pack(vbh, n, d, d)?;
+            // The column side accumulates out_bᵀ = vaᵀ W (d × n): the block's weights W are
+            // packed as they lie, without a transpose of len × n values.
+            t.column_out.clear();
+            t.column_out.resize(d * n, 0.0);
+            t.alpha.resize(n, 1.0);
+            crate::attention::CROSS.with_borrow_mut(
+                |(scores, _, inv, block_max)| -> Result<()> {
+                    scores.resize(rows * n, 0.0);
+                    inv.resize(rows, 0.0);
+                    block_max.resize(n, 0.0);
+                    for start in (0..m).step_by(rows) {
+                        let len = rows.min(m - start);
+                        t.rows.pack(&ah[start * d..(start + len) * d], len, d, d)?;
+                        let s = &mut scores[..len * n];
+                        posediff_amx::matmul(s, n, &t.rows, 0..len, &t.keys, false)?;
+                        // Columns: raise the maxima, rescale what was accumulated, this
+                        // block's weights (as the F32 kernel).
+                        block_max.fill(f32::NEG_INFINITY);
+                        for row in s.chunks_exact(n) {
+                            for (bm, &x) in block_max.iter_mut().zip(row) {
+                                *bm = bm.max(x);
+                            }
+                        }
+                        let mut rescaled = false;
+                        for (j, bm) in block_max.iter().enumerate() {
+                            t.alpha[j] = 1.0;
+                            if *bm > col_max[j] {
+                                let alpha = crate::softmax::exp_f32(col_max[j] - bm);
+                                let alpha = if col_max[j] - bm < cut { 0.0 } else { alpha };
+                                col_sum[j] *= alpha;
+                                t.alpha[j] = alpha;
+                                rescaled = true;
+                                col_max[j] = *bm;
+                            }
+                        }
+                        if rescaled && start > 0 {
+                            for row in t.column_out.chunks_exact_mut(n) {
+                                row.iter_mut().zip(&t.alpha).for_each(|(x, a)| *x *= a);
+                            }
+                        }
+                        // W = exp(S − column maxima), packed as it is computed.
+                        exp_offsets_packed(
+                            s,
+                            n,
+                            &col_max,
+                            cut,
+                            &mut col_sum,
+                            &mut t.column_weights,
+                        )?;
+                        // out_bᵀ (d × n) += vaᵀ (d × len) · W (len × n).
+                        t.other_values.pack_transposed(
+                            &vah[start * d..(start + len) * d],
+                            d,
+                            len,
+                            d,
+                        )?;
+                        posediff_amx::matmul(
+                            &mut t.column_out,
+                            n,
+                            &t.other_values,
+                            0..d,
+                            &t.column_weights,
+                            true,
+                        )?;
+                        // Rows: this block's softmax times vb.
+                        exp_rows_packed(s, n, &mut inv[..len], &mut t.weights)?;
+                        let o = &mut dst_a[start * d..(start + len) * d];
+                        posediff_amx::matmul(o, d, &t.weights, 0..len, &t.values, false)?;
+                        for (row, &c) in o.chunks_exact_mut(d).zip(inv.iter()) {
+                            row.iter_mut().for_each(|x| *x *= c);
+                        }
+                    }
+                    Ok(())
+                },
+            )?;
+            // out_b = (out_bᵀ)ᵀ / Σ per column.
+            for (j, (row, &sum)) in dst_b.chunks_exact_mut(d).zip(&col_sum).enumerate() {
+                let c = 1.0 / sum;
+                for (r, x) in row.iter_mut().enumerate() {
+                    *x = t.column_out[r * n + j] * c;
+                }
+            }
+            Ok(())
+        })
+    };
+    if h > 1 && crate::threads() > 1 {
+        out.par_chunks_mut((m + n) * d)
+            .enumerate()
+            .try_for_each(head)
+    } else {
+        out.chunks_mut((m + n) * d).enumerate().try_for_each(head)
+    }
+}
+
+/// The row softmax's numerators of `s` (`row`-wide rows) straight into `a`'s two BF16 terms,
+/// with each row's `1/Σ` in `inv`: the operations of [`crate::softmax`]'s row kernel (maximum,
+/// `exp(x − max)` with the subnormal flush, sum), without writing the F32 weights.
+fn exp_rows_packed(s: &[f32], row: usize, inv: &mut [f32], a: &mut PackedA) -> Result<()> {
+    let (hi, lo, stride) = a.two_terms_mut(inv.len(), row)?;
+    pulp::Arch::new().dispatch(ExpRowsPacked {
+        s,
+        row,
+        inv,
+        hi,
+        lo,
+        stride,
+    });
+    Ok(())
+}
+
+struct ExpRowsPacked<'a> {
+    s: &'a [f32],
+    row: usize,
+    inv: &'a mut [f32],
+    hi: &'a mut [u16],
+    lo: &'a mut [u16],
+    stride: usize,
+}
+
+impl pulp::WithSimd for ExpRowsPacked<'_> {
+    type Output = ();
+
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _simd: S) {
+        const LANES: usize = 16;
+        let Self {
+            s,
+            row,
+            inv,
+            hi,
+            lo,
+            stride,
+        } = self;
+        let cut = crate::softmax::flush_below(row);
+        for (r, (values, inv)) in s.chunks_exact(row).zip(inv.iter_mut()).enumerate() {
+            let mut lanes = [f32::NEG_INFINITY; LANES];
+            let mut blocks = values.chunks_exact(LANES);
+            for b in &mut blocks {
+                for (m, &v) in lanes.iter_mut().zip(b) {
+                    *m = m.max(v);
+                }
+            }
+            let max = blocks
+                .remainder()
+                .iter()
+                .chain(&lanes)
+                .fold(f32::NEG_INFINITY, |m, &v| m.max(v));
+            let h = &mut hi[r * stride..r * stride + row];
+            let l = &mut lo[r * stride..r * stride + row];
+            let mut sums = [0f32; LANES];
+            let mut blocks = values.chunks_exact(LANES);
+            let mut hb = h.chunks_exact_mut(LANES);
+            let mut lb = l.chunks_exact_mut(LANES);
+            for ((b, hh), ll) in (&mut blocks).zip(&mut hb).zip(&mut lb) {
+                for ((((sum, &v), hv), lv), _) in sums
+                    .iter_mut()
+                    .zip(b)
+                    .zip(hh.iter_mut())
+                    .zip(ll.iter_mut())
+                    .zip(0..LANES)
+                {
+                    let d = v - max;
+                    let e = crate::softmax::exp_f32(d);
+                    let e = if d < cut { 0.0 } else { e };
+                    *sum += e;
+                    (*hv, *lv) = posediff_amx::split_two(e);
+                }
+            }
+            let mut sum: f32 = sums.iter().sum();
+            for ((&v, hv), lv) in blocks
+                .remainder()
+                .iter()
+                .zip(hb.into_remainder())
+                .zip(lb.into_remainder())
+            {
+                let d = v - max;
+                let e = crate::softmax::exp_f32(d);
+                let e = if d < cut { 0.0 } else { e };
+                sum += e;
+                (*hv, *lv) = posediff_amx::split_two(e);
+            }
+            *inv = 1.0 / sum;
+        }
+    }
+}
+
+/// Cross-attention's column weights `exp(s − offsets[column])` (terms below `cut` zero, each
+/// column's sum added to `sums`) straight into `b`'s BF16 pairs, two rows at a time.
+fn exp_offsets_packed(
+    s: &[f32],
+    row: usize,
+    offsets: &[f32],
+    cut: f32,
+    sums: &mut [f32],
+    b: &mut PackedB,
+) -> Result<()> {
+    let k = s.len() / row.max(1);
+    let (hi, lo, stride) = b.two_term_pairs_mut(k, row)?;
+    pulp::Arch::new().dispatch(ExpOffsetsPacked {
+        s,
+        row,
+        offsets,
+        cut,
+        sums,
+        hi,
+        lo,
+        stride,
+    });
+    Ok(())
+}
+
+struct ExpOffsetsPacked<'a> {
+    s: &'a [f32],
+    row: usize,
+    offsets: &'a [f32],
+    cut: f32,
+    sums: &'a mut [f32],
+    hi: &'a mut [u32],
+    lo: &'a mut [u32],
+    stride: usize,
+}
+
+impl pulp::WithSimd for ExpOffsetsPacked<'_> {
+    type Output = ();
+
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _simd: S) {
+        let Self {
+            s,
+            row,
+            offsets,
+            cut,
+            sums,
+            hi,
+            lo,
+            stride,
+        } = self;
+        let weight = |x: f32, o: f32| {
+            let d = x - o;
+            let e = crate::softmax::exp_f32(d);
+            if d < cut { 0.0 } else { e }
+        };
+        let zeros = vec![0f32; row];
+        let k = s.len() / row.max(1);
+        for r in 0..k.div_ceil(2) {
+            let even = &s[2 * r * row..(2 * r + 1) * row];
+            let (odd, has_odd) = if 2 * r + 1 < k {
+                (&s[(2 * r + 1) * row..(2 * r + 2) * row], true)
+            } else {
+                (&zeros[..], false)
+            };
+            let h = &mut hi[r * stride..r * stride + row];
+            let l = &mut lo[r * stride..r * stride + row];
+            for (((((&x, &y), &o), sum), hv), lv) in even
+                .iter()
+                .zip(odd)
+                .zip(offsets)
+                .zip(sums.iter_mut())
+                .zip(h.iter_mut())
+                .zip(l.iter_mut())
+            {
+                let we = weight(x, o);
+                let wo = if has_odd { weight(y, o) } else { 0.0 };
+                *sum += we + wo;
+                let (eh, el) = posediff_amx::split_two(we);
+                let (oh, ol) = posediff_amx::split_two(wo);
+                *hv = eh as u32 | (oh as u32) << 16;
+                *lv = el as u32 | (ol as u32) << 16;
+            }
+        }
+    }
+}
