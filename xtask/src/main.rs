@@ -86,7 +86,7 @@ const HEAVY_CRATES: [&str; 6] = ["candle-core", "candle-nn", "opencv", "faer", "
 /// import the geometry and metrics crates alone; guidance (GGS) may use rayon, never faer or
 /// the tensor or image back ends; the mapper (sfm) is faer + rayon, never candle or OpenCV (it
 /// takes matches and a two-view solver from its caller).
-const FORBIDDEN: [(&str, &[&str]); 7] = [
+const FORBIDDEN: [(&str, &[&str]); 8] = [
     ("posediff-geometry", &HEAVY_CRATES),
     ("posediff-metrics", &HEAVY_CRATES),
     (
@@ -105,16 +105,29 @@ const FORBIDDEN: [(&str, &[&str]); 7] = [
     // decoded pixels).
     ("posediff-matching", &["candle-core", "candle-nn", "tch"]),
     ("posediff-learned", &["opencv", "tch"]),
+    // The tile kernels are a leaf: no tensors, solvers or images.
+    (
+        "posediff-amx",
+        &[
+            "candle-core",
+            "candle-nn",
+            "opencv",
+            "faer",
+            "nalgebra",
+            "tch",
+        ],
+    ),
 ];
 
 /// Per crate: the workspace crates it may depend on.
-const ALLOWED_WORKSPACE_DEPS: [(&str, &[&str]); 8] = [
+const ALLOWED_WORKSPACE_DEPS: [(&str, &[&str]); 9] = [
     ("posediff-sfm", &["posediff-geometry"]),
     ("posediff-synth", &["posediff-geometry"]),
     ("posediff-geometry", &[]),
     ("posediff-metrics", &["posediff-geometry"]),
     ("posediff-guidance", &["posediff-geometry"]),
-    ("posediff-diffusion", &["posediff-geometry"]),
+    ("posediff-diffusion", &["posediff-geometry", "posediff-amx"]),
+    ("posediff-amx", &[]),
     ("posediff-matching", &["posediff-geometry"]),
     ("posediff-learned", &["posediff-diffusion"]),
 ];

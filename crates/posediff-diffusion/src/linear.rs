@@ -114,18 +114,13 @@ impl Linear {
                 self.tiles.get_or_init(|| p)
             }
         };
-        let xs = x.flatten_all()?.to_vec1::<f32>()?;
-        let rows = xs.len() / in_dim.max(1);
-        let mut out = match &self.bias {
-            Some(b) => b.to_vec1::<f32>()?.repeat(rows),
-            None => vec![0f32; rows * out_dim],
-        };
-        crate::tiles::linear(&mut out, &xs, packed, rows, in_dim)?;
-        let mut shape = dims;
-        if let Some(last) = shape.last_mut() {
-            *last = out_dim;
-        }
-        Ok(Tensor::from_vec(out, shape, x.device())?)
+        // The input's storage is read in place (no host copy).
+        let x = x.contiguous()?;
+        let op = LinearTiles { packed };
+        Ok(match &self.bias {
+            Some(b) => x.apply_op2_no_bwd(&b.contiguous()?, &op)?,
+            None => x.apply_op1_no_bwd(&op)?,
+        })
     }
 
     /// `x Wᵀ + b` over the last dimension of `x`.
@@ -146,6 +141,74 @@ impl Linear {
             Some(b) => x.apply_op3_no_bwd(&weight, &b.contiguous()?, &LinearF32)?,
             None => x.apply_op2_no_bwd(&weight, &LinearF32)?,
         })
+    }
+}
+
+/// The tile product of [`Linear::forward_with`]: `x (…, in)` and the bias `(out)` contiguous
+/// F32, the weight packed.
+struct LinearTiles<'a> {
+    packed: &'a posediff_amx::PackedB,
+}
+
+impl LinearTiles<'_> {
+    fn run(
+        &self,
+        x: (&CpuStorage, &Layout),
+        b: Option<(&CpuStorage, &Layout)>,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let xs = crate::contiguous_f32(x.0, x.1, "linear-tiles: the input")?;
+        let (in_dim, out_dim) = (self.packed.rows(), self.packed.cols());
+        let dims = x.1.shape().dims();
+        if dims.last() != Some(&in_dim) {
+            candle_core::bail!(
+                "linear-tiles: input {:?} does not end in the weight's {in_dim} inputs",
+                dims
+            );
+        }
+        let rows = xs.len() / in_dim.max(1);
+        let mut out = match b {
+            Some(b) => {
+                let bs = crate::contiguous_f32(b.0, b.1, "linear-tiles: the bias")?;
+                if bs.len() != out_dim {
+                    candle_core::bail!("linear-tiles: {} biases for {out_dim} outputs", bs.len());
+                }
+                bs.repeat(rows)
+            }
+            None => vec![0f32; rows * out_dim],
+        };
+        crate::tiles::linear(&mut out, xs, self.packed, rows, in_dim)
+            .map_err(|e| candle_core::Error::Msg(e.to_string()))?;
+        let mut shape = dims.to_vec();
+        if let Some(last) = shape.last_mut() {
+            *last = out_dim;
+        }
+        Ok((CpuStorage::F32(out), Shape::from(shape)))
+    }
+}
+
+impl candle_core::CustomOp1 for LinearTiles<'_> {
+    fn name(&self) -> &'static str {
+        "linear-tiles"
+    }
+
+    fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> candle_core::Result<(CpuStorage, Shape)> {
+        self.run((s, l), None)
+    }
+}
+
+impl CustomOp2 for LinearTiles<'_> {
+    fn name(&self) -> &'static str {
+        "linear-tiles"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        self.run((s1, l1), Some((s2, l2)))
     }
 }
 
