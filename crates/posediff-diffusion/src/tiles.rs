@@ -60,7 +60,8 @@ pub(crate) fn linear(
     let run = |(c, dst): (usize, &mut [f32])| -> Result<()> {
         let r0 = c * chunk;
         let len = dst.len() / out_dim;
-        ROWS.with_borrow_mut(|a| {
+        ROWS.with_borrow_mut(|slot| {
+            let a = slot.get_or_insert_with(|| Box::new(PackedA::new(SPLIT)));
             a.pack(&x[r0 * in_dim..(r0 + len) * in_dim], len, in_dim, in_dim)?;
             posediff_amx::matmul(dst, out_dim, a, 0..len, packed_w, true)
         })?;
@@ -109,20 +110,28 @@ struct Scratch {
     alpha: Vec<f32>,
 }
 
+impl Scratch {
+    fn new() -> Self {
+        Self {
+            keys: PackedB::new(SPLIT),
+            values: PackedB::new(SPLIT),
+            column_weights: PackedB::new(SPLIT),
+            rows: PackedA::new(SPLIT),
+            weights: PackedA::new(SPLIT),
+            other_values: PackedA::new(SPLIT),
+            column_out: Vec::new(),
+            alpha: Vec::new(),
+        }
+    }
+}
+
 thread_local! {
+    // Boxed, so that each slot is a pointer: a library loaded into another process (the Python
+    // module) gets its thread-locals from a small static TLS reserve.
     /// The rows of `A` a thread packs for [`linear`].
-    static ROWS: RefCell<PackedA> = RefCell::new(PackedA::new(SPLIT));
+    static ROWS: RefCell<Option<Box<PackedA>>> = const { RefCell::new(None) };
     /// [`attend_heads`]' and [`cross_attend_heads`]' packed operands.
-    static SCRATCH: RefCell<Scratch> = RefCell::new(Scratch {
-        keys: PackedB::new(SPLIT),
-        values: PackedB::new(SPLIT),
-        column_weights: PackedB::new(SPLIT),
-        rows: PackedA::new(SPLIT),
-        weights: PackedA::new(SPLIT),
-        other_values: PackedA::new(SPLIT),
-        column_out: Vec::new(),
-        alpha: Vec::new(),
-    });
+    static SCRATCH: RefCell<Option<Box<Scratch>>> = const { RefCell::new(None) };
 }
 
 /// Query rows per block: the F32 kernel's block, a multiple of 32 (whole tile rows).
@@ -147,7 +156,8 @@ pub(crate) fn attend_heads(
             &k[i * n * d..(i + 1) * n * d],
             &v[i * n * d..(i + 1) * n * d],
         );
-        SCRATCH.with_borrow_mut(|t| -> Result<()> {
+        SCRATCH.with_borrow_mut(|slot| -> Result<()> {
+            let t = slot.get_or_insert_with(|| Box::new(Scratch::new()));
             // S = Q Kᵀ: B = Kᵀ (d × n); O = P V: B = V (n × d).
             t.keys.pack_transposed(kh, n, d, d)?;
             t.values.pack(vh, n, d, d)?;
@@ -199,7 +209,8 @@ pub(crate) fn cross_attend_heads(
         let mut col_max = vec![f32::NEG_INFINITY; n];
         let mut col_sum = vec![0f32; n];
         let cut = crate::softmax::flush_below(m);
-        SCRATCH.with_borrow_mut(|t| -> Result<()> {
+        SCRATCH.with_borrow_mut(|slot| -> Result<()> {
+            let t = slot.get_or_insert_with(|| Box::new(Scratch::new()));
             // S = A Bᵀ: B = Bᵀ (d × n); out_a = P vb: B = vb (n × d).
             t.keys.pack_transposed(bh, n, d, d)?;
             t.values.pack(vbh, n, d, d)?;
