@@ -187,6 +187,17 @@ impl std::fmt::Debug for PackedB {
     }
 }
 
+/// The caller-filled operands are [`Split::Two`]'s.
+fn two_terms(split: Split) -> Result<(), AmxError> {
+    if split == Split::Two {
+        Ok(())
+    } else {
+        Err(AmxError::Shape(format!(
+            "two terms asked of a {split:?} operand"
+        )))
+    }
+}
+
 fn padded(x: usize) -> usize {
     x.div_ceil(BLOCK).max(1) * BLOCK
 }
@@ -291,12 +302,7 @@ impl PackedA {
         m: usize,
         k: usize,
     ) -> Result<(&mut [u16], &mut [u16], usize), AmxError> {
-        if self.split != Split::Two {
-            return Err(AmxError::Shape(format!(
-                "two terms asked of a {:?} operand",
-                self.split
-            )));
-        }
+        two_terms(self.split)?;
         self.reset(m, k);
         let plane = self.mp * self.kp;
         let (hi, lo) = self.data.split_at_mut(plane);
@@ -561,12 +567,7 @@ impl PackedB {
         k: usize,
         n: usize,
     ) -> Result<(&mut [u32], &mut [u32], usize), AmxError> {
-        if self.split != Split::Two {
-            return Err(AmxError::Shape(format!(
-                "two terms asked of a {:?} operand",
-                self.split
-            )));
-        }
+        two_terms(self.split)?;
         self.reset(k, n);
         let plane = self.kp * self.np / 2;
         let (hi, lo) = self.data.split_at_mut(plane);

@@ -422,12 +422,7 @@ pub fn cross_attend_heads_with(
                 );
                 // Columns: raise the maxima, rescale what was accumulated, weights of this block.
                 let w = &mut weights[..len * n];
-                block_max.fill(f32::NEG_INFINITY);
-                for row in s.chunks_exact(n) {
-                    for (bm, &x) in block_max.iter_mut().zip(row) {
-                        *bm = bm.max(x);
-                    }
-                }
+                column_maxima(s, block_max);
                 for (j, bm) in block_max.iter().enumerate() {
                     if *bm > col_max[j] {
                         let alpha = crate::softmax::exp_f32(col_max[j] - bm);
@@ -463,6 +458,16 @@ pub fn cross_attend_heads_with(
         out.chunks_mut((m + n) * d).enumerate().for_each(head);
     }
     Ok(())
+}
+
+/// The maximum of every column of the row-major block `s` (`maxima.len()` wide).
+pub(crate) fn column_maxima(s: &[f32], maxima: &mut [f32]) {
+    maxima.fill(f32::NEG_INFINITY);
+    for row in s.chunks_exact(maxima.len().max(1)) {
+        for (m, &x) in maxima.iter_mut().zip(row) {
+            *m = m.max(x);
+        }
+    }
 }
 
 /// [`cross_attend_heads`] on tensors: `a` `(h, m, d)`, `b` `(h, n, d)` (already scaled), `va`

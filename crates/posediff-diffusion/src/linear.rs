@@ -144,6 +144,59 @@ impl Linear {
     }
 }
 
+/// What both custom ops share: the input checked against the weight's width, and the output
+/// started at the bias (or zeros) with the input's shape ending in `out_dim`.
+struct Output<'a> {
+    xs: &'a [f32],
+    rows: usize,
+    out: Vec<f32>,
+    shape: Vec<usize>,
+}
+
+impl<'a> Output<'a> {
+    fn new(
+        op: &str,
+        x: (&'a CpuStorage, &Layout),
+        b: Option<(&CpuStorage, &Layout)>,
+        in_dim: usize,
+        out_dim: usize,
+    ) -> candle_core::Result<Self> {
+        let xs = crate::contiguous_f32(x.0, x.1, &format!("{op}: the input"))?;
+        let dims = x.1.shape().dims();
+        if dims.last() != Some(&in_dim) {
+            candle_core::bail!(
+                "{op}: input {:?} does not end in the weight's {in_dim} inputs",
+                dims
+            );
+        }
+        let rows = xs.len() / in_dim.max(1);
+        let out = match b {
+            Some(b) => {
+                let bs = crate::contiguous_f32(b.0, b.1, &format!("{op}: the bias"))?;
+                if bs.len() != out_dim {
+                    candle_core::bail!("{op}: {} biases for {out_dim} outputs", bs.len());
+                }
+                bs.repeat(rows)
+            }
+            None => vec![0f32; rows * out_dim],
+        };
+        let mut shape = dims.to_vec();
+        if let Some(last) = shape.last_mut() {
+            *last = out_dim;
+        }
+        Ok(Self {
+            xs,
+            rows,
+            out,
+            shape,
+        })
+    }
+
+    fn finish(self) -> (CpuStorage, Shape) {
+        (CpuStorage::F32(self.out), Shape::from(self.shape))
+    }
+}
+
 /// The tile product of [`Linear::forward_with`]: `x (…, in)` and the bias `(out)` contiguous
 /// F32, the weight packed.
 struct LinearTiles<'a> {
@@ -156,33 +209,11 @@ impl LinearTiles<'_> {
         x: (&CpuStorage, &Layout),
         b: Option<(&CpuStorage, &Layout)>,
     ) -> candle_core::Result<(CpuStorage, Shape)> {
-        let xs = crate::contiguous_f32(x.0, x.1, "linear-tiles: the input")?;
         let (in_dim, out_dim) = (self.packed.rows(), self.packed.cols());
-        let dims = x.1.shape().dims();
-        if dims.last() != Some(&in_dim) {
-            candle_core::bail!(
-                "linear-tiles: input {:?} does not end in the weight's {in_dim} inputs",
-                dims
-            );
-        }
-        let rows = xs.len() / in_dim.max(1);
-        let mut out = match b {
-            Some(b) => {
-                let bs = crate::contiguous_f32(b.0, b.1, "linear-tiles: the bias")?;
-                if bs.len() != out_dim {
-                    candle_core::bail!("linear-tiles: {} biases for {out_dim} outputs", bs.len());
-                }
-                bs.repeat(rows)
-            }
-            None => vec![0f32; rows * out_dim],
-        };
-        crate::tiles::linear(&mut out, xs, self.packed, rows, in_dim)
+        let mut y = Output::new("linear-tiles", x, b, in_dim, out_dim)?;
+        crate::tiles::linear(&mut y.out, y.xs, self.packed, y.rows, in_dim)
             .map_err(|e| candle_core::Error::Msg(e.to_string()))?;
-        let mut shape = dims.to_vec();
-        if let Some(last) = shape.last_mut() {
-            *last = out_dim;
-        }
-        Ok((CpuStorage::F32(out), Shape::from(shape)))
+        Ok(y.finish())
     }
 }
 
@@ -244,41 +275,19 @@ impl LinearF32 {
         w: (&CpuStorage, &Layout),
         b: Option<(&CpuStorage, &Layout)>,
     ) -> candle_core::Result<(CpuStorage, Shape)> {
-        let xs = crate::contiguous_f32(x.0, x.1, "linear-f32: the input")?;
         let (ws, column_major) = weight_slice(w.0, w.1)?;
         let (out_dim, in_dim) = w.1.shape().dims2()?;
-        let dims = x.1.shape().dims();
-        if dims.last() != Some(&in_dim) {
-            candle_core::bail!(
-                "linear-f32: input {:?} does not end in the weight's {in_dim} inputs",
-                dims
-            );
-        }
-        let rows = xs.len() / in_dim.max(1);
-        let mut out = match b {
-            Some(b) => {
-                let bs = crate::contiguous_f32(b.0, b.1, "linear-f32: the bias")?;
-                if bs.len() != out_dim {
-                    candle_core::bail!("linear-f32: {} biases for {out_dim} outputs", bs.len());
-                }
-                bs.repeat(rows)
-            }
-            None => vec![0f32; rows * out_dim],
-        };
+        let mut y = Output::new("linear-f32", x, b, in_dim, out_dim)?;
         product(
-            &mut out,
-            xs,
+            &mut y.out,
+            y.xs,
             (ws, column_major),
-            rows,
+            y.rows,
             in_dim,
             out_dim,
             b.is_some(),
         );
-        let mut shape = dims.to_vec();
-        if let Some(last) = shape.last_mut() {
-            *last = out_dim;
-        }
-        Ok((CpuStorage::F32(out), Shape::from(shape)))
+        Ok(y.finish())
     }
 }
 

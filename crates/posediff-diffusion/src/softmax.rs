@@ -88,18 +88,7 @@ fn softmax_rows(values: &mut [f32], row: usize) {
 #[inline(always)]
 fn exp_rows(values: &mut [f32], row: usize, inv_sums: &mut [f32]) {
     for (r, inv) in values.chunks_exact_mut(row).zip(inv_sums) {
-        let mut lanes = [f32::NEG_INFINITY; LANES];
-        let mut blocks = r.chunks_exact(LANES);
-        for b in &mut blocks {
-            for (m, &v) in lanes.iter_mut().zip(b) {
-                *m = m.max(v);
-            }
-        }
-        let max = blocks
-            .remainder()
-            .iter()
-            .chain(&lanes)
-            .fold(f32::NEG_INFINITY, |m, &v| m.max(v));
+        let max = row_max(r);
         let cut = flush_below(r.len());
         let mut sums = [0f32; LANES];
         let mut blocks = r.chunks_exact_mut(LANES);
@@ -144,6 +133,24 @@ pub(crate) fn exp_rows_dispatch(values: &mut [f32], row: usize, inv_sums: &mut [
         row,
         inv_sums,
     });
+}
+
+/// The largest value of a row, reduced in `LANES` lanes (vectorised where the caller is
+/// compiled for the CPU's features).
+#[inline(always)]
+pub(crate) fn row_max(r: &[f32]) -> f32 {
+    let mut lanes = [f32::NEG_INFINITY; LANES];
+    let mut blocks = r.chunks_exact(LANES);
+    for b in &mut blocks {
+        for (m, &v) in lanes.iter_mut().zip(b) {
+            *m = m.max(v);
+        }
+    }
+    blocks
+        .remainder()
+        .iter()
+        .chain(&lanes)
+        .fold(f32::NEG_INFINITY, |m, &v| m.max(v))
 }
 
 /// `weights = exp(scores − offsets[column])` for row-major `row`-wide blocks, terms below `cut`

@@ -231,12 +231,7 @@ pub(crate) fn cross_attend_heads(
                         posediff_amx::matmul(s, n, &t.rows, 0..len, &t.keys, false)?;
                         // Columns: raise the maxima, rescale what was accumulated, this
                         // block's weights (as the F32 kernel).
-                        block_max.fill(f32::NEG_INFINITY);
-                        for row in s.chunks_exact(n) {
-                            for (bm, &x) in block_max.iter_mut().zip(row) {
-                                *bm = bm.max(x);
-                            }
-                        }
+                        crate::attention::column_maxima(s, block_max);
                         let mut rescaled = false;
                         for (j, bm) in block_max.iter().enumerate() {
                             t.alpha[j] = 1.0;
@@ -349,18 +344,7 @@ impl pulp::WithSimd for ExpRowsPacked<'_> {
         } = self;
         let cut = crate::softmax::flush_below(row);
         for (r, (values, inv)) in s.chunks_exact(row).zip(inv.iter_mut()).enumerate() {
-            let mut lanes = [f32::NEG_INFINITY; LANES];
-            let mut blocks = values.chunks_exact(LANES);
-            for b in &mut blocks {
-                for (m, &v) in lanes.iter_mut().zip(b) {
-                    *m = m.max(v);
-                }
-            }
-            let max = blocks
-                .remainder()
-                .iter()
-                .chain(&lanes)
-                .fold(f32::NEG_INFINITY, |m, &v| m.max(v));
+            let max = crate::softmax::row_max(values);
             let h = &mut hi[r * stride..r * stride + row];
             let l = &mut lo[r * stride..r * stride + row];
             let mut sums = [0f32; LANES];

@@ -161,6 +161,26 @@ fn matcher_input(fx: &SafetensorsFixture, i: usize) -> (Vec<[f32; 2]>, Vec<f32>,
     (kp, desc, [w as f32, h as f32])
 }
 
+/// [`matcher_input`]'s values as LightGlue takes them.
+fn input(x: &(Vec<[f32; 2]>, Vec<f32>, [f32; 2])) -> MatcherInput<'_> {
+    MatcherInput {
+        positions: &x.0,
+        descriptors: &x.1,
+        image_size: x.2,
+    }
+}
+
+/// Every layer, no pruning, no overlap check (the reference's `depth_confidence = -1`,
+/// `width_confidence = -1`).
+fn every_layer() -> LightGlueConfig {
+    LightGlueConfig {
+        depth_confidence: None,
+        width_confidence: None,
+        filter_threshold: 0.1,
+        overlap_check: None,
+    }
+}
+
 fn index_pairs(fx: &SafetensorsFixture, name: &str) -> Vec<(usize, usize)> {
     fx.index_pairs(name)
 }
@@ -170,25 +190,10 @@ fn lightglue_layers_assignment_and_matches_match_the_reference() {
     let net = lightglue();
     for pair in PAIRS {
         let fx = fixture(pair);
-        let (k0, d0, s0) = matcher_input(&fx, 0);
-        let (k1, d1, s1) = matcher_input(&fx, 1);
-        let a = MatcherInput {
-            positions: &k0,
-            descriptors: &d0,
-            image_size: s0,
-        };
-        let b = MatcherInput {
-            positions: &k1,
-            descriptors: &d1,
-            image_size: s1,
-        };
+        let owned = [matcher_input(&fx, 0), matcher_input(&fx, 1)];
+        let (a, b) = (input(&owned[0]), input(&owned[1]));
         // Every layer, no pruning: per-layer descriptors and the final assignment.
-        let full = LightGlueConfig {
-            depth_confidence: None,
-            width_confidence: None,
-            filter_threshold: 0.1,
-            overlap_check: None,
-        };
+        let full = every_layer();
         let (m, trace) = net
             .match_traced(&a, &b, &full)
             .unwrap_or_else(|e| panic!("{e}"));
@@ -263,25 +268,10 @@ fn an_overlap_check_ends_a_pair_only_below_its_minimum() {
     let net = lightglue();
     for pair in PAIRS {
         let fx = fixture(pair);
-        let (k0, d0, s0) = matcher_input(&fx, 0);
-        let (k1, d1, s1) = matcher_input(&fx, 1);
-        let a = MatcherInput {
-            positions: &k0,
-            descriptors: &d0,
-            image_size: s0,
-        };
-        let b = MatcherInput {
-            positions: &k1,
-            descriptors: &d1,
-            image_size: s1,
-        };
+        let owned = [matcher_input(&fx, 0), matcher_input(&fx, 1)];
+        let (a, b) = (input(&owned[0]), input(&owned[1]));
         // Every layer, so that layer 2 is always reached.
-        let full = LightGlueConfig {
-            depth_confidence: None,
-            width_confidence: None,
-            filter_threshold: 0.1,
-            overlap_check: None,
-        };
+        let full = every_layer();
         let with = |min_matches| LightGlueConfig {
             overlap_check: Some(posediff_learned::lightglue::OverlapCheck {
                 after_layer: 2,
@@ -337,24 +327,9 @@ fn high_precision_gives_the_reference_matches() {
     let ratio = 256.0;
     for pair in PAIRS {
         let fx = fixture(pair);
-        let (k0, d0, s0) = matcher_input(&fx, 0);
-        let (k1, d1, s1) = matcher_input(&fx, 1);
-        let a = MatcherInput {
-            positions: &k0,
-            descriptors: &d0,
-            image_size: s0,
-        };
-        let b = MatcherInput {
-            positions: &k1,
-            descriptors: &d1,
-            image_size: s1,
-        };
-        let full = LightGlueConfig {
-            depth_confidence: None,
-            width_confidence: None,
-            filter_threshold: 0.1,
-            overlap_check: None,
-        };
+        let owned = [matcher_input(&fx, 0), matcher_input(&fx, 1)];
+        let (a, b) = (input(&owned[0]), input(&owned[1]));
+        let full = every_layer();
         let (m, trace) = net
             .match_traced(&a, &b, &full)
             .unwrap_or_else(|e| panic!("{e}"));
