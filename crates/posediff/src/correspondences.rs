@@ -49,9 +49,9 @@ pub const LEARNED_MAX_KEYPOINTS: usize = 2048;
 
 /// The precision of LightGlue's products: PyTorch's "high" (each F32 operand as two BF16
 /// values on AMX tiles where the CPU has them, F32 products elsewhere). It gives the reference
-/// fixtures' matches, stopping layers and pruning exactly (`high_precision_gives_the_reference_
-/// matches`), and on the dev sets the same cameras as F32 (docs/BENCHMARKS.md).
-/// `POSEDIFF_NO_AMX=1` turns the tiles off.
+/// fixtures' matches, stopping layers and pruning exactly (the parity test
+/// `high_precision_gives_the_reference_matches`), and on the dev sets the same kept pairs as
+/// F32 (docs/BENCHMARKS.md, "LightGlue on AMX tiles"). `POSEDIFF_NO_AMX=1` turns the tiles off.
 pub const LEARNED_PRECISION: posediff_diffusion::MatmulPrecision =
     posediff_diffusion::MatmulPrecision::High;
 
