@@ -11,8 +11,10 @@
 //!   a 16-bit significand.
 //! - [`Split::Three`]: six tile products (all `aᵢbⱼ` with `i + j ≤ 2`), about `2⁻²⁴`: F32's own.
 //!
-//! The smallest products are added first. Term products are exact in F32 (8 × 8 bits); the
-//! accumulation is F32 with round-to-nearest-even, as [`matmul_emulated`] spells out.
+//! Term products are exact in F32 (8 × 8 bits) and accumulate in F32: [`matmul_emulated`] adds
+//! the smallest term products first; the two-term tile kernel, per step of `k`, adds `a₁b₀`,
+//! `a₀b₀`, then `a₀b₁` (so that each loaded tile serves two products). Both orders have the
+//! accuracy above.
 //!
 //! Operands are packed once ([`PackedA`], [`PackedB`]) and can serve many products: the rows of
 //! `A` row-major in blocks of 32, `B` in the pairwise-interleaved ("VNNI") layout the tile unit
@@ -178,12 +180,6 @@ pub struct PackedA {
 impl std::fmt::Debug for PackedA {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         write!(f, "PackedA({} × {}, {:?})", self.m, self.k, self.split)
-    }
-}
-
-impl std::fmt::Debug for PackedB {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "PackedB({} × {}, {:?})", self.k, self.n, self.split)
     }
 }
 
@@ -354,21 +350,19 @@ impl pulp::WithSimd for PackRows<'_> {
             let d1 = &mut t1[i * kp..i * kp + k];
             if terms == 2 {
                 for ((x, h), l) in src.iter().zip(d0.iter_mut()).zip(d1.iter_mut()) {
-                    *h = bf16(*x);
-                    *l = bf16(*x - widen(*h));
+                    (*h, *l) = split_two(*x);
                 }
             } else {
                 let d2 = &mut t2[i * kp..i * kp + k];
+                let mut parts = [0u16; 3];
                 for (((x, h), l), s) in src
                     .iter()
                     .zip(d0.iter_mut())
                     .zip(d1.iter_mut())
                     .zip(d2.iter_mut())
                 {
-                    *h = bf16(*x);
-                    let r = *x - widen(*h);
-                    *l = bf16(r);
-                    *s = bf16(r - widen(*l));
+                    split(*x, &mut parts, 3);
+                    [*h, *l, *s] = parts;
                 }
             }
         }
@@ -415,8 +409,7 @@ impl pulp::WithSimd for PackPairs<'_> {
             let d1 = &mut t1[r * np..r * np + n];
             if terms == 2 {
                 for (((x, y), h), l) in even.iter().zip(odd).zip(d0.iter_mut()).zip(d1.iter_mut()) {
-                    let (hx, hy) = (bf16(*x), bf16(*y));
-                    let (lx, ly) = (bf16(*x - widen(hx)), bf16(*y - widen(hy)));
+                    let ((hx, lx), (hy, ly)) = (split_two(*x), split_two(*y));
                     *h = hx as u32 | (hy as u32) << 16;
                     *l = lx as u32 | (ly as u32) << 16;
                 }
@@ -453,6 +446,12 @@ pub struct PackedB {
     np: usize,
     /// Term `t` is `data[t·kp·np / 2 ..]`: `kp / 2` rows of `np` pairs.
     data: Vec<u32>,
+}
+
+impl std::fmt::Debug for PackedB {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "PackedB({} × {}, {:?})", self.k, self.n, self.split)
+    }
 }
 
 impl PackedB {

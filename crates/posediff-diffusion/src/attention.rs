@@ -422,19 +422,17 @@ pub fn cross_attend_heads_with(
                 );
                 // Columns: raise the maxima, rescale what was accumulated, weights of this block.
                 let w = &mut weights[..len * n];
-                column_maxima(s, block_max);
-                for (j, bm) in block_max.iter().enumerate() {
-                    if *bm > col_max[j] {
-                        let alpha = crate::softmax::exp_f32(col_max[j] - bm);
-                        // A factor that would leave subnormal sums clears them instead.
-                        let alpha = if col_max[j] - bm < cut { 0.0 } else { alpha };
-                        col_sum[j] *= alpha;
+                raise_column_maxima(
+                    s,
+                    block_max,
+                    (&mut col_max, &mut col_sum),
+                    cut,
+                    |j, alpha| {
                         dst_b[j * d..(j + 1) * d]
                             .iter_mut()
                             .for_each(|x| *x *= alpha);
-                        col_max[j] = *bm;
-                    }
-                }
+                    },
+                );
                 crate::softmax::exp_offsets_dispatch(s, w, n, &col_max, cut, &mut col_sum);
                 // out_b (d × n column-major) += vaᵀ (d × len) · W (len × n).
                 let vat =
@@ -460,12 +458,31 @@ pub fn cross_attend_heads_with(
     Ok(())
 }
 
-/// The maximum of every column of the row-major block `s` (`maxima.len()` wide).
-pub(crate) fn column_maxima(s: &[f32], maxima: &mut [f32]) {
-    maxima.fill(f32::NEG_INFINITY);
-    for row in s.chunks_exact(maxima.len().max(1)) {
-        for (m, &x) in maxima.iter_mut().zip(row) {
+/// The column side of a block of scores `s` (row-major, `block_max.len()` wide): each column's
+/// running maximum `col_max` rises to the block's (`block_max`, scratch), and what was
+/// accumulated under the old maximum — the sum `col_sum` here, the caller's output through
+/// `rescale(column, factor)` — is scaled by `exp(old − new)`. A factor that would leave
+/// subnormal sums (below `cut`) clears them instead.
+pub(crate) fn raise_column_maxima(
+    s: &[f32],
+    block_max: &mut [f32],
+    (col_max, col_sum): (&mut [f32], &mut [f32]),
+    cut: f32,
+    mut rescale: impl FnMut(usize, f32),
+) {
+    block_max.fill(f32::NEG_INFINITY);
+    for row in s.chunks_exact(block_max.len().max(1)) {
+        for (m, &x) in block_max.iter_mut().zip(row) {
             *m = m.max(x);
+        }
+    }
+    for (j, &bm) in block_max.iter().enumerate() {
+        if bm > col_max[j] {
+            let alpha = crate::softmax::exp_f32(col_max[j] - bm);
+            let alpha = if col_max[j] - bm < cut { 0.0 } else { alpha };
+            col_sum[j] *= alpha;
+            rescale(j, alpha);
+            col_max[j] = bm;
         }
     }
 }

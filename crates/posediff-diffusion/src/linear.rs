@@ -92,29 +92,21 @@ impl Linear {
         if !precision.uses_tiles() || !self.fast_path(x) || self.weight.rank() != 2 {
             return self.forward(x);
         }
-        let (out_dim, in_dim) = self.weight.dims2()?;
-        let dims = x.dims().to_vec();
-        if dims.last() != Some(&in_dim) {
-            return Err(crate::DiffusionError::Shape {
-                what: "linear input",
-                expected: "(…, in) with the weight's in",
-                got: dims,
-            });
-        }
         let packed = match self.tiles.get() {
             Some(p) => p,
             None => {
-                let w = self.weight.t()?.is_contiguous();
-                let values = if w {
+                let (out_dim, in_dim) = self.weight.dims2()?;
+                let column_major = self.weight.t()?.is_contiguous();
+                let values = if column_major {
                     self.weight.t()?.flatten_all()?.to_vec1::<f32>()?
                 } else {
                     self.weight.flatten_all()?.to_vec1::<f32>()?
                 };
-                let p = crate::tiles::pack_weight(&values, w, out_dim, in_dim)?;
+                let p = crate::tiles::pack_weight(&values, column_major, out_dim, in_dim)?;
                 self.tiles.get_or_init(|| p)
             }
         };
-        // The input's storage is read in place (no host copy).
+        // The input's storage is read in place (no host copy); the op checks its width.
         let x = x.contiguous()?;
         let op = LinearTiles { packed };
         Ok(match &self.bias {

@@ -231,19 +231,19 @@ pub(crate) fn cross_attend_heads(
                         posediff_amx::matmul(s, n, &t.rows, 0..len, &t.keys, false)?;
                         // Columns: raise the maxima, rescale what was accumulated, this
                         // block's weights (as the F32 kernel).
-                        crate::attention::column_maxima(s, block_max);
+                        // The accumulated out_bᵀ's columns are rescaled in one pass.
+                        t.alpha.fill(1.0);
                         let mut rescaled = false;
-                        for (j, bm) in block_max.iter().enumerate() {
-                            t.alpha[j] = 1.0;
-                            if *bm > col_max[j] {
-                                let alpha = crate::softmax::exp_f32(col_max[j] - bm);
-                                let alpha = if col_max[j] - bm < cut { 0.0 } else { alpha };
-                                col_sum[j] *= alpha;
+                        crate::attention::raise_column_maxima(
+                            s,
+                            block_max,
+                            (&mut col_max, &mut col_sum),
+                            cut,
+                            |j, alpha| {
                                 t.alpha[j] = alpha;
                                 rescaled = true;
-                                col_max[j] = *bm;
-                            }
-                        }
+                            },
+                        );
                         if rescaled && start > 0 {
                             for row in t.column_out.chunks_exact_mut(n) {
                                 row.iter_mut().zip(&t.alpha).for_each(|(x, a)| *x *= a);

@@ -16,11 +16,11 @@
 //!   log-sigmoid matchabilities, with a dustbin row and column; mutual arg-max matches whose
 //!   probability exceeds `filter_threshold`.
 
-use posediff_diffusion::MatmulPrecision;
 use std::path::Path;
 
 use candle_core::{D, Device, IndexOp, Tensor};
 use candle_nn::VarBuilder;
+use posediff_diffusion::MatmulPrecision;
 use posediff_diffusion::activation::gelu_erf_owned;
 use posediff_diffusion::norm::LayerNorm;
 use posediff_diffusion::softmax::softmax_last_dim_owned;
@@ -146,7 +146,7 @@ impl PreparedImage {
 /// `nn.Linear`: posediff-diffusion's layer (faer's product for F32 on the CPU, AMX tiles at
 /// [`MatmulPrecision::High`] where the CPU has them).
 #[derive(Debug, Clone)]
-struct Linear(posediff_diffusion::linear::Linear, MatmulPrecision);
+struct Linear(posediff_diffusion::linear::Linear);
 
 impl Linear {
     fn new(vb: &VarBuilder, name: &str, inp: usize, out: usize, bias: bool) -> Result<Self> {
@@ -156,14 +156,11 @@ impl Linear {
         } else {
             None
         };
-        Ok(Self(
-            posediff_diffusion::linear::Linear::new(weight, bias)?,
-            MatmulPrecision::Highest,
-        ))
+        Ok(Self(posediff_diffusion::linear::Linear::new(weight, bias)?))
     }
 
-    fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        Ok(self.0.forward_with(x, self.1)?)
+    fn forward(&self, x: &Tensor, precision: MatmulPrecision) -> Result<Tensor> {
+        Ok(self.0.forward_with(x, precision)?)
     }
 }
 
@@ -184,16 +181,17 @@ impl Ffn {
     }
 
     /// `x + ffn([x, message])`.
-    fn residual(&self, x: &Tensor, message: &Tensor) -> Result<Tensor> {
-        let h = self.fc0.forward(&Tensor::cat(&[x, message], D::Minus1)?)?;
+    fn residual(&self, x: &Tensor, message: &Tensor, p: MatmulPrecision) -> Result<Tensor> {
+        let h = self
+            .fc0
+            .forward(&Tensor::cat(&[x, message], D::Minus1)?, p)?;
         let h = gelu_erf_owned(self.norm.forward(&h)?)?;
-        Ok((x + self.fc3.forward(&h)?)?)
+        Ok((x + self.fc3.forward(&h, p)?)?)
     }
 }
 
 #[derive(Debug, Clone)]
 struct Layer {
-    precision: MatmulPrecision,
     wqkv: Linear,
     out_proj: Linear,
     self_ffn: Ffn,
@@ -334,7 +332,6 @@ impl Layer {
         let s = format!("transformers.{i}.self_attn");
         let c = format!("transformers.{i}.cross_attn");
         Ok(Self {
-            precision: MatmulPrecision::Highest,
             wqkv: Linear::new(vb, &format!("{s}.Wqkv"), DIM, 3 * DIM, true)?,
             out_proj: Linear::new(vb, &format!("{s}.out_proj"), DIM, DIM, true)?,
             self_ffn: Ffn::new(vb, &format!("{s}.ffn"))?,
@@ -345,47 +342,52 @@ impl Layer {
         })
     }
 
-    fn self_block(&self, x: &Tensor, enc: &Encoding, rot: &Tensor) -> Result<Tensor> {
+    fn self_block(
+        &self,
+        x: &Tensor,
+        enc: &Encoding,
+        rot: &Tensor,
+        p: MatmulPrecision,
+    ) -> Result<Tensor> {
         let scale = (HEAD_DIM as f64).powf(-0.5);
-        let qkv = self.wqkv.forward(x)?;
+        let qkv = self.wqkv.forward(x, p)?;
         let (q, k, v) = if qkv.device().is_cpu() && qkv.dtype() == candle_core::DType::F32 {
             split_rope_f32(&qkv, enc, scale as f32)?
         } else {
             split_rope_candle(&qkv, enc, rot, scale)?
         };
-        let context = attention(&q, &k, &v, self.precision)?;
-        let message = self.out_proj.forward(&merge_heads(&context)?)?;
-        self.self_ffn.residual(x, &message)
+        let context = attention(&q, &k, &v, p)?;
+        let message = self.out_proj.forward(&merge_heads(&context)?, p)?;
+        self.self_ffn.residual(x, &message, p)
     }
 
-    fn cross_block(&self, x0: &Tensor, x1: &Tensor) -> Result<(Tensor, Tensor)> {
+    fn cross_block(
+        &self,
+        x0: &Tensor,
+        x1: &Tensor,
+        p: MatmulPrecision,
+    ) -> Result<(Tensor, Tensor)> {
         let s = (HEAD_DIM as f64).powf(-0.25);
-        let qk0 = (split_heads(&self.to_qk.forward(x0)?)? * s)?;
-        let qk1 = (split_heads(&self.to_qk.forward(x1)?)? * s)?;
-        let v0 = split_heads(&self.to_v.forward(x0)?)?;
-        let v1 = split_heads(&self.to_v.forward(x1)?)?;
+        let qk0 = (split_heads(&self.to_qk.forward(x0, p)?)? * s)?;
+        let qk1 = (split_heads(&self.to_qk.forward(x1, p)?)? * s)?;
+        let v0 = split_heads(&self.to_v.forward(x0, p)?)?;
+        let v1 = split_heads(&self.to_v.forward(x1, p)?)?;
         // One similarity matrix, read row-wise for image 0 and column-wise for image 1 (on the
         // CPU each block of it serves both directions; elsewhere each direction computes its
         // own blocks, the same products).
         let (m0, m1) = if qk0.device().is_cpu() && qk0.dtype() == candle_core::DType::F32 {
-            posediff_diffusion::attention::cross_attention_heads_with(
-                &qk0,
-                &qk1,
-                &v0,
-                &v1,
-                self.precision,
-            )?
+            posediff_diffusion::attention::cross_attention_heads_with(&qk0, &qk1, &v0, &v1, p)?
         } else {
             (
-                attention(&qk0, &qk1, &v1, self.precision)?,
-                attention(&qk1, &qk0, &v0, self.precision)?,
+                attention(&qk0, &qk1, &v1, p)?,
+                attention(&qk1, &qk0, &v0, p)?,
             )
         };
-        let m0 = self.to_out.forward(&merge_heads(&m0)?)?;
-        let m1 = self.to_out.forward(&merge_heads(&m1)?)?;
+        let m0 = self.to_out.forward(&merge_heads(&m0)?, p)?;
+        let m1 = self.to_out.forward(&merge_heads(&m1)?, p)?;
         Ok((
-            self.cross_ffn.residual(x0, &m0)?,
-            self.cross_ffn.residual(x1, &m1)?,
+            self.cross_ffn.residual(x0, &m0, p)?,
+            self.cross_ffn.residual(x1, &m1, p)?,
         ))
     }
 }
@@ -405,6 +407,8 @@ pub struct LightGlue {
     rotate_half: Tensor,
     input_dim: usize,
     device: Device,
+    /// The precision of the large products ([`LightGlue::set_precision`]).
+    precision: MatmulPrecision,
 }
 
 /// The reference's `confidence_threshold(i)`, in F32 as its buffer holds it.
@@ -501,6 +505,7 @@ impl LightGlue {
             rotate_half: Tensor::from_vec(rot, (HEAD_DIM, HEAD_DIM), device)?,
             input_dim,
             device: device.clone(),
+            precision: MatmulPrecision::Highest,
         })
     }
 
@@ -510,31 +515,12 @@ impl LightGlue {
     /// arithmetic, which the parity fixtures check; [`MatmulPrecision::High`] runs them on AMX
     /// tiles where the CPU has them (docs/BENCHMARKS.md compares the matches).
     pub fn set_precision(&mut self, precision: MatmulPrecision) {
-        self.input_proj.1 = precision;
-        for l in &mut self.layers {
-            l.precision = precision;
-            for lin in [
-                &mut l.wqkv,
-                &mut l.out_proj,
-                &mut l.to_qk,
-                &mut l.to_v,
-                &mut l.to_out,
-                &mut l.self_ffn.fc0,
-                &mut l.self_ffn.fc3,
-                &mut l.cross_ffn.fc0,
-                &mut l.cross_ffn.fc3,
-            ] {
-                lin.1 = precision;
-            }
-        }
-        for (proj, _) in &mut self.assignment {
-            proj.1 = precision;
-        }
+        self.precision = precision;
     }
 
     /// The precision of the large products ([`Self::set_precision`]).
     pub fn precision(&self) -> MatmulPrecision {
-        self.input_proj.1
+        self.precision
     }
 
     /// The descriptor width the matcher takes.
@@ -566,7 +552,7 @@ impl LightGlue {
             .collect();
         let kn = Tensor::from_vec(kn, (n, 2), &self.device)?;
         let desc = Tensor::from_vec(f.descriptors.to_vec(), (n, self.input_dim), &self.device)?;
-        let desc = self.input_proj.forward(&desc)?;
+        let desc = self.input_proj.forward(&desc, self.precision)?;
         let proj = kn.matmul(&self.posenc_t)?;
         // repeat_interleave(2, dim=-1): every frequency twice, adjacent.
         let twice = |t: Tensor| -> Result<Tensor> {
@@ -592,7 +578,7 @@ impl LightGlue {
         let d = if f.positions.is_empty() {
             d
         } else {
-            self.layers[0].self_block(&d, &enc, &self.rotate_half)?
+            self.layers[0].self_block(&d, &enc, &self.rotate_half, self.precision)?
         };
         Ok(PreparedImage { d, enc })
     }
@@ -675,10 +661,10 @@ impl LightGlue {
             let layer = &self.layers[i];
             // The first layer's self-attention is part of the prepared images.
             if i > 0 {
-                d0 = layer.self_block(&d0, &e0, &self.rotate_half)?;
-                d1 = layer.self_block(&d1, &e1, &self.rotate_half)?;
+                d0 = layer.self_block(&d0, &e0, &self.rotate_half, self.precision)?;
+                d1 = layer.self_block(&d1, &e1, &self.rotate_half, self.precision)?;
             }
-            (d0, d1) = layer.cross_block(&d0, &d1)?;
+            (d0, d1) = layer.cross_block(&d0, &d1, self.precision)?;
             if trace {
                 layers.push((d0.clone(), d1.clone()));
             }
@@ -775,7 +761,8 @@ impl LightGlue {
 
     /// Token confidences after layer `i`.
     fn confidence(&self, i: usize, d: &Tensor) -> Result<Vec<f32>> {
-        let c = candle_nn::ops::sigmoid(&self.token[i].forward(d)?)?;
+        // The one-output heads stay F32: a tile product would pad their single column to 32.
+        let c = candle_nn::ops::sigmoid(&self.token[i].forward(d, MatmulPrecision::Highest)?)?;
         Ok(c.flatten_all()?.to_vec1::<f32>()?)
     }
 
@@ -788,7 +775,7 @@ impl LightGlue {
         threshold: f32,
         cut: f32,
     ) -> Result<Vec<usize>> {
-        let z = self.assignment[i].1.forward(d)?;
+        let z = self.assignment[i].1.forward(d, MatmulPrecision::Highest)?;
         let matchable = candle_nn::ops::sigmoid(&z)?
             .flatten_all()?
             .to_vec1::<f32>()?;
@@ -804,15 +791,21 @@ impl LightGlue {
     fn log_assignment(&self, i: usize, d0: &Tensor, d1: &Tensor) -> Result<Vec<f32>> {
         let (proj, matchability) = &self.assignment[i];
         let s = (DIM as f64).powf(-0.25);
-        let md0 = (proj.forward(d0)? * s)?;
-        let md1 = (proj.forward(d1)? * s)?;
+        let md0 = (proj.forward(d0, self.precision)? * s)?;
+        let md1 = (proj.forward(d1, self.precision)? * s)?;
         // md0 md1ᵀ as a bias-free linear layer of weight md1 (faer's product on the CPU).
         let sim = posediff_diffusion::linear::Linear::new(md1, None)?
-            .forward_with(&md0, self.input_proj.1)?;
+            .forward_with(&md0, self.precision)?;
         let (m, n) = sim.dims2()?;
         let sim = sim.flatten_all()?.to_vec1::<f32>()?;
-        let z0 = matchability.forward(d0)?.flatten_all()?.to_vec1::<f32>()?;
-        let z1 = matchability.forward(d1)?.flatten_all()?.to_vec1::<f32>()?;
+        let z0 = matchability
+            .forward(d0, MatmulPrecision::Highest)?
+            .flatten_all()?
+            .to_vec1::<f32>()?;
+        let z1 = matchability
+            .forward(d1, MatmulPrecision::Highest)?
+            .flatten_all()?
+            .to_vec1::<f32>()?;
         if sim.iter().chain(&z0).chain(&z1).any(|v| !v.is_finite()) {
             return Err(LearnedError::NonFinite("LightGlue assignment"));
         }
