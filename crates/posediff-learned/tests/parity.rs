@@ -189,75 +189,80 @@ fn index_pairs(fx: &SafetensorsFixture, name: &str) -> Vec<(usize, usize)> {
 fn lightglue_layers_assignment_and_matches_match_the_reference() {
     let net = lightglue();
     for pair in PAIRS {
-        let fx = fixture(pair);
-        let owned = [matcher_input(&fx, 0), matcher_input(&fx, 1)];
-        let (a, b) = (input(&owned[0]), input(&owned[1]));
-        // Every layer, no pruning: per-layer descriptors and the final assignment.
-        let full = every_layer();
-        let (m, trace) = net
-            .match_traced(&a, &b, &full)
-            .unwrap_or_else(|e| panic!("{e}"));
-        assert_eq!(trace.layers.len(), posediff_learned::lightglue::LAYERS);
-        let ref0 = fx.tensor("layer_desc0");
-        let ref1 = fx.tensor("layer_desc1");
-        let per_layer = LAYER_ROWS * 256;
-        for (l, (t0, t1)) in trace.layers.iter().enumerate() {
-            for (which, t, r) in [(0, t0, &ref0), (1, t1, &ref1)] {
-                let ours = t
-                    .narrow(0, 0, LAYER_ROWS)
-                    .and_then(|t| t.flatten_all())
-                    .and_then(|t| t.to_vec1::<f32>())
-                    .unwrap_or_else(|e| panic!("{e}"));
-                let expected = &r.data[l * per_layer..(l + 1) * per_layer];
-                let scale = expected.iter().fold(0f64, |m, v| m.max(v.abs()));
-                assert_close(
-                    &format!("{pair} layer {l} desc{which}"),
-                    &f64s(&ours),
-                    expected,
-                    1e-5 * scale * (l + 1) as f64,
-                    0.0,
-                );
-            }
-        }
-        assert_close(
-            &format!("{pair} log assignment"),
-            &f64s(&trace.assignment),
-            &fx.tensor("full_assignment").data,
-            2e-3,
-            0.0,
-        );
-        assert_eq!(
-            m.matches,
-            index_pairs(&fx, "full_matches"),
-            "{pair} full matches"
-        );
-        assert_close(
-            &format!("{pair} full match scores"),
-            &f64s(&m.scores),
-            &fx.tensor("full_match_scores").data,
-            1e-4,
-            0.0,
-        );
-
-        // The defaults: early exit and pruning.
-        let m = net
-            .match_pair(&a, &b, &LightGlueConfig::default())
-            .unwrap_or_else(|e| panic!("{e}"));
-        assert_eq!(m.stop as f64, fx.tensor("stop").scalar(), "{pair} stop");
-        let ints = |name: &str| -> Vec<usize> {
-            fx.tensor(name).data.iter().map(|&v| v as usize).collect()
-        };
-        assert_eq!(m.prune0, ints("prune0"), "{pair} prune0");
-        assert_eq!(m.prune1, ints("prune1"), "{pair} prune1");
-        assert_eq!(m.matches, index_pairs(&fx, "matches"), "{pair} matches");
-        assert_close(
-            &format!("{pair} match scores"),
-            &f64s(&m.scores),
-            &fx.tensor("match_scores").data,
-            1e-4,
-            0.0,
-        );
+        check_against_the_reference(&net, pair, 1.0);
     }
+}
+
+/// `net` on fixture pair `pair` against the reference, with the F32 tolerances times `ratio`.
+/// Every layer, no pruning: the per-layer descriptors, the final assignment, matches and
+/// scores. Then the defaults (early exit and pruning): the stopping layer and pruning records,
+/// matches and scores. Discrete results must be identical at any ratio.
+fn check_against_the_reference(net: &LightGlue, pair: &str, ratio: f64) {
+    let fx = fixture(pair);
+    let owned = [matcher_input(&fx, 0), matcher_input(&fx, 1)];
+    let (a, b) = (input(&owned[0]), input(&owned[1]));
+    let (m, trace) = net
+        .match_traced(&a, &b, &every_layer())
+        .unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(trace.layers.len(), posediff_learned::lightglue::LAYERS);
+    let ref0 = fx.tensor("layer_desc0");
+    let ref1 = fx.tensor("layer_desc1");
+    let per_layer = LAYER_ROWS * 256;
+    for (l, (t0, t1)) in trace.layers.iter().enumerate() {
+        for (which, t, r) in [(0, t0, &ref0), (1, t1, &ref1)] {
+            let ours = t
+                .narrow(0, 0, LAYER_ROWS)
+                .and_then(|t| t.flatten_all())
+                .and_then(|t| t.to_vec1::<f32>())
+                .unwrap_or_else(|e| panic!("{e}"));
+            let expected = &r.data[l * per_layer..(l + 1) * per_layer];
+            let scale = expected.iter().fold(0f64, |m, v| m.max(v.abs()));
+            assert_close(
+                &format!("{pair} layer {l} desc{which}"),
+                &f64s(&ours),
+                expected,
+                ratio * 1e-5 * scale * (l + 1) as f64,
+                0.0,
+            );
+        }
+    }
+    assert_close(
+        &format!("{pair} log assignment"),
+        &f64s(&trace.assignment),
+        &fx.tensor("full_assignment").data,
+        ratio * 2e-3,
+        0.0,
+    );
+    assert_eq!(
+        m.matches,
+        index_pairs(&fx, "full_matches"),
+        "{pair} full matches"
+    );
+    assert_close(
+        &format!("{pair} full match scores"),
+        &f64s(&m.scores),
+        &fx.tensor("full_match_scores").data,
+        ratio * 1e-4,
+        0.0,
+    );
+
+    // The defaults: early exit and pruning.
+    let m = net
+        .match_pair(&a, &b, &LightGlueConfig::default())
+        .unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(m.stop as f64, fx.tensor("stop").scalar(), "{pair} stop");
+    let ints =
+        |name: &str| -> Vec<usize> { fx.tensor(name).data.iter().map(|&v| v as usize).collect() };
+    assert_eq!(m.prune0, ints("prune0"), "{pair} prune0");
+    assert_eq!(m.prune1, ints("prune1"), "{pair} prune1");
+    assert_eq!(m.matches, index_pairs(&fx, "matches"), "{pair} matches");
+    assert_close(
+        &format!("{pair} match scores"),
+        &f64s(&m.scores),
+        &fx.tensor("match_scores").data,
+        ratio * 1e-4,
+        0.0,
+    );
 }
 
 /// The overlap check (not in the reference) counts the matches of layer 2's head without
@@ -324,68 +329,7 @@ fn an_overlap_check_ends_a_pair_only_below_its_minimum() {
 fn high_precision_gives_the_reference_matches() {
     let mut net = lightglue();
     net.set_precision(posediff_diffusion::MatmulPrecision::High);
-    let ratio = 256.0;
     for pair in PAIRS {
-        let fx = fixture(pair);
-        let owned = [matcher_input(&fx, 0), matcher_input(&fx, 1)];
-        let (a, b) = (input(&owned[0]), input(&owned[1]));
-        let full = every_layer();
-        let (m, trace) = net
-            .match_traced(&a, &b, &full)
-            .unwrap_or_else(|e| panic!("{e}"));
-        let per_layer = LAYER_ROWS * 256;
-        let ref0 = fx.tensor("layer_desc0");
-        let ref1 = fx.tensor("layer_desc1");
-        for (l, (t0, t1)) in trace.layers.iter().enumerate() {
-            for (which, t, r) in [(0, t0, &ref0), (1, t1, &ref1)] {
-                let ours = t
-                    .narrow(0, 0, LAYER_ROWS)
-                    .and_then(|t| t.flatten_all())
-                    .and_then(|t| t.to_vec1::<f32>())
-                    .unwrap_or_else(|e| panic!("{e}"));
-                let expected = &r.data[l * per_layer..(l + 1) * per_layer];
-                let scale = expected.iter().fold(0f64, |m, v| m.max(v.abs()));
-                assert_close(
-                    &format!("{pair} high layer {l} desc{which}"),
-                    &f64s(&ours),
-                    expected,
-                    ratio * 1e-5 * scale * (l + 1) as f64,
-                    0.0,
-                );
-            }
-        }
-        assert_close(
-            &format!("{pair} high log assignment"),
-            &f64s(&trace.assignment),
-            &fx.tensor("full_assignment").data,
-            ratio * 2e-3,
-            0.0,
-        );
-        assert_eq!(m.matches, index_pairs(&fx, "full_matches"), "{pair} high");
-        assert_close(
-            &format!("{pair} high full match scores"),
-            &f64s(&m.scores),
-            &fx.tensor("full_match_scores").data,
-            ratio * 1e-4,
-            0.0,
-        );
-        let m = net
-            .match_pair(&a, &b, &LightGlueConfig::default())
-            .unwrap_or_else(|e| panic!("{e}"));
-        let ints = |name: &str| -> Vec<usize> {
-            fx.tensor(name).data.iter().map(|&v| v as usize).collect()
-        };
-        assert_eq!(
-            m.stop as f64,
-            fx.tensor("stop").scalar(),
-            "{pair} high stop"
-        );
-        assert_eq!(m.prune0, ints("prune0"), "{pair} high prune0");
-        assert_eq!(m.prune1, ints("prune1"), "{pair} high prune1");
-        assert_eq!(
-            m.matches,
-            index_pairs(&fx, "matches"),
-            "{pair} high matches"
-        );
+        check_against_the_reference(&net, pair, 256.0);
     }
 }
