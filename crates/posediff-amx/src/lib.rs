@@ -173,7 +173,9 @@ pub struct PackedA {
     k: usize,
     mp: usize,
     kp: usize,
-    /// Term `t` is `data[t·mp·kp ..]`, `mp` rows of `kp`.
+    /// Row stride of a term, [`row_stride`] of `kp` (`u16`s).
+    lda: usize,
+    /// Term `t` is `data[t·mp·lda ..]`, `mp` rows of `kp` at stride `lda`.
     data: Vec<u16>,
 }
 
@@ -198,6 +200,16 @@ fn padded(x: usize) -> usize {
     x.div_ceil(BLOCK).max(1) * BLOCK
 }
 
+/// The row stride in bytes for rows of `bytes` (a multiple of 64): an odd number of 64-byte
+/// lines. A tile load reads 16 rows at this stride; at a power-of-two stride of 4 KiB or more
+/// (`k` = 2048 of the attention's values) all 16 fall into one set of the 12-way L1 and evict
+/// each other, and the tile loads ran at a fraction of their speed. With an odd count of lines
+/// the 16 rows fall into 16 different sets.
+fn row_stride(bytes: usize) -> usize {
+    let lines = bytes.div_ceil(64);
+    (lines | 1) * 64
+}
+
 impl PackedA {
     /// An empty operand whose buffers [`PackedA::pack`] fills and reuses.
     pub fn new(split: Split) -> Self {
@@ -207,6 +219,7 @@ impl PackedA {
             k: 0,
             mp: 0,
             kp: 0,
+            lda: 0,
             data: Vec::new(),
         }
     }
@@ -222,8 +235,9 @@ impl PackedA {
         self.k = k;
         self.mp = mp;
         self.kp = kp;
+        self.lda = row_stride(kp * 2) / 2;
         self.data.clear();
-        self.data.resize(self.split.terms() * mp * kp, 0);
+        self.data.resize(self.split.terms() * mp * self.lda, 0);
     }
 
     /// Packs the row-major `m × k` matrix whose row `i` starts at `a[i·lda]`.
@@ -238,14 +252,14 @@ impl PackedA {
             )));
         }
         self.reset(m, k);
-        let (kp, terms) = (self.kp, self.split.terms());
-        let plane = self.mp * kp;
+        let (stride, terms) = (self.lda, self.split.terms());
+        let plane = self.mp * stride;
         pulp::Arch::new().dispatch(PackRows {
             a,
             lda,
             m,
             k,
-            kp,
+            stride,
             plane,
             terms,
             out: &mut self.data,
@@ -272,14 +286,14 @@ impl PackedA {
             )));
         }
         self.reset(m, k);
-        let (kp, terms) = (self.kp, self.split.terms());
-        let plane = self.mp * kp;
+        let (stride, terms) = (self.lda, self.split.terms());
+        let plane = self.mp * stride;
         let mut parts = [0u16; 3];
         for p in 0..k {
             for (i, &x) in at[p * ld..p * ld + m].iter().enumerate() {
                 split(x, &mut parts, terms);
                 for (t, &v) in parts.iter().enumerate().take(terms) {
-                    self.data[t * plane + i * kp + p] = v;
+                    self.data[t * plane + i * stride + p] = v;
                 }
             }
         }
@@ -300,9 +314,9 @@ impl PackedA {
     ) -> Result<(&mut [u16], &mut [u16], usize), AmxError> {
         two_terms(self.split)?;
         self.reset(m, k);
-        let plane = self.mp * self.kp;
+        let plane = self.mp * self.lda;
         let (hi, lo) = self.data.split_at_mut(plane);
-        Ok((hi, lo, self.kp))
+        Ok((hi, lo, self.lda))
     }
 
     /// Rows of `A`.
@@ -321,7 +335,7 @@ struct PackRows<'a> {
     lda: usize,
     m: usize,
     k: usize,
-    kp: usize,
+    stride: usize,
     plane: usize,
     terms: usize,
     out: &'a mut [u16],
@@ -337,7 +351,7 @@ impl pulp::WithSimd for PackRows<'_> {
             lda,
             m,
             k,
-            kp,
+            stride,
             plane,
             terms,
             out,
@@ -346,14 +360,14 @@ impl pulp::WithSimd for PackRows<'_> {
         let (t1, t2) = rest.split_at_mut(plane);
         for i in 0..m {
             let src = &a[i * lda..i * lda + k];
-            let d0 = &mut t0[i * kp..i * kp + k];
-            let d1 = &mut t1[i * kp..i * kp + k];
+            let d0 = &mut t0[i * stride..i * stride + k];
+            let d1 = &mut t1[i * stride..i * stride + k];
             if terms == 2 {
                 for ((x, h), l) in src.iter().zip(d0.iter_mut()).zip(d1.iter_mut()) {
                     (*h, *l) = split_two(*x);
                 }
             } else {
-                let d2 = &mut t2[i * kp..i * kp + k];
+                let d2 = &mut t2[i * stride..i * stride + k];
                 let mut parts = [0u16; 3];
                 for (((x, h), l), s) in src
                     .iter()
@@ -374,7 +388,7 @@ struct PackPairs<'a> {
     ldb: usize,
     k: usize,
     n: usize,
-    np: usize,
+    stride: usize,
     plane: usize,
     terms: usize,
     out: &'a mut [u32],
@@ -390,7 +404,7 @@ impl pulp::WithSimd for PackPairs<'_> {
             ldb,
             k,
             n,
-            np,
+            stride,
             plane,
             terms,
             out,
@@ -405,8 +419,8 @@ impl pulp::WithSimd for PackPairs<'_> {
             } else {
                 &zeros[..]
             };
-            let d0 = &mut t0[r * np..r * np + n];
-            let d1 = &mut t1[r * np..r * np + n];
+            let d0 = &mut t0[r * stride..r * stride + n];
+            let d1 = &mut t1[r * stride..r * stride + n];
             if terms == 2 {
                 for (((x, y), h), l) in even.iter().zip(odd).zip(d0.iter_mut()).zip(d1.iter_mut()) {
                     let ((hx, lx), (hy, ly)) = (split_two(*x), split_two(*y));
@@ -414,7 +428,7 @@ impl pulp::WithSimd for PackPairs<'_> {
                     *l = lx as u32 | (ly as u32) << 16;
                 }
             } else {
-                let d2 = &mut t2[r * np..r * np + n];
+                let d2 = &mut t2[r * stride..r * stride + n];
                 for ((((x, y), h), l), s) in even
                     .iter()
                     .zip(odd)
@@ -444,7 +458,9 @@ pub struct PackedB {
     n: usize,
     kp: usize,
     np: usize,
-    /// Term `t` is `data[t·kp·np / 2 ..]`: `kp / 2` rows of `np` pairs.
+    /// Row stride of a term, [`row_stride`] of `np` pairs (`u32`s).
+    ldb: usize,
+    /// Term `t` is `data[t·kp·ldb / 2 ..]`: `kp / 2` rows of `np` pairs at stride `ldb`.
     data: Vec<u32>,
 }
 
@@ -463,6 +479,7 @@ impl PackedB {
             n: 0,
             kp: 0,
             np: 0,
+            ldb: 0,
             data: Vec::new(),
         }
     }
@@ -477,13 +494,14 @@ impl PackedB {
         self.n = n;
         self.kp = kp;
         self.np = np;
+        self.ldb = row_stride(np * 4) / 4;
         self.data.clear();
-        self.data.resize(self.split.terms() * kp * np / 2, 0);
+        self.data.resize(self.split.terms() * self.plane(), 0);
     }
 
     /// The BF16 of term `t` at `(row, column)` of `B` (the emulation's view).
     fn at(&self, t: usize, row: usize, col: usize) -> u16 {
-        let pair = self.data[t * self.kp * self.np / 2 + (row / 2) * self.np + col];
+        let pair = self.data[t * self.plane() + (row / 2) * self.ldb + col];
         (pair >> (16 * (row % 2))) as u16
     }
 
@@ -506,7 +524,7 @@ impl PackedB {
             )));
         }
         self.reset(k, n);
-        let (terms, np, plane) = (self.split.terms(), self.np, self.kp * self.np / 2);
+        let (terms, stride, plane) = (self.split.terms(), self.ldb, self.plane());
         let mut even = [0u16; 3];
         let mut odd = [0u16; 3];
         for j in 0..n {
@@ -519,7 +537,7 @@ impl PackedB {
                     odd = [0; 3];
                 }
                 for t in 0..terms {
-                    self.data[t * plane + r * np + j] = even[t] as u32 | (odd[t] as u32) << 16;
+                    self.data[t * plane + r * stride + j] = even[t] as u32 | (odd[t] as u32) << 16;
                 }
             }
         }
@@ -539,13 +557,13 @@ impl PackedB {
             )));
         }
         self.reset(k, n);
-        let (terms, np, plane) = (self.split.terms(), self.np, self.kp * self.np / 2);
+        let (terms, stride, plane) = (self.split.terms(), self.ldb, self.plane());
         pulp::Arch::new().dispatch(PackPairs {
             b,
             ldb,
             k,
             n,
-            np,
+            stride,
             plane,
             terms,
             out: &mut self.data,
@@ -568,14 +586,19 @@ impl PackedB {
     ) -> Result<(&mut [u32], &mut [u32], usize), AmxError> {
         two_terms(self.split)?;
         self.reset(k, n);
-        let plane = self.kp * self.np / 2;
+        let plane = self.plane();
         let (hi, lo) = self.data.split_at_mut(plane);
-        Ok((hi, lo, self.np))
+        Ok((hi, lo, self.ldb))
     }
 
     /// Columns of `B`.
     pub fn cols(&self) -> usize {
         self.n
+    }
+
+    /// The `u32`s of one term: `kp / 2` rows at stride `ldb`.
+    fn plane(&self) -> usize {
+        self.kp / 2 * self.ldb
     }
 
     /// Rows of `B`.
@@ -669,14 +692,14 @@ pub fn matmul_emulated(
 ) -> Result<(), AmxError> {
     check(c, ldc, a, &rows, b)?;
     let flush = |h: u16| if h & 0x7f80 == 0 { 0.0 } else { widen(h) };
-    let aplane = a.mp * a.kp;
+    let aplane = a.mp * a.lda;
     for (ci, i) in rows.enumerate() {
         for j in 0..b.n {
             let mut acc = if accumulate { c[ci * ldc + j] } else { 0.0 };
             for &(ta, tb) in a.split.products() {
                 for p in 0..a.kp / 2 {
                     for e in [1, 0] {
-                        let x = flush(a.data[ta * aplane + i * a.kp + 2 * p + e]);
+                        let x = flush(a.data[ta * aplane + i * a.lda + 2 * p + e]);
                         let y = flush(b.at(tb, 2 * p + e, j));
                         acc += x * y;
                     }
@@ -825,15 +848,15 @@ mod tiles {
                 );
             }
         }
-        let (kp, np) = (a.kp, b.np);
-        let (aplane, bplane) = (a.mp * kp, kp * np / 2);
+        let (kp, lda, ldb) = (a.kp, a.lda, b.ldb);
+        let (aplane, bplane) = (a.mp * lda, b.plane());
         if a.split == super::Split::Two {
             // Per step of k: A's low terms with B's high, A's high with B's high, A's high with
             // B's low; eight tile loads for twelve products.
-            let a0h = a.data[i0 * kp..].as_ptr();
-            let a1h = a.data[(i0 + 16) * kp..].as_ptr();
-            let a0l = a.data[aplane + i0 * kp..].as_ptr();
-            let a1l = a.data[aplane + (i0 + 16) * kp..].as_ptr();
+            let a0h = a.data[i0 * lda..].as_ptr();
+            let a1h = a.data[(i0 + 16) * lda..].as_ptr();
+            let a0l = a.data[aplane + i0 * lda..].as_ptr();
+            let a1l = a.data[aplane + (i0 + 16) * lda..].as_ptr();
             let b0h = b.data[j0..].as_ptr();
             let b0l = b.data[bplane + j0..].as_ptr();
             // SAFETY: see above; kp / 32 steps along k of A's two row tiles and B's two column
@@ -847,19 +870,19 @@ mod tiles {
                     "tdpbf16ps tmm0, tmm4, tmm6",
                     "tileloadd tmm5, [{a1l} + {sa}]",
                     "tdpbf16ps tmm1, tmm4, tmm7",
+                    "tileloadd tmm4, [{a0h} + {sa}]",
                     "tdpbf16ps tmm2, tmm5, tmm6",
                     "tdpbf16ps tmm3, tmm5, tmm7",
-                    "tileloadd tmm4, [{a0h} + {sa}]",
-                    "tdpbf16ps tmm0, tmm4, tmm6",
                     "tileloadd tmm5, [{a1h} + {sa}]",
+                    "tdpbf16ps tmm0, tmm4, tmm6",
                     "tdpbf16ps tmm1, tmm4, tmm7",
                     "tdpbf16ps tmm2, tmm5, tmm6",
-                    "tdpbf16ps tmm3, tmm5, tmm7",
                     "tileloadd tmm6, [{b0l} + {sb}]",
+                    "tdpbf16ps tmm3, tmm5, tmm7",
                     "tileloadd tmm7, [{b0l} + {sb} + 64]",
                     "tdpbf16ps tmm0, tmm4, tmm6",
-                    "tdpbf16ps tmm1, tmm4, tmm7",
                     "tdpbf16ps tmm2, tmm5, tmm6",
+                    "tdpbf16ps tmm1, tmm4, tmm7",
                     "tdpbf16ps tmm3, tmm5, tmm7",
                     "add {a0h}, 64",
                     "add {a1h}, 64",
@@ -875,17 +898,17 @@ mod tiles {
                     a1l = inout(reg) a1l => _,
                     b0h = inout(reg) b0h => _,
                     b0l = inout(reg) b0l => _,
-                    sa = in(reg) kp * 2,
-                    sb = in(reg) np * 4,
-                    bstep = in(reg) 16 * np * 4,
+                    sa = in(reg) lda * 2,
+                    sb = in(reg) ldb * 4,
+                    bstep = in(reg) 16 * ldb * 4,
                     n = inout(reg) kp / 32 => _,
                     options(nostack, readonly)
                 );
             }
         } else {
             for &(ta, tb) in a.split.products() {
-                let a0 = a.data[ta * aplane + i0 * kp..].as_ptr();
-                let a1 = a.data[ta * aplane + (i0 + 16) * kp..].as_ptr();
+                let a0 = a.data[ta * aplane + i0 * lda..].as_ptr();
+                let a1 = a.data[ta * aplane + (i0 + 16) * lda..].as_ptr();
                 let b0 = b.data[tb * bplane + j0..].as_ptr();
                 // SAFETY: see above; the loop reads kp / 32 tiles along k from each of A's two
                 // row tiles and B's two column tiles.
@@ -908,9 +931,9 @@ mod tiles {
                         a0 = inout(reg) a0 => _,
                         a1 = inout(reg) a1 => _,
                         b0 = inout(reg) b0 => _,
-                        sa = in(reg) kp * 2,
-                        sb = in(reg) np * 4,
-                        bstep = in(reg) 16 * np * 4,
+                        sa = in(reg) lda * 2,
+                        sb = in(reg) ldb * 4,
+                        bstep = in(reg) 16 * ldb * 4,
                         n = inout(reg) kp / 32 => _,
                         options(nostack, readonly)
                     );
@@ -967,6 +990,35 @@ mod tests {
             }
         }
         t
+    }
+
+    /// A tile load reads 16 rows at the operand's stride: each row must land in its own set of
+    /// the L1 (64 sets of 64-byte lines), whatever the row length.
+    #[test]
+    fn a_tiles_rows_fall_into_different_cache_sets() -> Result<(), AmxError> {
+        for k in [32usize, 64, 96, 256, 1024, 2048, 4096] {
+            for bytes in [k * 2, k * 4] {
+                let stride = row_stride(bytes);
+                assert!(
+                    stride >= bytes && stride.is_multiple_of(64),
+                    "{bytes} → {stride}"
+                );
+                assert!(
+                    stride < bytes + 128,
+                    "{bytes} → {stride}: more than one line added"
+                );
+                let sets: std::collections::HashSet<usize> =
+                    (0..16).map(|r| (r * stride / 64) % 64).collect();
+                assert_eq!(sets.len(), 16, "rows of {bytes} bytes at stride {stride}");
+            }
+        }
+        let mut a = PackedA::new(Split::Two);
+        let (_, _, lda) = a.two_terms_mut(40, 2048)?;
+        assert_eq!(lda, 2048 + 32);
+        let mut b = PackedB::new(Split::Two);
+        let (_, _, ldb) = b.two_term_pairs_mut(64, 2048)?;
+        assert_eq!(ldb, 2048 + 16);
+        Ok(())
     }
 
     #[test]

@@ -48,6 +48,39 @@ pub fn exp_f32(x: f32) -> f32 {
     y * f32::from_bits(biased << 23)
 }
 
+/// [`exp_f32`] on a vector, with fused multiply-adds: the same Cephes reduction and
+/// polynomial, each `a·b + c` rounded once instead of twice, so within about two ulps of
+/// [`exp_f32`] but not bit-identical to it. For [`crate::tiles`] only, whose products keep
+/// about 16 bits of each weight (`MatmulPrecision::High`); the F32 kernels keep [`exp_f32`].
+/// Written on pulp's vector type because the compiler does not vectorise the scalar form's
+/// sum and splitting as well as one register per operation.
+#[inline(always)]
+pub(crate) fn exp_fused<S: pulp::Simd>(simd: S, x: S::f32s) -> S::f32s {
+    let x = simd.min_f32s(
+        simd.max_f32s(x, simd.splat_f32s(MIN_X)),
+        simd.splat_f32s(MAX_X),
+    );
+    let rounder = simd.splat_f32s(ROUNDER);
+    let n = simd.sub_f32s(
+        simd.mul_add_f32s(x, simd.splat_f32s(LOG2E), rounder),
+        rounder,
+    );
+    let r = simd.mul_add_f32s(n, simd.splat_f32s(-LN2_HI), x);
+    let r = simd.mul_add_f32s(n, simd.splat_f32s(-LN2_LO), r);
+    let mut p = simd.splat_f32s(P[0]);
+    for &c in &P[1..] {
+        p = simd.mul_add_f32s(p, r, simd.splat_f32s(c));
+    }
+    let y = simd.add_f32s(
+        simd.mul_add_f32s(p, simd.mul_f32s(r, r), r),
+        simd.splat_f32s(1.0),
+    );
+    // 2ⁿ by the exponent bits, as in `exp_f32`.
+    let biased = simd.add_f32s(n, simd.splat_f32s(ROUNDER + 127.0));
+    let scale = simd.wrapping_dyn_shl_u32s(simd.transmute_u32s_f32s(biased), simd.splat_u32s(23));
+    simd.mul_f32s(y, simd.transmute_f32s_u32s(scale))
+}
+
 /// The exponent below which a term of a softmax row of `len` terms is set to zero: its
 /// normalised value `exp(d) / sum` (the sum is at most `len`) would be below the smallest
 /// normal float, `exp(MIN_X)`. One unit of margin covers `exp`'s rounding; a zeroed term is
@@ -135,23 +168,33 @@ pub(crate) fn exp_rows_dispatch(values: &mut [f32], row: usize, inv_sums: &mut [
     });
 }
 
-/// The largest value of a row, reduced in `LANES` lanes (vectorised where the caller is
-/// compiled for the CPU's features).
+/// The largest value of a row (NaNs ignored), reduced in [`MAX_LANES`] lanes (vectorised where
+/// the caller is compiled for the CPU's features). The lanes are a local array indexed by
+/// constants only, and the comparison is `>` rather than `f32::max` (whose NaN rule costs a
+/// compare and a blend per vector): written so, the lanes stay in one register instead of a
+/// stack slot stored and reloaded on every block.
 #[inline(always)]
 pub(crate) fn row_max(r: &[f32]) -> f32 {
-    let mut lanes = [f32::NEG_INFINITY; LANES];
-    let mut blocks = r.chunks_exact(LANES);
+    let larger = |m: f32, v: f32| if v > m { v } else { m };
+    let mut lanes = [f32::NEG_INFINITY; MAX_LANES];
+    let mut blocks = r.chunks_exact(MAX_LANES);
     for b in &mut blocks {
-        for (m, &v) in lanes.iter_mut().zip(b) {
-            *m = m.max(v);
+        for i in 0..MAX_LANES {
+            lanes[i] = larger(lanes[i], b[i]);
         }
     }
-    blocks
-        .remainder()
-        .iter()
-        .chain(&lanes)
-        .fold(f32::NEG_INFINITY, |m, &v| m.max(v))
+    let mut max = f32::NEG_INFINITY;
+    for &v in blocks.remainder() {
+        max = larger(max, v);
+    }
+    for lane in lanes {
+        max = larger(max, lane);
+    }
+    max
 }
+
+/// Lanes of [`row_max`]: one AVX-512 register of f32 (two AVX registers).
+const MAX_LANES: usize = 16;
 
 /// `weights = exp(scores − offsets[column])` for row-major `row`-wide blocks, terms below `cut`
 /// zero, each column's sum added to `sums` (cross-attention's column direction).
@@ -337,6 +380,52 @@ mod tests {
         assert!(worst < 2.5e-7, "worst relative error {worst:e}");
         assert_eq!(exp_f32(0.0), 1.0);
         assert!(exp_f32(-1000.0) >= 0.0 && exp_f32(-1000.0) < 1e-37);
+    }
+
+    /// [`exp_fused`] on every vector width pulp dispatches to here, against f64 over the
+    /// whole clamped range, the same bound as [`exp_f32`].
+    #[test]
+    fn fused_exp_is_within_two_ulps() {
+        struct Probe<'a>(&'a [f32], &'a mut [f32]);
+        impl pulp::WithSimd for Probe<'_> {
+            type Output = ();
+            #[inline(always)]
+            fn with_simd<S: pulp::Simd>(self, simd: S) {
+                let (xs, _) = S::as_simd_f32s(self.0);
+                let (ys, _) = S::as_mut_simd_f32s(self.1);
+                for (&x, y) in xs.iter().zip(ys.iter_mut()) {
+                    *y = exp_fused(simd, x);
+                }
+            }
+        }
+        let xs: Vec<f32> = (0..473_000).map(|i| -87.0 + i as f32 * 0.000_37).collect();
+        let mut ys = vec![f32::NAN; xs.len()];
+        pulp::Arch::new().dispatch(Probe(&xs, &mut ys));
+        // The scalar tail of `as_simd_f32s` (under one vector) is left out.
+        let done = xs.len() / 16 * 16;
+        let mut worst = 0f64;
+        for (&x, &y) in xs.iter().zip(&ys).take(done) {
+            let e = f64::from(x).exp();
+            worst = worst.max((f64::from(y) - e).abs() / e);
+        }
+        assert!(worst < 2.5e-7, "worst relative error {worst:e}");
+        let mut edge = [0f32; 16];
+        let inputs = [
+            0.0f32, -1000.0, 1000.0, -87.336_55, 88.0, -0.5, 0.5, 1.0, -1.0, 10.0, -10.0, 20.0,
+            -20.0, 40.0, -40.0, -80.0,
+        ];
+        pulp::Arch::new().dispatch(Probe(&inputs, &mut edge));
+        assert_eq!(edge[0], 1.0);
+        assert!(
+            edge[1] >= 0.0 && edge[1] < 1e-37,
+            "exp(-1000) = {}",
+            edge[1]
+        );
+        assert!(
+            edge[2].is_finite() && edge[2] > 1e38,
+            "exp(1000) = {}",
+            edge[2]
+        );
     }
 
     /// Against an f64 softmax: `exp` adds two ulps, the f32 row sum up to `√n` ulps

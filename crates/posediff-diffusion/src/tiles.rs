@@ -332,8 +332,7 @@ impl pulp::WithSimd for ExpRowsPacked<'_> {
     type Output = ();
 
     #[inline(always)]
-    fn with_simd<S: pulp::Simd>(self, _simd: S) {
-        const LANES: usize = 16;
+    fn with_simd<S: pulp::Simd>(self, simd: S) {
         let Self {
             s,
             row,
@@ -343,41 +342,32 @@ impl pulp::WithSimd for ExpRowsPacked<'_> {
             stride,
         } = self;
         let cut = crate::softmax::flush_below(row);
+        let (cutv, zero) = (simd.splat_f32s(cut), simd.splat_f32s(0.0));
+        // One row's weights, then split into the packed terms in a second pass (in L1).
+        let mut weights = vec![0f32; row];
         for (r, (values, inv)) in s.chunks_exact(row).zip(inv.iter_mut()).enumerate() {
             let max = crate::softmax::row_max(values);
-            let h = &mut hi[r * stride..r * stride + row];
-            let l = &mut lo[r * stride..r * stride + row];
-            let mut sums = [0f32; LANES];
-            let mut blocks = values.chunks_exact(LANES);
-            let mut hb = h.chunks_exact_mut(LANES);
-            let mut lb = l.chunks_exact_mut(LANES);
-            for ((b, hh), ll) in (&mut blocks).zip(&mut hb).zip(&mut lb) {
-                for ((((sum, &v), hv), lv), _) in sums
-                    .iter_mut()
-                    .zip(b)
-                    .zip(hh.iter_mut())
-                    .zip(ll.iter_mut())
-                    .zip(0..LANES)
-                {
-                    let d = v - max;
-                    let e = crate::softmax::exp_f32(d);
-                    let e = if d < cut { 0.0 } else { e };
-                    *sum += e;
-                    (*hv, *lv) = posediff_amx::split_two(e);
-                }
+            let maxv = simd.splat_f32s(max);
+            let (blocks, tail) = S::as_simd_f32s(values);
+            let (wb, wt) = S::as_mut_simd_f32s(&mut weights);
+            let mut acc = zero;
+            for (&v, w) in blocks.iter().zip(wb.iter_mut()) {
+                let d = simd.sub_f32s(v, maxv);
+                let e = crate::softmax::exp_fused(simd, d);
+                *w = simd.select_f32s(simd.less_than_f32s(d, cutv), zero, e);
+                acc = simd.add_f32s(acc, *w);
             }
-            let mut sum: f32 = sums.iter().sum();
-            for ((&v, hv), lv) in blocks
-                .remainder()
-                .iter()
-                .zip(hb.into_remainder())
-                .zip(lb.into_remainder())
-            {
+            let mut sum = simd.reduce_sum_f32s(acc);
+            for (&v, w) in tail.iter().zip(wt.iter_mut()) {
                 let d = v - max;
                 let e = crate::softmax::exp_f32(d);
-                let e = if d < cut { 0.0 } else { e };
-                sum += e;
-                (*hv, *lv) = posediff_amx::split_two(e);
+                *w = if d < cut { 0.0 } else { e };
+                sum += *w;
+            }
+            let h = &mut hi[r * stride..r * stride + row];
+            let l = &mut lo[r * stride..r * stride + row];
+            for ((&w, hv), lv) in weights.iter().zip(h.iter_mut()).zip(l.iter_mut()) {
+                (*hv, *lv) = posediff_amx::split_two(w);
             }
             *inv = 1.0 / sum;
         }
@@ -424,7 +414,7 @@ impl pulp::WithSimd for ExpOffsetsPacked<'_> {
     type Output = ();
 
     #[inline(always)]
-    fn with_simd<S: pulp::Simd>(self, _simd: S) {
+    fn with_simd<S: pulp::Simd>(self, simd: S) {
         let Self {
             s,
             row,
@@ -435,32 +425,31 @@ impl pulp::WithSimd for ExpOffsetsPacked<'_> {
             lo,
             stride,
         } = self;
-        let weight = |x: f32, o: f32| {
-            let d = x - o;
-            let e = crate::softmax::exp_f32(d);
-            if d < cut { 0.0 } else { e }
-        };
-        let zeros = vec![0f32; row];
+        let (mut even, mut odd) = (vec![0f32; row], vec![0f32; row]);
         let k = s.len() / row.max(1);
         for r in 0..k.div_ceil(2) {
-            let even = &s[2 * r * row..(2 * r + 1) * row];
-            let (odd, has_odd) = if 2 * r + 1 < k {
-                (&s[(2 * r + 1) * row..(2 * r + 2) * row], true)
+            offset_weights(
+                simd,
+                &s[2 * r * row..(2 * r + 1) * row],
+                offsets,
+                cut,
+                &mut even,
+            );
+            if 2 * r + 1 < k {
+                let values = &s[(2 * r + 1) * row..(2 * r + 2) * row];
+                offset_weights(simd, values, offsets, cut, &mut odd);
             } else {
-                (&zeros[..], false)
-            };
+                odd.fill(0.0);
+            }
             let h = &mut hi[r * stride..r * stride + row];
             let l = &mut lo[r * stride..r * stride + row];
-            for (((((&x, &y), &o), sum), hv), lv) in even
+            for ((((&we, &wo), sum), hv), lv) in even
                 .iter()
-                .zip(odd)
-                .zip(offsets)
+                .zip(&odd)
                 .zip(sums.iter_mut())
                 .zip(h.iter_mut())
                 .zip(l.iter_mut())
             {
-                let we = weight(x, o);
-                let wo = if has_odd { weight(y, o) } else { 0.0 };
                 *sum += we + wo;
                 let (eh, el) = posediff_amx::split_two(we);
                 let (oh, ol) = posediff_amx::split_two(wo);
@@ -468,5 +457,32 @@ impl pulp::WithSimd for ExpOffsetsPacked<'_> {
                 *lv = el as u32 | (ol as u32) << 16;
             }
         }
+    }
+}
+
+/// One row of [`ExpOffsetsPacked`]'s weights, `exp(values − offsets)` with the terms below `cut`
+/// zero, written to `out` (a function, not a closure, so that it is compiled for `S`'s
+/// features).
+#[inline(always)]
+fn offset_weights<S: pulp::Simd>(
+    simd: S,
+    values: &[f32],
+    offsets: &[f32],
+    cut: f32,
+    out: &mut [f32],
+) {
+    let (cutv, zero) = (simd.splat_f32s(cut), simd.splat_f32s(0.0));
+    let (blocks, tail) = S::as_simd_f32s(values);
+    let (ob, ot) = S::as_simd_f32s(offsets);
+    let (wb, wt) = S::as_mut_simd_f32s(out);
+    for ((&v, &o), w) in blocks.iter().zip(ob).zip(wb.iter_mut()) {
+        let d = simd.sub_f32s(v, o);
+        let e = crate::softmax::exp_fused(simd, d);
+        *w = simd.select_f32s(simd.less_than_f32s(d, cutv), zero, e);
+    }
+    for ((&v, &o), w) in tail.iter().zip(ot).zip(wt.iter_mut()) {
+        let d = v - o;
+        let e = crate::softmax::exp_f32(d);
+        *w = if d < cut { 0.0 } else { e };
     }
 }
