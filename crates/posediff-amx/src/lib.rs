@@ -288,6 +288,17 @@ impl PackedA {
         self.reset(m, k);
         let (stride, terms) = (self.lda, self.split.terms());
         let plane = self.mp * stride;
+        if terms == 2 {
+            // Row by row of A: strided reads, contiguous writes.
+            let (hi, lo) = self.data.split_at_mut(plane);
+            for i in 0..m {
+                let (h, l) = (&mut hi[i * stride..i * stride + k], &mut lo[i * stride..]);
+                for ((p, hv), lv) in h.iter_mut().enumerate().zip(&mut l[..k]) {
+                    (*hv, *lv) = split_two(at[p * ld + i]);
+                }
+            }
+            return Ok(());
+        }
         let mut parts = [0u16; 3];
         for p in 0..k {
             for (i, &x) in at[p * ld..p * ld + m].iter().enumerate() {
@@ -525,6 +536,24 @@ impl PackedB {
         }
         self.reset(k, n);
         let (terms, stride, plane) = (self.split.terms(), self.ldb, self.plane());
+        if terms == 2 {
+            // Pair row by pair row: strided reads, contiguous writes.
+            let (hi, lo) = self.data.split_at_mut(plane);
+            for r in 0..k.div_ceil(2) {
+                let (h, l) = (&mut hi[r * stride..r * stride + n], &mut lo[r * stride..]);
+                for ((j, hv), lv) in h.iter_mut().enumerate().zip(&mut l[..n]) {
+                    let (eh, el) = split_two(bt[j * ldb + 2 * r]);
+                    let (oh, ol) = if 2 * r + 1 < k {
+                        split_two(bt[j * ldb + 2 * r + 1])
+                    } else {
+                        (0, 0)
+                    };
+                    *hv = eh as u32 | (oh as u32) << 16;
+                    *lv = el as u32 | (ol as u32) << 16;
+                }
+            }
+            return Ok(());
+        }
         let mut even = [0u16; 3];
         let mut odd = [0u16; 3];
         for j in 0..n {

@@ -470,12 +470,7 @@ pub(crate) fn raise_column_maxima(
     cut: f32,
     mut rescale: impl FnMut(usize, f32),
 ) {
-    block_max.fill(f32::NEG_INFINITY);
-    for row in s.chunks_exact(block_max.len().max(1)) {
-        for (m, &x) in block_max.iter_mut().zip(row) {
-            *m = m.max(x);
-        }
-    }
+    pulp::Arch::new().dispatch(ColumnMaxima { s, block_max });
     for (j, &bm) in block_max.iter().enumerate() {
         if bm > col_max[j] {
             let alpha = crate::softmax::exp_f32(col_max[j] - bm);
@@ -483,6 +478,28 @@ pub(crate) fn raise_column_maxima(
             col_sum[j] *= alpha;
             rescale(j, alpha);
             col_max[j] = bm;
+        }
+    }
+}
+
+/// Each column's maximum over the rows of `s` into `block_max` (NaNs ignored), compiled for
+/// the CPU's features; `>` rather than `f32::max`, whose NaN rule costs a compare and a blend.
+struct ColumnMaxima<'a> {
+    s: &'a [f32],
+    block_max: &'a mut [f32],
+}
+
+impl pulp::WithSimd for ColumnMaxima<'_> {
+    type Output = ();
+
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _simd: S) {
+        let Self { s, block_max } = self;
+        block_max.fill(f32::NEG_INFINITY);
+        for row in s.chunks_exact(block_max.len().max(1)) {
+            for (m, &x) in block_max.iter_mut().zip(row) {
+                *m = if x > *m { x } else { *m };
+            }
         }
     }
 }

@@ -134,9 +134,16 @@ thread_local! {
     static SCRATCH: RefCell<Option<Box<Scratch>>> = const { RefCell::new(None) };
 }
 
-/// Query rows per block: the F32 kernel's block, a multiple of 32 (whole tile rows).
-fn block_rows(m: usize, n: usize) -> usize {
-    let rows = (crate::attention::HEAD_BLOCK / n).max(posediff_amx::BLOCK);
+/// Scores per block of self-attention on tiles: 32 rows of 2048 keys. A block's scores and
+/// packed weights (256 KiB each) then stay in L2 beside the head's packed keys and values;
+/// with the F32 kernel's 128 rows they did not, and the head took 36 ms instead of 30 (4 × 2048
+/// × 2048, one thread, `attention_speed`). Cross-attention keeps the F32 kernel's block: its
+/// column side re-reads a `d × n` accumulator once per block, and 32 rows were slower there.
+const SELF_BLOCK: usize = 1 << 16;
+
+/// Query rows per block of at most `budget` scores, a multiple of 32 (whole tile rows).
+fn block_rows(m: usize, n: usize, budget: usize) -> usize {
+    let rows = (budget / n).max(posediff_amx::BLOCK);
     (rows / posediff_amx::BLOCK * posediff_amx::BLOCK).min(m)
 }
 
@@ -149,7 +156,7 @@ pub(crate) fn attend_heads(
     out: &mut [f32],
     (h, m, n, d): (usize, usize, usize, usize),
 ) -> Result<()> {
-    let rows = block_rows(m, n);
+    let rows = block_rows(m, n, SELF_BLOCK);
     let head = |(i, dst): (usize, &mut [f32])| -> Result<()> {
         let (qh, kh, vh) = (
             &q[i * m * d..(i + 1) * m * d],
@@ -195,7 +202,7 @@ pub(crate) fn cross_attend_heads(
     out: &mut [f32],
     (h, m, n, d): (usize, usize, usize, usize),
 ) -> Result<()> {
-    let rows = block_rows(m, n);
+    let rows = block_rows(m, n, crate::attention::HEAD_BLOCK);
     let head = |(i, dst): (usize, &mut [f32])| -> Result<()> {
         let (dst_a, dst_b) = dst.split_at_mut(m * d);
         let (ah, vah) = (
