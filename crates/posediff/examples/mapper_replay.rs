@@ -535,6 +535,12 @@ fn main() -> Result<()> {
                 (0.0, 0, 0)
             }
         };
+        if std::env::var("PER").is_ok() {
+            let names: Vec<usize> = members.to_vec();
+            println!(
+                "  PER m={m} images {names:?} maa {maa:.3} used {used} wrong_used {wrong_used} kept {kept} wrong_kept {wrong_kept}"
+            );
+        }
         groups.entry(m).or_default().push((
             maa,
             wrong_kept as f64 / kept.max(1) as f64,

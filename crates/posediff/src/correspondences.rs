@@ -226,7 +226,27 @@ impl LearnedMatcher {
     /// # Errors
     /// Unreadable images (named), network errors.
     pub fn extract(&self, path: &Path) -> Result<ImageFeatures> {
-        let bgr = posediff_matching::image_check::decode(path, opencv::imgcodecs::IMREAD_COLOR)?;
+        self.extract_turned(path, false)
+    }
+
+    /// [`Self::extract`] on the image turned by 180° when `half_turn`: the keypoints are still
+    /// given in the original image's pixels (`x ↦ w − 1 − x`, `y ↦ h − 1 − y` from the turned
+    /// image's), the descriptors are those of the turned image. ALIKED and DISK are not
+    /// invariant to in-plane rotation, so an image upside down relative to the others matches
+    /// them only this way; [`Self::prepare_turned`] gives LightGlue the turned positions.
+    ///
+    /// # Errors
+    /// As [`Self::extract`].
+    pub fn extract_turned(&self, path: &Path, half_turn: bool) -> Result<ImageFeatures> {
+        let decoded =
+            posediff_matching::image_check::decode(path, opencv::imgcodecs::IMREAD_COLOR)?;
+        let bgr = if half_turn {
+            let mut turned = Mat::default();
+            opencv::core::rotate(&decoded, &mut turned, opencv::core::ROTATE_180)?;
+            turned
+        } else {
+            decoded
+        };
         let (w, h) = (bgr.cols(), bgr.rows());
         let image_size = ImageSize::new(w as u32, h as u32)?;
         let s = f64::from(self.image_side) / f64::from(w.max(h));
@@ -269,7 +289,14 @@ impl LearnedMatcher {
             keypoints: kp
                 .positions
                 .iter()
-                .map(|p| to_original_pixels([f64::from(p[0]), f64::from(p[1])], scale))
+                .map(|p| {
+                    let k = to_original_pixels([f64::from(p[0]), f64::from(p[1])], scale);
+                    if half_turn {
+                        half_turned(k, image_size)
+                    } else {
+                        k
+                    }
+                })
                 .collect(),
             descriptors: Descriptors::Float {
                 data: kp.descriptors,
@@ -284,6 +311,15 @@ impl LearnedMatcher {
     /// # Errors
     /// Features that are not the extractor's; network errors.
     pub fn prepare(&self, f: &ImageFeatures) -> Result<PreparedImage> {
+        self.prepare_turned(f, false)
+    }
+
+    /// [`Self::prepare`] for features of [`Self::extract_turned`]: with `half_turn` LightGlue
+    /// sees the keypoints where they lie in the turned image its descriptors come from.
+    ///
+    /// # Errors
+    /// As [`Self::prepare`].
+    pub fn prepare_turned(&self, f: &ImageFeatures, half_turn: bool) -> Result<PreparedImage> {
         let data = match &f.descriptors {
             Descriptors::Float { data, dim } if *dim == self.lightglue.input_dim() => data,
             _ => {
@@ -295,7 +331,14 @@ impl LearnedMatcher {
         let positions: Vec<[f32; 2]> = f
             .keypoints
             .iter()
-            .map(|k| [k[0] as f32, k[1] as f32])
+            .map(|&k| {
+                let k = if half_turn {
+                    half_turned(k, f.image_size)
+                } else {
+                    k
+                };
+                [k[0] as f32, k[1] as f32]
+            })
             .collect();
         Ok(self.lightglue.prepare_image(&MatcherInput {
             positions: &positions,
@@ -348,6 +391,14 @@ impl LearnedMatcher {
         let raw = posediff_matching::raw_matches(a, b, first, second, &m.matches);
         Ok(posediff_matching::verify(raw, config)?)
     }
+}
+
+/// A pixel of an image of `size` after a turn by 180° about its centre (its own inverse).
+fn half_turned(k: [f64; 2], size: ImageSize) -> [f64; 2] {
+    [
+        f64::from(size.width()) - 1.0 - k[0],
+        f64::from(size.height()) - 1.0 - k[1],
+    ]
 }
 
 /// A loaded learned matcher shared by the configurations that use it (equal when it is the same
@@ -441,6 +492,22 @@ pub fn match_pairs_counted(
     pairs: &[(usize, usize)],
     config: &MatchConfig,
     learned: Option<&SharedLearned>,
+    counter: (&dyn StepCounter, &str),
+) -> Result<Vec<PairMatches>> {
+    match_pairs_turned(features, &[], pairs, config, learned, counter)
+}
+
+/// [`match_pairs_counted`] where the learned features of image `i` come from the image turned
+/// by 180° when `turned[i]` ([`LearnedMatcher::extract_turned`]; missing entries: not turned).
+///
+/// # Errors
+/// As [`match_pairs`].
+pub fn match_pairs_turned(
+    features: &[ImageFeatures],
+    turned: &[bool],
+    pairs: &[(usize, usize)],
+    config: &MatchConfig,
+    learned: Option<&SharedLearned>,
     (counter, name): (&dyn StepCounter, &str),
 ) -> Result<Vec<PairMatches>> {
     let Some(l) = learned else {
@@ -460,7 +527,9 @@ pub fn match_pairs_counted(
         images.dedup();
         let prepared: Vec<PreparedImage> = images
             .par_iter()
-            .map(|&i| l.0.prepare(&features[i]))
+            .map(|&i| {
+                l.0.prepare_turned(&features[i], turned.get(i).copied().unwrap_or(false))
+            })
             .collect::<Result<_>>()?;
         // By the sorted image list: no slot per image of the whole set in every window.
         let of = |i: usize| -> Result<&PreparedImage> {

@@ -331,3 +331,142 @@ fn the_geometric_stages_count_images_and_pairs() {
         ]
     );
 }
+
+/// `image` turned by 180°, written losslessly into `dir`.
+fn write_turned(image: &std::path::Path, dir: &std::path::Path) -> PathBuf {
+    use opencv::core::{Mat, ROTATE_180, Vector, rotate};
+    use opencv::imgcodecs::{IMREAD_COLOR, imread, imwrite};
+    let img = imread(image.to_str().unwrap(), IMREAD_COLOR).unwrap();
+    let mut turned = Mat::default();
+    rotate(&img, &mut turned, ROTATE_180).unwrap();
+    let stem = image.file_stem().unwrap().to_str().unwrap();
+    let out = dir.join(format!("{stem}_turned.png"));
+    assert!(imwrite(out.to_str().unwrap(), &turned, &Vector::new()).unwrap());
+    out
+}
+
+/// An image turned by 180° and extracted turned back is the upright image's extraction: the
+/// same descriptors, the keypoints at `(w − 1 − x, h − 1 − y)` of the upright ones (a sign or an
+/// off-by-one in the mapping fails). Matched with LightGlue seeing the turned positions, it
+/// gives the upright pair's matches; matched as it lies, far fewer.
+#[test]
+fn a_turned_image_is_matched_as_the_upright_one() {
+    let learned = LearnedMatcher::load(&weights_dir()).unwrap_or_else(|e| panic!("{e}"));
+    let dir = posediff_fixtures::temp_dir("learned-turned");
+    let images = apple(2);
+    let turned_path = write_turned(&images[1], &dir);
+    let a = learned.extract(&images[0]).unwrap();
+    let b = learned.extract(&images[1]).unwrap();
+    let turned = learned.extract_turned(&turned_path, true).unwrap();
+    assert_eq!(turned.image_size, b.image_size);
+    let (w, h) = (
+        f64::from(b.image_size.width()),
+        f64::from(b.image_size.height()),
+    );
+    assert_eq!(turned.keypoints.len(), b.keypoints.len());
+    for (t, u) in turned.keypoints.iter().zip(&b.keypoints) {
+        assert!(
+            (t[0] - (w - 1.0 - u[0])).abs() < 1e-9 && (t[1] - (h - 1.0 - u[1])).abs() < 1e-9,
+            "{t:?} against {u:?}"
+        );
+    }
+    assert_eq!(turned.descriptors, b.descriptors);
+
+    let config = MatchConfig::default();
+    let upright = learned.match_pair(&a, &b, 0, 1, &config).unwrap();
+    let pa = learned.prepare(&a).unwrap();
+    let pt = learned.prepare_turned(&turned, true).unwrap();
+    let matched = learned
+        .match_prepared((&a, &pa), (&turned, &pt), 0, 1, &config)
+        .unwrap();
+    assert!(upright.len() >= 100, "{} upright matches", upright.len());
+    // The verification runs on other coordinates: the same matches up to RANSAC's borderline
+    // points.
+    let same = matched
+        .idx2
+        .iter()
+        .zip(&matched.idx1)
+        .filter(|m| upright.idx2.iter().zip(&upright.idx1).any(|u| u == *m))
+        .count();
+    assert!(
+        same as f64 >= 0.95 * upright.len() as f64,
+        "{same} of {} upright matches found turned ({} in all)",
+        upright.len(),
+        matched.len()
+    );
+    // As it lies (LightGlue seeing the positions upside down to the descriptors' patches):
+    let as_is = learned.extract(&turned_path).unwrap();
+    let wrong_way = learned.match_pair(&a, &as_is, 0, 1, &config).unwrap();
+    assert!(
+        2 * wrong_way.len() < upright.len(),
+        "{} matches of the turned image as it lies, {} upright",
+        wrong_way.len(),
+        upright.len()
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// Rotation matrix of a cameras.json record.
+fn rotation_of(c: &serde_json::Value) -> nalgebra::Matrix3<f64> {
+    nalgebra::Matrix3::from_fn(|r, k| c["R"][r][k].as_f64().unwrap())
+}
+
+/// Four apple frames, the last one upside down: the first map leaves it out (ALIKED is not
+/// invariant to in-plane rotation), the turned retry maps it, and its camera is the ground
+/// truth's turned by 180° about the optical axis (`R ↦ diag(−1, −1, 1) R`).
+#[test]
+fn the_cli_maps_an_image_turned_upside_down() {
+    let dir = posediff_fixtures::temp_dir("learned-cli-turned");
+    let set = dir.join("set");
+    std::fs::create_dir_all(&set).unwrap();
+    let frames = apple(4);
+    for p in &frames[..3] {
+        std::fs::copy(p, set.join(p.file_name().unwrap())).unwrap();
+    }
+    write_turned(&frames[3], &set);
+    let out = dir.join("out");
+    let r = Command::new(env!("CARGO_BIN_EXE_posediff"))
+        .args([
+            OsString::from("estimate"),
+            set.into(),
+            "--matcher".into(),
+            "aliked-lightglue".into(),
+            "--weights-dir".into(),
+            weights_dir().into(),
+            "--out".into(),
+            out.clone().into(),
+            "--quiet".into(),
+            "--no-view".into(),
+        ])
+        .output()
+        .unwrap();
+    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    let run: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("run.json")).unwrap()).unwrap();
+    assert_eq!(run["report"]["turned_images"], serde_json::json!([3]));
+    let cams: Vec<serde_json::Value> =
+        serde_json::from_str(&std::fs::read_to_string(out.join("cameras.json")).unwrap()).unwrap();
+    assert!(cams.iter().all(|c| c["estimated"] == true), "{cams:?}");
+    let gt: Vec<serde_json::Value> = serde_json::from_str(
+        &std::fs::read_to_string(shared_path("data/co3d_apple_posediffusion/cameras.json"))
+            .unwrap(),
+    )
+    .unwrap();
+    let gt_of = |p: &PathBuf| {
+        let name = p.file_name().unwrap().to_str().unwrap();
+        gt.iter()
+            .find(|c| c["image"].as_str().unwrap().ends_with(name))
+            .map(rotation_of)
+            .unwrap()
+    };
+    let turn = nalgebra::Matrix3::from_diagonal(&nalgebra::Vector3::new(-1.0, -1.0, 1.0));
+    let truth = turn * gt_of(&frames[3]) * gt_of(&frames[0]).transpose();
+    let estimate = rotation_of(&cams[3]) * rotation_of(&cams[0]).transpose();
+    let error = nalgebra::Rotation3::from_matrix(&(estimate * truth.transpose())).angle();
+    assert!(
+        error.to_degrees() < 5.0,
+        "relative rotation off by {:.2}°",
+        error.to_degrees()
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}

@@ -31,9 +31,11 @@ use posediff_sfm::{
     CameraPose, GlobalMapper, ImageIntrinsics, MapperOptions, MapperReport, SfmError,
 };
 
+use rayon::prelude::*;
+
 use crate::correspondences::{
     NoCounter, SharedLearned, StepCounter, descriptor_support, extract_all_counted,
-    match_pairs_counted,
+    match_pairs_counted, match_pairs_turned,
 };
 use crate::error::{PosediffError, Result};
 use crate::estimate::run_report::Warning;
@@ -259,6 +261,9 @@ pub struct GeometricReport {
     pub pairs_matched: usize,
     /// Of those, pairs of the second pass ([`Densify`]).
     pub pairs_densified: usize,
+    /// Images a learned matcher's map left out that matched the estimated ones once turned by
+    /// 180° and were mapped so ([`turn_left_out`]); their features are the turned image's.
+    pub turned_images: Vec<usize>,
     /// Pairs with verified matches.
     pub pairs_with_matches: usize,
     /// Pairs with a relative pose (general or rotation-only).
@@ -653,9 +658,10 @@ pub fn estimate_geometric_counted(
     let (features, mut pairs, mut support, mut times, selection) = matched;
     let sizes: Vec<ImageSize> = features.iter().map(|f| f.image_size).collect();
     let (_, densify) = config.plan(images.len());
-    // The features are only needed again by the second pass (SIFT's of a thousand images are
-    // gigabytes): dropped before the mapper otherwise.
-    let features = densify.map(|d| (d, features));
+    // The features are only needed again by the second pass and a learned matcher's turned
+    // retry (SIFT's of a thousand images are gigabytes): dropped before the mapper otherwise.
+    let retry = config.learned.is_some() && support.is_none();
+    let mut features = (densify.is_some() || retry).then_some(features);
     // The first pass's matches are kept for the second (a copy) only when it runs.
     counter.stage("mapping", 0);
     let cache = TwoViewCache::default();
@@ -671,14 +677,14 @@ pub fn estimate_geometric_counted(
         )?
     };
     let mut densified = 0;
-    if let Some((d, features)) = features {
+    if let (Some(d), Some(features)) = (densify, &features) {
         let matched: HashSet<(usize, usize)> = pairs.iter().map(|p| (p.first, p.second)).collect();
         let extra = densify_pairs(&estimate.cameras, &matched, &d);
         if !extra.is_empty() {
             let clock = Instant::now();
             let learned = config.learned.as_ref();
             pairs.extend(match_pairs_counted(
-                &features,
+                features,
                 &extra,
                 &config.matching,
                 learned,
@@ -686,7 +692,7 @@ pub fn estimate_geometric_counted(
             )?);
             if let (Some(flags), Some(minimum)) = (&mut support, config.support_min_verified) {
                 flags.extend(
-                    descriptor_support(&features, &extra, &config.matching)?
+                    descriptor_support(features, &extra, &config.matching)?
                         .into_iter()
                         .map(|count| count >= minimum),
                 );
@@ -695,10 +701,35 @@ pub fn estimate_geometric_counted(
             densified = extra.len();
             let first = estimate.report.times;
             counter.stage("mapping", 0);
-            estimate = map_supported_matches(&sizes, pairs, support, config, &cache)?;
+            estimate = map_supported_matches(&sizes, pairs.clone(), support, config, &cache)?;
             estimate.report.times.add_mapping(&first);
         }
     }
+    let mut turned_images = Vec::new();
+    if let (true, Some(features)) = (retry, features.as_mut()) {
+        let clock = Instant::now();
+        if let Some((turned, turned_pairs)) =
+            turn_left_out(images, features, &pairs, &estimate.cameras, config, counter)?
+        {
+            times[2] += clock.elapsed().as_secs_f64();
+            let earlier = estimate.report.times;
+            counter.stage("mapping", 0);
+            // The turned images' features changed: the two-view results of their pairs are
+            // new, so a new cache.
+            estimate = map_supported_matches(
+                &sizes,
+                turned_pairs,
+                None,
+                config,
+                &TwoViewCache::default(),
+            )?;
+            estimate.report.times.add_mapping(&earlier);
+            turned_images = turned;
+        } else {
+            times[2] += clock.elapsed().as_secs_f64();
+        }
+    }
+    estimate.report.turned_images = turned_images;
     estimate.report.pair_selection = selection;
     estimate.report.pairs_matched = estimate.pairs.len();
     estimate.report.pairs_densified = densified;
@@ -706,6 +737,135 @@ pub fn estimate_geometric_counted(
     (t.extraction, t.pair_selection, t.matching_pairs) = (times[0], times[1], times[2]);
     t.matching = times.iter().sum();
     Ok(estimate)
+}
+
+/// Partners of a turned image ([`turn_left_out`]): the estimated images among its most
+/// similar ones by the bag of words of [`posediff_matching::retrieval_pairs`].
+pub const TURN_PARTNERS: usize = 8;
+
+/// A learned matcher's retry of the images its map left out. ALIKED and DISK are not
+/// invariant to in-plane rotation: an image upside down relative to the others (the
+/// Middlebury temple's last five, a phone turned over) matches them with few or wrong matches.
+/// Each left-out image is extracted again turned by 180° and matched with the estimated images
+/// among its [`TURN_PARTNERS`] most similar; it is kept turned when those pairs verify more
+/// matches than its upright pairs with estimated images. A kept image's earlier pairs are
+/// dropped (their keypoint indices are the upright features') and its pairs with other kept
+/// images matched again. Returns the turned images and the new set of pairs, or `None` when
+/// no image was left out, fewer than two were estimated, or none is kept turned; `features`
+/// hold the turned features of the kept images afterwards.
+///
+/// # Errors
+/// Unreadable images, network and matching errors.
+fn turn_left_out(
+    images: &[PathBuf],
+    features: &mut [ImageFeatures],
+    pairs: &[PairMatches],
+    cameras: &[Option<Camera>],
+    config: &GeometricConfig,
+    counter: &dyn StepCounter,
+) -> Result<Option<(Vec<usize>, Vec<PairMatches>)>> {
+    let Some(learned) = config.learned.as_ref() else {
+        return Ok(None);
+    };
+    let estimated = |i: usize| cameras.get(i).is_some_and(Option::is_some);
+    let left: Vec<usize> = (0..features.len()).filter(|&i| !estimated(i)).collect();
+    if left.is_empty() || features.len() - left.len() < 2 {
+        return Ok(None);
+    }
+    log::info!(
+        "{}{} images left out: matching them turned by 180°",
+        crate::estimate::run::WORK_STARTS,
+        left.len()
+    );
+    counter.stage("turned images", left.len() as u64);
+    let mut upright = Vec::with_capacity(left.len());
+    for chunk in left.chunks(rayon::current_num_threads().clamp(1, 4)) {
+        let turned: Vec<ImageFeatures> = chunk
+            .par_iter()
+            .map(|&j| {
+                let f = learned.0.extract_turned(&images[j], true);
+                counter.step();
+                f
+            })
+            .collect::<Result<_>>()?;
+        for (&j, f) in chunk.iter().zip(turned) {
+            upright.push((j, std::mem::replace(&mut features[j], f)));
+        }
+    }
+    let is_left = |i: usize| left.binary_search(&i).is_ok();
+    let trial: Vec<(usize, usize)> = posediff_matching::pairs::retrieval_pairs(
+        features,
+        TURN_PARTNERS,
+        &posediff_matching::pairs::RetrievalOptions::default(),
+    )
+    .into_iter()
+    .filter(|&(a, b)| is_left(a) != is_left(b))
+    .collect();
+    let mut turned_flags = vec![false; features.len()];
+    for &j in &left {
+        turned_flags[j] = true;
+    }
+    let matched = match_pairs_turned(
+        features,
+        &turned_flags,
+        &trial,
+        &config.matching,
+        Some(learned),
+        (counter, "turned pairs"),
+    )?;
+    // Verified matches with estimated images: turned against upright.
+    let mut score: HashMap<usize, (usize, usize)> = HashMap::new();
+    for p in &matched {
+        let j = if is_left(p.first) { p.first } else { p.second };
+        score.entry(j).or_default().0 += p.len();
+    }
+    for p in pairs {
+        match (is_left(p.first), is_left(p.second)) {
+            (true, false) => score.entry(p.first).or_default().1 += p.len(),
+            (false, true) => score.entry(p.second).or_default().1 += p.len(),
+            _ => {}
+        }
+    }
+    let kept: Vec<usize> = left
+        .iter()
+        .copied()
+        .filter(|j| score.get(j).is_some_and(|&(t, u)| t > u))
+        .collect();
+    for (j, f) in upright {
+        if kept.binary_search(&j).is_err() {
+            features[j] = f;
+            turned_flags[j] = false;
+        }
+    }
+    if kept.is_empty() {
+        return Ok(None);
+    }
+    let is_kept = |i: usize| kept.binary_search(&i).is_ok();
+    let both: Vec<(usize, usize)> = pairs
+        .iter()
+        .filter(|p| is_kept(p.first) && is_kept(p.second))
+        .map(|p| (p.first, p.second))
+        .collect();
+    let mut out: Vec<PairMatches> = pairs
+        .iter()
+        .filter(|p| !is_kept(p.first) && !is_kept(p.second))
+        .cloned()
+        .collect();
+    out.extend(
+        matched
+            .into_iter()
+            .filter(|p| is_kept(p.first) || is_kept(p.second)),
+    );
+    out.extend(match_pairs_turned(
+        features,
+        &turned_flags,
+        &both,
+        &config.matching,
+        Some(learned),
+        (counter, "turned pairs"),
+    )?);
+    out.sort_by_key(|p| (p.first, p.second));
+    Ok(Some((kept, out)))
 }
 
 /// The pairs of [`Densify`]'s second pass: for each estimated image, its nearest estimated
