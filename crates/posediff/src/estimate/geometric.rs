@@ -262,7 +262,8 @@ pub struct GeometricReport {
     /// Of those, pairs of the second pass ([`Densify`]).
     pub pairs_densified: usize,
     /// Images a learned matcher's map left out that matched the estimated ones once turned by
-    /// 180° and were mapped so ([`turn_left_out`]); their features are the turned image's.
+    /// 180° and were mapped so (the turned retry, [`TURN_PARTNERS`]); their features are the
+    /// turned image's.
     pub turned_images: Vec<usize>,
     /// Pairs with verified matches.
     pub pairs_with_matches: usize,
@@ -739,8 +740,10 @@ pub fn estimate_geometric_counted(
     Ok(estimate)
 }
 
-/// Partners of a turned image ([`turn_left_out`]): the estimated images among its most
-/// similar ones by the bag of words of [`posediff_matching::retrieval_pairs`].
+/// Partners of an image retried turned by 180° (the turned retry after the map, for learned
+/// matchers: an image the map left out is extracted again turned, matched with these and kept
+/// turned when it matches better so): the estimated images among its most similar ones by the
+/// bag of words of [`posediff_matching::pairs::retrieval_pairs`].
 pub const TURN_PARTNERS: usize = 8;
 
 /// A learned matcher's retry of the images its map left out. ALIKED and DISK are not
