@@ -159,15 +159,9 @@ fn missing_weights_fail_before_any_image_is_read_and_name_the_command() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
-/// Three frames through the CLI: every camera estimated, run.json names the matcher.
-#[test]
-fn the_cli_estimates_with_the_learned_matcher() {
-    let dir = posediff_fixtures::temp_dir("learned-cli");
-    let set = dir.join("set");
-    std::fs::create_dir_all(&set).unwrap();
-    for p in apple(3) {
-        std::fs::copy(&p, set.join(p.file_name().unwrap())).unwrap();
-    }
+/// `posediff estimate <set> --matcher aliked-lightglue` into `<dir>/out`, which must succeed:
+/// the output folder and run.json.
+fn estimate_learned(set: &std::path::Path, dir: &std::path::Path) -> (PathBuf, serde_json::Value) {
     let out = dir.join("out");
     let r = Command::new(env!("CARGO_BIN_EXE_posediff"))
         .args([
@@ -185,8 +179,21 @@ fn the_cli_estimates_with_the_learned_matcher() {
         .output()
         .unwrap();
     assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
-    let run: serde_json::Value =
+    let run =
         serde_json::from_str(&std::fs::read_to_string(out.join("run.json")).unwrap()).unwrap();
+    (out, run)
+}
+
+/// Three frames through the CLI: every camera estimated, run.json names the matcher.
+#[test]
+fn the_cli_estimates_with_the_learned_matcher() {
+    let dir = posediff_fixtures::temp_dir("learned-cli");
+    let set = dir.join("set");
+    std::fs::create_dir_all(&set).unwrap();
+    for p in apple(3) {
+        std::fs::copy(&p, set.join(p.file_name().unwrap())).unwrap();
+    }
+    let (out, run) = estimate_learned(&set, &dir);
     assert_eq!(run["matcher"], "aliked-lightglue");
     let cams: Vec<serde_json::Value> =
         serde_json::from_str(&std::fs::read_to_string(out.join("cameras.json")).unwrap()).unwrap();
@@ -424,25 +431,7 @@ fn the_cli_maps_an_image_turned_upside_down() {
         std::fs::copy(p, set.join(p.file_name().unwrap())).unwrap();
     }
     write_turned(&frames[3], &set);
-    let out = dir.join("out");
-    let r = Command::new(env!("CARGO_BIN_EXE_posediff"))
-        .args([
-            OsString::from("estimate"),
-            set.into(),
-            "--matcher".into(),
-            "aliked-lightglue".into(),
-            "--weights-dir".into(),
-            weights_dir().into(),
-            "--out".into(),
-            out.clone().into(),
-            "--quiet".into(),
-            "--no-view".into(),
-        ])
-        .output()
-        .unwrap();
-    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
-    let run: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("run.json")).unwrap()).unwrap();
+    let (out, run) = estimate_learned(&set, &dir);
     assert_eq!(run["report"]["turned_images"], serde_json::json!([3]));
     let cams: Vec<serde_json::Value> =
         serde_json::from_str(&std::fs::read_to_string(out.join("cameras.json")).unwrap()).unwrap();
