@@ -18,7 +18,8 @@
 //!
 //! Operands are packed once ([`PackedA`], [`PackedB`]) and can serve many products: the rows of
 //! `A` row-major in blocks of 32, `B` in the pairwise-interleaved ("VNNI") layout the tile unit
-//! reads, both zero-padded to multiples of 32. [`matmul`] runs 32 × 32 blocks of `C` in four
+//! reads, both zero-padded to multiples of 32, each packed row at an odd number of 64-byte
+//! lines (so that a tile load's 16 rows do not share one L1 set). [`matmul`] runs 32 × 32 blocks of `C` in four
 //! accumulator tiles.
 //!
 //! # Pitfalls
@@ -177,6 +178,8 @@ pub struct PackedA {
     lda: usize,
     /// Term `t` is `data[t·mp·lda ..]`, `mp` rows of `kp` at stride `lda`.
     data: Vec<u16>,
+    /// [`PackedA::pack_transposed`]'s row-major copy of its input, kept between calls.
+    transposed: Vec<f32>,
 }
 
 impl std::fmt::Debug for PackedA {
@@ -200,6 +203,13 @@ fn padded(x: usize) -> usize {
     x.div_ceil(BLOCK).max(1) * BLOCK
 }
 
+/// `out` (`cols × rows`, row-major) = the transpose of the `rows × cols` matrix `x` whose row
+/// `r` starts at `x[r·ld]`: strided reads, contiguous writes.
+fn transpose_into(x: &[f32], rows: usize, cols: usize, ld: usize, out: &mut Vec<f32>) {
+    out.clear();
+    out.extend((0..cols).flat_map(|c| (0..rows).map(move |r| x[r * ld + c])));
+}
+
 /// The row stride in bytes for rows of `bytes` (a multiple of 64): an odd number of 64-byte
 /// lines. A tile load reads 16 rows at this stride; at a power-of-two stride of 4 KiB or more
 /// (`k` = 2048 of the attention's values) all 16 fall into one set of the 12-way L1 and evict
@@ -221,6 +231,7 @@ impl PackedA {
             kp: 0,
             lda: 0,
             data: Vec::new(),
+            transposed: Vec::new(),
         }
     }
 
@@ -285,30 +296,12 @@ impl PackedA {
                 at.len()
             )));
         }
-        self.reset(m, k);
-        let (stride, terms) = (self.lda, self.split.terms());
-        let plane = self.mp * stride;
-        if terms == 2 {
-            // Row by row of A: strided reads, contiguous writes.
-            let (hi, lo) = self.data.split_at_mut(plane);
-            for i in 0..m {
-                let (h, l) = (&mut hi[i * stride..i * stride + k], &mut lo[i * stride..]);
-                for ((p, hv), lv) in h.iter_mut().enumerate().zip(&mut l[..k]) {
-                    (*hv, *lv) = split_two(at[p * ld + i]);
-                }
-            }
-            return Ok(());
-        }
-        let mut parts = [0u16; 3];
-        for p in 0..k {
-            for (i, &x) in at[p * ld..p * ld + m].iter().enumerate() {
-                split(x, &mut parts, terms);
-                for (t, &v) in parts.iter().enumerate().take(terms) {
-                    self.data[t * plane + i * stride + p] = v;
-                }
-            }
-        }
-        Ok(())
+        // Transposed into a reused buffer, then packed as rows: the splitting stays one loop.
+        let mut rows = std::mem::take(&mut self.transposed);
+        transpose_into(at, k, m, ld, &mut rows);
+        let packed = self.pack(&rows, m, k, k);
+        self.transposed = rows;
+        packed
     }
 
     /// For a caller that computes and splits its own values ([`split_two`]): sizes the operand
@@ -473,6 +466,8 @@ pub struct PackedB {
     ldb: usize,
     /// Term `t` is `data[t·kp·ldb / 2 ..]`: `kp / 2` rows of `np` pairs at stride `ldb`.
     data: Vec<u32>,
+    /// [`PackedB::pack_transposed`]'s row-major copy of its input, kept between calls.
+    transposed: Vec<f32>,
 }
 
 impl std::fmt::Debug for PackedB {
@@ -492,6 +487,7 @@ impl PackedB {
             np: 0,
             ldb: 0,
             data: Vec::new(),
+            transposed: Vec::new(),
         }
     }
 
@@ -534,43 +530,12 @@ impl PackedB {
                 bt.len()
             )));
         }
-        self.reset(k, n);
-        let (terms, stride, plane) = (self.split.terms(), self.ldb, self.plane());
-        if terms == 2 {
-            // Pair row by pair row: strided reads, contiguous writes.
-            let (hi, lo) = self.data.split_at_mut(plane);
-            for r in 0..k.div_ceil(2) {
-                let (h, l) = (&mut hi[r * stride..r * stride + n], &mut lo[r * stride..]);
-                for ((j, hv), lv) in h.iter_mut().enumerate().zip(&mut l[..n]) {
-                    let (eh, el) = split_two(bt[j * ldb + 2 * r]);
-                    let (oh, ol) = if 2 * r + 1 < k {
-                        split_two(bt[j * ldb + 2 * r + 1])
-                    } else {
-                        (0, 0)
-                    };
-                    *hv = eh as u32 | (oh as u32) << 16;
-                    *lv = el as u32 | (ol as u32) << 16;
-                }
-            }
-            return Ok(());
-        }
-        let mut even = [0u16; 3];
-        let mut odd = [0u16; 3];
-        for j in 0..n {
-            let row = &bt[j * ldb..j * ldb + k];
-            for (r, pair) in row.chunks(2).enumerate() {
-                split(pair[0], &mut even, terms);
-                if let Some(&x) = pair.get(1) {
-                    split(x, &mut odd, terms);
-                } else {
-                    odd = [0; 3];
-                }
-                for t in 0..terms {
-                    self.data[t * plane + r * stride + j] = even[t] as u32 | (odd[t] as u32) << 16;
-                }
-            }
-        }
-        Ok(())
+        // Transposed into a reused buffer, then packed as rows (as `PackedA::pack_transposed`).
+        let mut rows = std::mem::take(&mut self.transposed);
+        transpose_into(bt, n, k, ldb, &mut rows);
+        let packed = self.pack(&rows, k, n, n);
+        self.transposed = rows;
+        packed
     }
 
     /// Packs the row-major `k × n` matrix whose row `r` starts at `b[r·ldb]`, e.g. the values of

@@ -637,12 +637,10 @@ mod tests {
         Ok(())
     }
 
-    /// The per-head kernel against candle's composed `softmax(Q Kᵀ) V` in F64, for shapes
-    /// with several row blocks (2048 keys: 128 rows a block), a single key and a single query.
-    /// At `MatmulPrecision::High` (AMX tiles where the CPU has them) both kernels stay within
-    /// the F32 kernels' tolerance scaled by the ratio of the unit roundoffs (2⁻¹⁶ / 2⁻²⁴ =
-    /// 256), at shapes with partial tile blocks; where tiles run, the results are not the F32
-    /// ones (the tile path was taken).
+    /// At `MatmulPrecision::High` (AMX tiles where the CPU has them) both attention kernels stay
+    /// within the F32 kernels' tolerance scaled by the ratio of the unit roundoffs (2⁻¹⁶ /
+    /// 2⁻²⁴ = 256), against candle's composed attention in F64, at shapes with partial tile
+    /// blocks; where tiles run, the results are not the F32 ones (the tile path was taken).
     #[test]
     fn tiles_keep_attention_within_their_precision() -> anyhow::Result<()> {
         let tol = 256.0 * 2e-5;
@@ -690,6 +688,8 @@ mod tests {
         Ok(())
     }
 
+    /// The per-head kernel against candle's composed `softmax(Q Kᵀ) V` in F64, for shapes
+    /// with several row blocks (2048 keys: 128 rows a block), a single key and a single query.
     #[test]
     fn attend_heads_matches_the_composed_attention() -> anyhow::Result<()> {
         for (h, m, n, d) in [

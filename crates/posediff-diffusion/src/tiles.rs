@@ -2,9 +2,12 @@
 //! precision ([`MatmulPrecision::High`]): every F32 operand as the sum of two BF16 values,
 //! products accumulated in F32 (`posediff_amx`, [`posediff_amx::Split::Two`]).
 //!
-//! The same algorithms as the F32 kernels of [`crate::attention`] and [`crate::linear`] (the
-//! same blocks of query rows, softmax and column rescaling), with each faer product replaced by
-//! packing the operands and one tile product. Operands that serve many products are packed once:
+//! The same algorithms as the F32 kernels of [`crate::attention`] and [`crate::linear`] (blocks
+//! of query rows, the softmax with its subnormal flush, the column rescaling), with each faer
+//! product replaced by packing the operands and one tile product. Two things differ: the
+//! softmax numerators come from [`crate::softmax::exp_fused`] (fused multiply-adds, within two
+//! ulps of the F32 kernels' `exp`) and go straight into the packed BF16 terms, and
+//! self-attention takes blocks of 32 query rows (sized for L2). Operands that serve many products are packed once:
 //! a layer's weight when it is first used, a head's keys and values once per head.
 //!
 //! # Pitfalls
@@ -108,6 +111,8 @@ struct Scratch {
     /// `out_bᵀ` (`d × n`), and the column rescaling of a block.
     column_out: Vec<f32>,
     alpha: Vec<f32>,
+    /// One or two rows of softmax numerators before they are split into BF16 terms.
+    numerators: Vec<f32>,
 }
 
 impl Scratch {
@@ -121,6 +126,7 @@ impl Scratch {
             other_values: PackedA::new(SPLIT),
             column_out: Vec::new(),
             alpha: Vec::new(),
+            numerators: Vec::new(),
         }
     }
 }
@@ -176,7 +182,7 @@ pub(crate) fn attend_heads(
                     t.rows.pack(&qh[start * d..(start + len) * d], len, d, d)?;
                     let s = &mut scores[..len * n];
                     posediff_amx::matmul(s, n, &t.rows, 0..len, &t.keys, false)?;
-                    exp_rows_packed(s, n, &mut inv[..len], &mut t.weights)?;
+                    exp_rows_packed(s, n, &mut inv[..len], &mut t.weights, &mut t.numerators)?;
                     let o = &mut dst[start * d..(start + len) * d];
                     posediff_amx::matmul(o, d, &t.weights, 0..len, &t.values, false)?;
                     for (row, &c) in o.chunks_exact_mut(d).zip(inv.iter()) {
@@ -263,7 +269,7 @@ pub(crate) fn cross_attend_heads(
                             &col_max,
                             cut,
                             &mut col_sum,
-                            &mut t.column_weights,
+                            (&mut t.column_weights, &mut t.numerators),
                         )?;
                         // out_bᵀ (d × n) += vaᵀ (d × len) · W (len × n).
                         t.other_values.pack_transposed(
@@ -281,7 +287,8 @@ pub(crate) fn cross_attend_heads(
                             true,
                         )?;
                         // Rows: this block's softmax times vb.
-                        exp_rows_packed(s, n, &mut inv[..len], &mut t.weights)?;
+                        let weights = &mut t.weights;
+                        exp_rows_packed(s, n, &mut inv[..len], weights, &mut t.numerators)?;
                         let o = &mut dst_a[start * d..(start + len) * d];
                         posediff_amx::matmul(o, d, &t.weights, 0..len, &t.values, false)?;
                         for (row, &c) in o.chunks_exact_mut(d).zip(inv.iter()) {
@@ -310,11 +317,19 @@ pub(crate) fn cross_attend_heads(
     }
 }
 
-/// The row softmax's numerators of `s` (`row`-wide rows) straight into `a`'s two BF16 terms,
-/// with each row's `1/Σ` in `inv`: the operations of [`crate::softmax`]'s row kernel (maximum,
-/// `exp(x − max)` with the subnormal flush, sum), without writing the F32 weights.
-fn exp_rows_packed(s: &[f32], row: usize, inv: &mut [f32], a: &mut PackedA) -> Result<()> {
+/// The row softmax's numerators of `s` (`row`-wide rows) into `a`'s two BF16 terms, with each
+/// row's `1/Σ` in `inv`: the steps of [`crate::softmax`]'s row kernel (maximum, `exp(x − max)`
+/// with the subnormal flush, sum), `exp` by [`crate::softmax::exp_fused`]. Each row's F32
+/// numerators pass through `scratch` (one row, in L1) on their way to the terms.
+fn exp_rows_packed(
+    s: &[f32],
+    row: usize,
+    inv: &mut [f32],
+    a: &mut PackedA,
+    scratch: &mut Vec<f32>,
+) -> Result<()> {
     let (hi, lo, stride) = a.two_terms_mut(inv.len(), row)?;
+    scratch.resize(row, 0.0);
     pulp::Arch::new().dispatch(ExpRowsPacked {
         s,
         row,
@@ -322,6 +337,7 @@ fn exp_rows_packed(s: &[f32], row: usize, inv: &mut [f32], a: &mut PackedA) -> R
         hi,
         lo,
         stride,
+        weights: scratch,
     });
     Ok(())
 }
@@ -333,6 +349,7 @@ struct ExpRowsPacked<'a> {
     hi: &'a mut [u16],
     lo: &'a mut [u16],
     stride: usize,
+    weights: &'a mut [f32],
 }
 
 impl pulp::WithSimd for ExpRowsPacked<'_> {
@@ -347,16 +364,16 @@ impl pulp::WithSimd for ExpRowsPacked<'_> {
             hi,
             lo,
             stride,
+            weights,
         } = self;
         let cut = crate::softmax::flush_below(row);
         let (cutv, zero) = (simd.splat_f32s(cut), simd.splat_f32s(0.0));
         // One row's weights, then split into the packed terms in a second pass (in L1).
-        let mut weights = vec![0f32; row];
         for (r, (values, inv)) in s.chunks_exact(row).zip(inv.iter_mut()).enumerate() {
             let max = crate::softmax::row_max(values);
             let maxv = simd.splat_f32s(max);
             let (blocks, tail) = S::as_simd_f32s(values);
-            let (wb, wt) = S::as_mut_simd_f32s(&mut weights);
+            let (wb, wt) = S::as_mut_simd_f32s(weights);
             let mut acc = zero;
             for (&v, w) in blocks.iter().zip(wb.iter_mut()) {
                 let d = simd.sub_f32s(v, maxv);
@@ -382,17 +399,20 @@ impl pulp::WithSimd for ExpRowsPacked<'_> {
 }
 
 /// Cross-attention's column weights `exp(s − offsets[column])` (terms below `cut` zero, each
-/// column's sum added to `sums`) straight into `b`'s BF16 pairs, two rows at a time.
+/// column's sum added to `sums`) into `b`'s BF16 pairs, two rows at a time through `scratch`
+/// (two rows of F32, in L1).
 fn exp_offsets_packed(
     s: &[f32],
     row: usize,
     offsets: &[f32],
     cut: f32,
     sums: &mut [f32],
-    b: &mut PackedB,
+    (b, scratch): (&mut PackedB, &mut Vec<f32>),
 ) -> Result<()> {
     let k = s.len() / row.max(1);
     let (hi, lo, stride) = b.two_term_pairs_mut(k, row)?;
+    scratch.resize(2 * row, 0.0);
+    let (even, odd) = scratch.split_at_mut(row);
     pulp::Arch::new().dispatch(ExpOffsetsPacked {
         s,
         row,
@@ -402,6 +422,8 @@ fn exp_offsets_packed(
         hi,
         lo,
         stride,
+        even,
+        odd,
     });
     Ok(())
 }
@@ -415,6 +437,8 @@ struct ExpOffsetsPacked<'a> {
     hi: &'a mut [u32],
     lo: &'a mut [u32],
     stride: usize,
+    even: &'a mut [f32],
+    odd: &'a mut [f32],
 }
 
 impl pulp::WithSimd for ExpOffsetsPacked<'_> {
@@ -431,20 +455,15 @@ impl pulp::WithSimd for ExpOffsetsPacked<'_> {
             hi,
             lo,
             stride,
+            even,
+            odd,
         } = self;
-        let (mut even, mut odd) = (vec![0f32; row], vec![0f32; row]);
         let k = s.len() / row.max(1);
         for r in 0..k.div_ceil(2) {
-            offset_weights(
-                simd,
-                &s[2 * r * row..(2 * r + 1) * row],
-                offsets,
-                cut,
-                &mut even,
-            );
+            offset_weights(simd, &s[2 * r * row..(2 * r + 1) * row], offsets, cut, even);
             if 2 * r + 1 < k {
                 let values = &s[(2 * r + 1) * row..(2 * r + 2) * row];
-                offset_weights(simd, values, offsets, cut, &mut odd);
+                offset_weights(simd, values, offsets, cut, odd);
             } else {
                 odd.fill(0.0);
             }
@@ -452,7 +471,7 @@ impl pulp::WithSimd for ExpOffsetsPacked<'_> {
             let l = &mut lo[r * stride..r * stride + row];
             for ((((&we, &wo), sum), hv), lv) in even
                 .iter()
-                .zip(&odd)
+                .zip(odd.iter())
                 .zip(sums.iter_mut())
                 .zip(h.iter_mut())
                 .zip(l.iter_mut())
