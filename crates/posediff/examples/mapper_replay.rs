@@ -20,7 +20,9 @@
 //! and `LG_KP=<keypoints>` (the learned matcher's image side and keypoints, for a new cache),
 //! `DENSIFY=<degrees>[,<per image>]` (the second matching pass on the first map's cameras,
 //! `geometric::Densify`), `PLAN=1` (the learned `auto` plan: exhaustive up to
-//! `LEARNED_EXHAUSTIVE_UP_TO` images, above it the first pass and the second).
+//! `LEARNED_EXHAUSTIVE_UP_TO` images, above it the first pass and the second), `PER=1` (a line
+//! per subset: its images, mAA(30), pairs used and kept, wrong among them). The turned retry of
+//! `estimate_geometric` needs the images themselves and is not replayed.
 #![allow(clippy::print_stdout)]
 
 use std::collections::BTreeMap;
@@ -536,9 +538,8 @@ fn main() -> Result<()> {
             }
         };
         if std::env::var("PER").is_ok() {
-            let names: Vec<usize> = members.to_vec();
             println!(
-                "  PER m={m} images {names:?} maa {maa:.3} used {used} wrong_used {wrong_used} kept {kept} wrong_kept {wrong_kept}"
+                "  subset of {m}: images {members:?}, mAA(30) {maa:.3}, used {used} (wrong {wrong_used}), kept {kept} (wrong {wrong_kept})"
             );
         }
         groups.entry(m).or_default().push((

@@ -305,6 +305,36 @@ impl LearnedMatcher {
         })
     }
 
+    /// [`Self::extract_turned`] on every image of `paths`, in order, a few at a time: the
+    /// network's own parallelism uses two cores at 1.3×, two images side by side at about
+    /// 1.8×; the bound keeps the memory of a many-core machine to a few images' feature maps
+    /// (about 0.2 GB each at 1024 px). Each image is a step on `counter`.
+    ///
+    /// # Errors
+    /// As [`Self::extract`].
+    pub fn extract_many(
+        &self,
+        paths: &[&Path],
+        half_turn: bool,
+        counter: &dyn StepCounter,
+    ) -> Result<Vec<ImageFeatures>> {
+        let at_once = rayon::current_num_threads().clamp(1, EXTRACT_AT_ONCE);
+        let mut out = Vec::with_capacity(paths.len());
+        for chunk in paths.chunks(at_once) {
+            out.extend(
+                chunk
+                    .par_iter()
+                    .map(|p| {
+                        let f = self.extract_turned(p, half_turn);
+                        counter.step();
+                        f
+                    })
+                    .collect::<Result<Vec<_>>>()?,
+            );
+        }
+        Ok(out)
+    }
+
     /// What LightGlue computes from one image alone ([`LightGlue::prepare_image`]), so that an
     /// image matched with several others is prepared once.
     ///
@@ -449,25 +479,9 @@ pub fn extract_all_counted(
             got: images.len(),
         });
     }
-    // A few images at a time: the network's own parallelism uses two cores at 1.3×, two
-    // images side by side at about 1.8×; the bound keeps the memory of a many-core machine to
-    // a few images' feature maps (about 0.2 GB each at 1024 px).
     counter.stage("features", images.len() as u64);
-    let at_once = rayon::current_num_threads().clamp(1, EXTRACT_AT_ONCE);
-    let mut out = Vec::with_capacity(images.len());
-    for chunk in images.chunks(at_once) {
-        out.extend(
-            chunk
-                .par_iter()
-                .map(|p| {
-                    let f = l.0.extract(p);
-                    counter.step();
-                    f
-                })
-                .collect::<Result<Vec<_>>>()?,
-        );
-    }
-    Ok(out)
+    let paths: Vec<&Path> = images.iter().map(PathBuf::as_path).collect();
+    l.0.extract_many(&paths, false, counter)
 }
 
 /// Matches `pairs` with the configured matcher.

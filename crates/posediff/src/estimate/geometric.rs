@@ -31,8 +31,6 @@ use posediff_sfm::{
     CameraPose, GlobalMapper, ImageIntrinsics, MapperOptions, MapperReport, SfmError,
 };
 
-use rayon::prelude::*;
-
 use crate::correspondences::{
     NoCounter, SharedLearned, StepCounter, descriptor_support, extract_all_counted,
     match_pairs_counted, match_pairs_turned,
@@ -781,20 +779,13 @@ fn turn_left_out(
         left.len()
     );
     counter.stage("turned images", left.len() as u64);
-    let mut upright = Vec::with_capacity(left.len());
-    for chunk in left.chunks(rayon::current_num_threads().clamp(1, 4)) {
-        let turned: Vec<ImageFeatures> = chunk
-            .par_iter()
-            .map(|&j| {
-                let f = learned.0.extract_turned(&images[j], true);
-                counter.step();
-                f
-            })
-            .collect::<Result<_>>()?;
-        for (&j, f) in chunk.iter().zip(turned) {
-            upright.push((j, std::mem::replace(&mut features[j], f)));
-        }
-    }
+    let paths: Vec<&std::path::Path> = left.iter().map(|&j| images[j].as_path()).collect();
+    let turned = learned.0.extract_many(&paths, true, counter)?;
+    let upright: Vec<(usize, ImageFeatures)> = left
+        .iter()
+        .zip(turned)
+        .map(|(&j, f)| (j, std::mem::replace(&mut features[j], f)))
+        .collect();
     let is_left = |i: usize| left.binary_search(&i).is_ok();
     let trial: Vec<(usize, usize)> = posediff_matching::pairs::retrieval_pairs(
         features,
