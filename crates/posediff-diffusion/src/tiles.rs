@@ -5,7 +5,7 @@
 //! The same algorithms as the F32 kernels of [`crate::attention`] and [`crate::linear`] (blocks
 //! of query rows, the softmax with its subnormal flush, the column rescaling), with each faer
 //! product replaced by packing the operands and one tile product. Two things differ: the
-//! softmax numerators come from [`crate::softmax::exp_fused`] (fused multiply-adds, within two
+//! softmax numerators come from `softmax::exp_fused` (fused multiply-adds, within two
 //! ulps of the F32 kernels' `exp`) and go straight into the packed BF16 terms, and
 //! self-attention takes blocks of 32 query rows (sized for L2). Operands that serve many products are packed once:
 //! a layer's weight when it is first used, a head's keys and values once per head.
