@@ -127,6 +127,20 @@ pub fn select_pairs(
     selection: &PairSelection,
     features: Option<&[ImageFeatures]>,
 ) -> Result<Vec<(usize, usize)>> {
+    select_pairs_with(n, selection, features, None)
+}
+
+/// [`select_pairs`] with the bag of words of `features` already built (with
+/// [`RetrievalOptions::default`]): retrieval rules use it instead of building their own.
+///
+/// # Errors
+/// As [`select_pairs`].
+pub fn select_pairs_with(
+    n: usize,
+    selection: &PairSelection,
+    features: Option<&[ImageFeatures]>,
+    words: Option<&BagOfWords>,
+) -> Result<Vec<(usize, usize)>> {
     let mut pairs = Vec::new();
     for rule in selection.rules(n) {
         match rule {
@@ -137,9 +151,10 @@ pub fn select_pairs(
                 pairs.extend((0..n).flat_map(|i| (i + 1..n.min(i + 1 + k)).map(move |j| (i, j))));
             }
             PairRule::Retrieval(k) => match features {
-                Some(f) if f.len() == n => {
-                    pairs.extend(retrieval_pairs(f, k, &RetrievalOptions::default()));
-                }
+                Some(f) if f.len() == n => match words {
+                    Some(w) if w.len() == n => pairs.extend(w.pairs(k)),
+                    _ => pairs.extend(retrieval_pairs(f, k, &RetrievalOptions::default())),
+                },
                 _ => {
                     return Err(MatchingError::InvalidConfig(
                         "retrieval pair selection needs the features of every image",
@@ -212,110 +227,202 @@ fn assign(rows: &DMatrix<f32>, centres: &DMatrix<f32>) -> Vec<usize> {
         .collect()
 }
 
-/// For each image its `k` most similar others by tf-idf bag-of-words cosine similarity, as
-/// pairs `i < j`. Deterministic (no random state: the vocabulary is seeded from evenly spaced
-/// samples).
+/// A tf-idf bag of visual words over a set of images: the vocabulary (k-means on their
+/// descriptors), its inverse document frequencies and each image's normalised histogram.
+/// Deterministic (no random state: the vocabulary is seeded from evenly spaced samples).
+#[derive(Debug, Clone)]
+pub struct BagOfWords {
+    centres: DMatrix<f32>,
+    idf: Vec<f32>,
+    dim: usize,
+    per_image: usize,
+    /// One normalised row per image of the set (zero for an image without descriptors).
+    histograms: DMatrix<f32>,
+}
+
+impl BagOfWords {
+    /// The vocabulary and histograms of `features`; `None` when they hold no descriptors.
+    pub fn build(features: &[ImageFeatures], options: &RetrievalOptions) -> Option<Self> {
+        let n = features.len();
+        let per_image: Vec<(Vec<f32>, usize)> = features
+            .iter()
+            .map(|f| float_rows(&f.descriptors, options.per_image))
+            .collect();
+        let dim = per_image.iter().map(|p| p.1).max().unwrap_or(0);
+        let total: usize = per_image.iter().map(|(d, w)| d.len() / (*w).max(1)).sum();
+        if dim == 0 || total == 0 {
+            return None;
+        }
+        // Vocabulary: evenly spaced samples, the first `words` of them as initial centres.
+        let stride = (total / options.training_samples.max(1)).max(1);
+        let mut sample = Vec::new();
+        let mut index = 0usize;
+        for (data, w) in &per_image {
+            if *w != dim {
+                continue;
+            }
+            for row in data.chunks_exact(dim) {
+                if index.is_multiple_of(stride) {
+                    sample.extend_from_slice(row);
+                }
+                index += 1;
+            }
+        }
+        let samples = sample.len() / dim;
+        let words = options.words.min(samples).max(1);
+        let train = DMatrix::from_row_slice(samples, dim, &sample);
+        let step = (samples / words).max(1);
+        let mut centres = DMatrix::from_fn(words, dim, |c, d| train[((c * step) % samples, d)]);
+        for _ in 0..options.iterations {
+            let labels = assign(&train, &centres);
+            let mut sums = DMatrix::<f32>::zeros(words, dim);
+            let mut counts = vec![0usize; words];
+            for (i, &l) in labels.iter().enumerate() {
+                counts[l] += 1;
+                for d in 0..dim {
+                    sums[(l, d)] += train[(i, d)];
+                }
+            }
+            for c in 0..words {
+                if counts[c] > 0 {
+                    for d in 0..dim {
+                        centres[(c, d)] = sums[(c, d)] / counts[c] as f32;
+                    }
+                }
+            }
+        }
+        // Histograms, idf, normalisation.
+        let mut hist = DMatrix::<f32>::zeros(n, words);
+        for (i, (data, w)) in per_image.iter().enumerate() {
+            if *w != dim || data.is_empty() {
+                continue;
+            }
+            let rows = DMatrix::from_row_slice(data.len() / dim, dim, data);
+            for l in assign(&rows, &centres) {
+                hist[(i, l)] += 1.0;
+            }
+        }
+        let idf: Vec<f32> = (0..words)
+            .map(|c| {
+                let df = (0..n).filter(|&i| hist[(i, c)] > 0.0).count();
+                if df > 0 {
+                    (n as f32 / df as f32).ln()
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        for (c, &w) in idf.iter().enumerate() {
+            for i in 0..n {
+                hist[(i, c)] *= w;
+            }
+        }
+        for i in 0..n {
+            let norm = hist.row(i).norm();
+            if norm > 0.0 {
+                for c in 0..words {
+                    hist[(i, c)] /= norm;
+                }
+            }
+        }
+        Some(Self {
+            centres,
+            idf,
+            dim,
+            per_image: options.per_image,
+            histograms: hist,
+        })
+    }
+
+    /// Images of the set.
+    pub fn len(&self) -> usize {
+        self.histograms.nrows()
+    }
+
+    /// Whether the set has no images.
+    pub fn is_empty(&self) -> bool {
+        self.histograms.nrows() == 0
+    }
+
+    /// The normalised histogram of image `i` of the set.
+    pub fn histogram_of(&self, i: usize) -> Option<Vec<f32>> {
+        (i < self.histograms.nrows()).then(|| self.histograms.row(i).iter().copied().collect())
+    }
+
+    /// The normalised histogram of other features (an image of the set extracted again, say)
+    /// in this vocabulary and with the set's idf; zero when their descriptors do not fit it.
+    pub fn histogram(&self, features: &ImageFeatures) -> Vec<f32> {
+        let mut hist = vec![0.0f32; self.idf.len()];
+        let (data, w) = float_rows(&features.descriptors, self.per_image);
+        if w == self.dim && !data.is_empty() {
+            let rows = DMatrix::from_row_slice(data.len() / w, w, &data);
+            for l in assign(&rows, &self.centres) {
+                hist[l] += 1.0;
+            }
+        }
+        for (h, w) in hist.iter_mut().zip(&self.idf) {
+            *h *= w;
+        }
+        let norm = hist.iter().map(|h| h * h).sum::<f32>().sqrt();
+        if norm > 0.0 {
+            for h in &mut hist {
+                *h /= norm;
+            }
+        }
+        hist
+    }
+
+    /// The images of the set for which `keep` holds, most similar to `histogram` first (cosine;
+    /// ties by index), `k` at most.
+    pub fn most_similar(
+        &self,
+        histogram: &[f32],
+        k: usize,
+        keep: impl Fn(usize) -> bool,
+    ) -> Vec<usize> {
+        let mut others: Vec<(usize, f32)> = (0..self.histograms.nrows())
+            .filter(|&j| keep(j))
+            .map(|j| {
+                let row = self.histograms.row(j);
+                (j, row.iter().zip(histogram).map(|(a, b)| a * b).sum())
+            })
+            .collect();
+        others.sort_by(|a, b| b.1.total_cmp(&a.1).then(a.0.cmp(&b.0)));
+        others.into_iter().take(k).map(|(j, _)| j).collect()
+    }
+
+    /// For each image its `k` most similar others, as pairs `i < j`, sorted, without repeats.
+    pub fn pairs(&self, k: usize) -> Vec<(usize, usize)> {
+        let n = self.histograms.nrows();
+        let similarity = &self.histograms * self.histograms.transpose();
+        let mut pairs = Vec::new();
+        for i in 0..n {
+            let mut others: Vec<(usize, f32)> = (0..n)
+                .filter(|&j| j != i)
+                .map(|j| (j, similarity[(i, j)]))
+                .collect();
+            others.sort_by(|a, b| b.1.total_cmp(&a.1).then(a.0.cmp(&b.0)));
+            for &(j, _) in others.iter().take(k) {
+                pairs.push((i.min(j), i.max(j)));
+            }
+        }
+        pairs.sort_unstable();
+        pairs.dedup();
+        pairs
+    }
+}
+
+/// For each image its `k` most similar others by tf-idf bag-of-words cosine similarity
+/// ([`BagOfWords`]), as pairs `i < j`.
 pub fn retrieval_pairs(
     features: &[ImageFeatures],
     k: usize,
     options: &RetrievalOptions,
 ) -> Vec<(usize, usize)> {
-    let n = features.len();
-    if n < 2 || k == 0 {
+    if features.len() < 2 || k == 0 {
         return Vec::new();
     }
-    let per_image: Vec<(Vec<f32>, usize)> = features
-        .iter()
-        .map(|f| float_rows(&f.descriptors, options.per_image))
-        .collect();
-    let dim = per_image.iter().map(|p| p.1).max().unwrap_or(0);
-    let total: usize = per_image.iter().map(|(d, w)| d.len() / (*w).max(1)).sum();
-    if dim == 0 || total == 0 {
-        return Vec::new();
-    }
-    // Vocabulary: evenly spaced samples, the first `words` of them as initial centres.
-    let stride = (total / options.training_samples.max(1)).max(1);
-    let mut sample = Vec::new();
-    let mut index = 0usize;
-    for (data, w) in &per_image {
-        if *w != dim {
-            continue;
-        }
-        for row in data.chunks_exact(dim) {
-            if index.is_multiple_of(stride) {
-                sample.extend_from_slice(row);
-            }
-            index += 1;
-        }
-    }
-    let samples = sample.len() / dim;
-    let words = options.words.min(samples).max(1);
-    let train = DMatrix::from_row_slice(samples, dim, &sample);
-    let step = (samples / words).max(1);
-    let mut centres = DMatrix::from_fn(words, dim, |c, d| train[((c * step) % samples, d)]);
-    for _ in 0..options.iterations {
-        let labels = assign(&train, &centres);
-        let mut sums = DMatrix::<f32>::zeros(words, dim);
-        let mut counts = vec![0usize; words];
-        for (i, &l) in labels.iter().enumerate() {
-            counts[l] += 1;
-            for d in 0..dim {
-                sums[(l, d)] += train[(i, d)];
-            }
-        }
-        for c in 0..words {
-            if counts[c] > 0 {
-                for d in 0..dim {
-                    centres[(c, d)] = sums[(c, d)] / counts[c] as f32;
-                }
-            }
-        }
-    }
-    // Histograms, idf, normalisation.
-    let mut hist = DMatrix::<f32>::zeros(n, words);
-    for (i, (data, w)) in per_image.iter().enumerate() {
-        if *w != dim || data.is_empty() {
-            continue;
-        }
-        let rows = DMatrix::from_row_slice(data.len() / dim, dim, data);
-        for l in assign(&rows, &centres) {
-            hist[(i, l)] += 1.0;
-        }
-    }
-    for c in 0..words {
-        let df = (0..n).filter(|&i| hist[(i, c)] > 0.0).count();
-        let idf = if df > 0 {
-            (n as f32 / df as f32).ln()
-        } else {
-            0.0
-        };
-        for i in 0..n {
-            hist[(i, c)] *= idf;
-        }
-    }
-    for i in 0..n {
-        let norm = hist.row(i).norm();
-        if norm > 0.0 {
-            for c in 0..words {
-                hist[(i, c)] /= norm;
-            }
-        }
-    }
-    let similarity = &hist * hist.transpose();
-    let mut pairs = Vec::new();
-    for i in 0..n {
-        let mut others: Vec<(usize, f32)> = (0..n)
-            .filter(|&j| j != i)
-            .map(|j| (j, similarity[(i, j)]))
-            .collect();
-        others.sort_by(|a, b| b.1.total_cmp(&a.1).then(a.0.cmp(&b.0)));
-        for &(j, _) in others.iter().take(k) {
-            pairs.push((i.min(j), i.max(j)));
-        }
-    }
-    pairs.sort_unstable();
-    pairs.dedup();
-    pairs
+    BagOfWords::build(features, options).map_or_else(Vec::new, |b| b.pairs(k))
 }
 
 #[cfg(test)]
@@ -363,10 +470,36 @@ mod tests {
         assert!(select_pairs(5, &"sequential:2,retrieval:3".parse().unwrap(), None).is_err());
     }
 
-    /// Three "scenes" of two images each (descriptors drawn around scene-specific centres):
-    /// retrieval pairs each image with its twin.
+    /// Retrieval pairs each image of [`three_scenes`] with its twin.
     #[test]
     fn retrieval_finds_the_images_of_the_same_scene() {
+        let (features, options) = three_scenes();
+        let pairs = retrieval_pairs(&features, 1, &options);
+        assert_eq!(pairs, vec![(0, 3), (1, 4), (2, 5)]);
+    }
+
+    /// A query by features outside the set (here copies of the set's images) lands in the set's
+    /// histogram of the same image, and the most similar images respect the filter and `k`.
+    #[test]
+    fn queries_in_the_vocabulary_find_the_same_scene() {
+        let (features, options) = three_scenes();
+        let words = BagOfWords::build(&features, &options).unwrap();
+        assert_eq!(words.len(), 6);
+        for (i, f) in features.iter().enumerate() {
+            let h = words.histogram(f);
+            let own = words.histogram_of(i).unwrap();
+            assert!(h.iter().zip(&own).all(|(a, b)| (a - b).abs() < 1e-6));
+            assert_eq!(words.most_similar(&h, 1, |j| j != i), vec![(i + 3) % 6]);
+            let others = words.most_similar(&h, 3, |j| j % 3 != i % 3);
+            assert_eq!(others.len(), 3);
+            assert!(others.iter().all(|j| j % 3 != i % 3), "{others:?}");
+        }
+        assert!(words.histogram_of(6).is_none());
+    }
+
+    /// Three "scenes" of two images each (descriptors drawn around scene-specific centres),
+    /// with a vocabulary small enough for them.
+    fn three_scenes() -> (Vec<ImageFeatures>, RetrievalOptions) {
         let mut seed = 7u64;
         let mut rnd = || {
             seed = seed
@@ -396,7 +529,6 @@ mod tests {
             words: 60,
             ..RetrievalOptions::default()
         };
-        let pairs = retrieval_pairs(&features, 1, &options);
-        assert_eq!(pairs, vec![(0, 3), (1, 4), (2, 5)]);
+        (features, options)
     }
 }

@@ -296,29 +296,31 @@ fn the_learned_auto_plan_is_exhaustive_for_small_sets_then_two_passes() {
     assert_eq!(explicit.plan(100), (explicit.pairs.clone(), None));
 }
 
+/// The stages a run reports, as (name, total, steps counted).
+#[derive(Default)]
+struct Record {
+    stages: std::sync::Mutex<Vec<(String, u64, usize)>>,
+}
+
+impl posediff::correspondences::StepCounter for Record {
+    fn stage(&self, name: &str, total: u64) {
+        self.stages
+            .lock()
+            .unwrap()
+            .push((name.to_owned(), total, 0));
+    }
+    fn step(&self) {
+        if let Some(last) = self.stages.lock().unwrap().last_mut() {
+            last.2 += 1;
+        }
+    }
+}
+
 /// What the CLI's progress bars see: each stage of the geometric path in order, the learned
 /// matcher's images and pairs counted one step each (from whichever thread did them).
 #[test]
 fn the_geometric_stages_count_images_and_pairs() {
-    use posediff::correspondences::StepCounter;
     use posediff::estimate::geometric::{GeometricConfig, estimate_geometric_counted};
-    #[derive(Default)]
-    struct Record {
-        stages: std::sync::Mutex<Vec<(String, u64, usize)>>,
-    }
-    impl StepCounter for Record {
-        fn stage(&self, name: &str, total: u64) {
-            self.stages
-                .lock()
-                .unwrap()
-                .push((name.to_owned(), total, 0));
-        }
-        fn step(&self) {
-            if let Some(last) = self.stages.lock().unwrap().last_mut() {
-                last.2 += 1;
-            }
-        }
-    }
     let config = GeometricConfig {
         learned: Some(SharedLearned(std::sync::Arc::new(
             LearnedMatcher::load(&weights_dir()).unwrap_or_else(|e| panic!("{e}")),
@@ -418,44 +420,112 @@ fn rotation_of(c: &serde_json::Value) -> nalgebra::Matrix3<f64> {
     nalgebra::Matrix3::from_fn(|r, k| c["R"][r][k].as_f64().unwrap())
 }
 
-/// Four apple frames, the last one upside down: the first map leaves it out (ALIKED is not
-/// invariant to in-plane rotation), the turned retry maps it, and its camera is the ground
-/// truth's turned by 180° about the optical axis (`R ↦ diag(−1, −1, 1) R`).
-#[test]
-fn the_cli_maps_an_image_turned_upside_down() {
-    let dir = posediff_fixtures::temp_dir("learned-cli-turned");
+/// The first `n` apple frames in a new folder, the frames `turned` written upside down.
+fn apple_with_turned(dir: &std::path::Path, n: usize, turned: &[usize]) -> Vec<PathBuf> {
     let set = dir.join("set");
     std::fs::create_dir_all(&set).unwrap();
-    let frames = apple(4);
-    for p in &frames[..3] {
-        std::fs::copy(p, set.join(p.file_name().unwrap())).unwrap();
-    }
-    write_turned(&frames[3], &set);
-    let (out, run) = estimate_learned(&set, &dir);
-    assert_eq!(run["report"]["turned_images"], serde_json::json!([3]));
-    let cams: Vec<serde_json::Value> =
-        serde_json::from_str(&std::fs::read_to_string(out.join("cameras.json")).unwrap()).unwrap();
-    assert!(cams.iter().all(|c| c["estimated"] == true), "{cams:?}");
+    apple(n)
+        .iter()
+        .enumerate()
+        .map(|(i, p)| {
+            if turned.contains(&i) {
+                write_turned(p, &set)
+            } else {
+                let to = set.join(p.file_name().unwrap());
+                std::fs::copy(p, &to).unwrap();
+                to
+            }
+        })
+        .collect()
+}
+
+/// Each estimated rotation relative to the first frame's is the ground truth's within 5°, with
+/// the frames `turned` turned by 180° about the optical axis (`R ↦ diag(−1, −1, 1) R`).
+fn assert_rotations_with_turned(rotations: &[nalgebra::Matrix3<f64>], turned: &[usize]) {
+    let frames = apple(rotations.len());
     let gt: Vec<serde_json::Value> = serde_json::from_str(
         &std::fs::read_to_string(shared_path("data/co3d_apple_posediffusion/cameras.json"))
             .unwrap(),
     )
     .unwrap();
-    let gt_of = |p: &PathBuf| {
-        let name = p.file_name().unwrap().to_str().unwrap();
-        gt.iter()
+    let turn = nalgebra::Matrix3::from_diagonal(&nalgebra::Vector3::new(-1.0, -1.0, 1.0));
+    let as_given = |i: usize| {
+        let name = frames[i].file_name().unwrap().to_str().unwrap();
+        let r = gt
+            .iter()
             .find(|c| c["image"].as_str().unwrap().ends_with(name))
             .map(rotation_of)
-            .unwrap()
+            .unwrap();
+        if turned.contains(&i) { turn * r } else { r }
     };
-    let turn = nalgebra::Matrix3::from_diagonal(&nalgebra::Vector3::new(-1.0, -1.0, 1.0));
-    let truth = turn * gt_of(&frames[3]) * gt_of(&frames[0]).transpose();
-    let estimate = rotation_of(&cams[3]) * rotation_of(&cams[0]).transpose();
-    let error = nalgebra::Rotation3::from_matrix(&(estimate * truth.transpose())).angle();
+    for i in 1..rotations.len() {
+        let truth = as_given(i) * as_given(0).transpose();
+        let estimate = rotations[i] * rotations[0].transpose();
+        let error = nalgebra::Rotation3::from_matrix(&(estimate * truth.transpose())).angle();
+        assert!(
+            error.to_degrees() < 5.0,
+            "frame {i}: relative rotation off by {:.2}°",
+            error.to_degrees()
+        );
+    }
+}
+
+/// Four apple frames through the CLI, the last one upside down: ALIKED is not invariant to
+/// in-plane rotation, so it matches the others poorly as it lies; run.json names it in
+/// `turned_images`, all four cameras are estimated, and cameras.json holds its camera for the
+/// image as given (the ground truth's turned by 180°).
+#[test]
+fn the_cli_maps_an_image_turned_upside_down() {
+    let dir = posediff_fixtures::temp_dir("learned-cli-turned");
+    apple_with_turned(&dir, 4, &[3]);
+    let (out, run) = estimate_learned(&dir.join("set"), &dir);
+    assert_eq!(run["report"]["turned_images"], serde_json::json!([3]));
+    let cams: Vec<serde_json::Value> =
+        serde_json::from_str(&std::fs::read_to_string(out.join("cameras.json")).unwrap()).unwrap();
+    assert!(cams.iter().all(|c| c["estimated"] == true), "{cams:?}");
+    let rotations: Vec<_> = cams.iter().map(rotation_of).collect();
+    assert_rotations_with_turned(&rotations, &[3]);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// Six apple frames, the last three upside down: the strong pairs form one group of each
+/// orientation, and the orientation check turns the second group before the first map (its
+/// stages come before any "mapping", and no image is retried after it); all six cameras are
+/// estimated and right.
+#[test]
+fn the_orientation_check_turns_a_group_before_the_map() {
+    use posediff::estimate::geometric::{GeometricConfig, estimate_geometric_counted};
+    let dir = posediff_fixtures::temp_dir("learned-turned-group");
+    let images = apple_with_turned(&dir, 6, &[3, 4, 5]);
+    let config = GeometricConfig {
+        learned: Some(SharedLearned(std::sync::Arc::new(
+            LearnedMatcher::load(&weights_dir()).unwrap_or_else(|e| panic!("{e}")),
+        ))),
+        ..GeometricConfig::default()
+    };
+    let record = Record::default();
+    let estimate = estimate_geometric_counted(&images, &config, &record).unwrap();
+    assert_eq!(estimate.report.turned_images, vec![3, 4, 5]);
+    let stages: Vec<String> = record
+        .stages
+        .into_inner()
+        .unwrap()
+        .into_iter()
+        .map(|s| s.0)
+        .collect();
+    let first_map = stages.iter().position(|s| s == "mapping").unwrap();
+    let check = stages.iter().position(|s| s == "orientation check");
     assert!(
-        error.to_degrees() < 5.0,
-        "relative rotation off by {:.2}°",
-        error.to_degrees()
+        check.is_some_and(|c| c < first_map)
+            && stages[..first_map].contains(&"turned pairs".to_owned())
+            && !stages[first_map..].contains(&"turned images".to_owned()),
+        "{stages:?}"
     );
+    let rotations: Vec<_> = estimate
+        .cameras
+        .iter()
+        .map(|c| c.as_ref().unwrap().cam_from_world.rotation)
+        .collect();
+    assert_rotations_with_turned(&rotations, &[3, 4, 5]);
     std::fs::remove_dir_all(&dir).unwrap();
 }

@@ -16,11 +16,12 @@ use posediff_geometry::{
     Camera, CenterCrop, ImageSize, Intrinsics, MODEL_INPUT_SIDE, Pose, PoseEncoding, QuaternionSign,
 };
 use posediff_guidance::{GgsConfig, GgsSolver};
+use posediff_matching::pairs::{BagOfWords, RetrievalOptions, select_pairs_with};
 use posediff_matching::two_view::{
     fundamental_least_squares, homography_fit, relative_pose_with_homography,
 };
 use posediff_matching::{
-    ImageFeatures, MatchConfig, PairMatches, PairRule, PairSelection, TwoViewConfig, select_pairs,
+    ImageFeatures, MatchConfig, PairMatches, PairRule, PairSelection, TwoViewConfig,
 };
 use posediff_sfm::bundle::{BundleOptions, Point, bundle_adjust};
 use posediff_sfm::mapper::{GeometrySolver, RelativePose};
@@ -653,13 +654,38 @@ pub fn estimate_geometric_counted(
     config: &GeometricConfig,
     counter: &dyn StepCounter,
 ) -> Result<GeometricEstimate> {
-    let matched = match_all(images, config, counter)?;
-    let (features, mut pairs, mut support, mut times, selection) = matched;
+    let Matched {
+        mut features,
+        mut pairs,
+        mut support,
+        mut times,
+        selection,
+        words,
+    } = match_all(images, config, counter)?;
     let sizes: Vec<ImageSize> = features.iter().map(|f| f.image_size).collect();
     let (_, densify) = config.plan(images.len());
-    // The features are only needed again by the second pass and a learned matcher's turned
-    // retry (SIFT's of a thousand images are gigabytes): dropped before the mapper otherwise.
+    // A learned matcher's orientation check and turned retry (not with the support check,
+    // whose screen saw the upright features).
     let retry = config.learned.is_some() && support.is_none();
+    let mut turned = vec![false; images.len()];
+    let mut turned_images = Vec::new();
+    if retry {
+        let clock = Instant::now();
+        if let Some((flipped, new_pairs)) = turn_components(
+            images,
+            &mut features,
+            &pairs,
+            (&mut turned, words.as_ref()),
+            config,
+            counter,
+        )? {
+            pairs = new_pairs;
+            turned_images = flipped;
+        }
+        times[2] += clock.elapsed().as_secs_f64();
+    }
+    // The features are only needed again by the second pass and the turned retry (SIFT's of
+    // a thousand images are gigabytes): dropped before the mapper otherwise.
     let mut features = (densify.is_some() || retry).then_some(features);
     // The first pass's matches are kept for the second (a copy) only when it runs.
     counter.stage("mapping", 0);
@@ -682,8 +708,9 @@ pub fn estimate_geometric_counted(
         if !extra.is_empty() {
             let clock = Instant::now();
             let learned = config.learned.as_ref();
-            pairs.extend(match_pairs_counted(
+            pairs.extend(match_pairs_turned(
                 features,
+                &turned,
                 &extra,
                 &config.matching,
                 learned,
@@ -704,12 +731,17 @@ pub fn estimate_geometric_counted(
             estimate.report.times.add_mapping(&first);
         }
     }
-    let mut turned_images = Vec::new();
     if let (true, Some(features)) = (retry, features.as_mut()) {
         let clock = Instant::now();
-        if let Some((turned, turned_pairs)) =
-            turn_left_out(images, features, &pairs, &estimate.cameras, config, counter)?
-        {
+        if let Some((kept, turned_pairs)) = turn_left_out(
+            images,
+            features,
+            &pairs,
+            &estimate.cameras,
+            &mut turned,
+            config,
+            counter,
+        )? {
             times[2] += clock.elapsed().as_secs_f64();
             let earlier = estimate.report.times;
             counter.stage("mapping", 0);
@@ -723,7 +755,8 @@ pub fn estimate_geometric_counted(
                 &TwoViewCache::default(),
             )?;
             estimate.report.times.add_mapping(&earlier);
-            turned_images = turned;
+            turned_images.extend(kept);
+            turned_images.sort_unstable();
         } else {
             times[2] += clock.elapsed().as_secs_f64();
         }
@@ -762,6 +795,7 @@ fn turn_left_out(
     features: &mut [ImageFeatures],
     pairs: &[PairMatches],
     cameras: &[Option<Camera>],
+    turned_before: &mut [bool],
     config: &GeometricConfig,
     counter: &dyn StepCounter,
 ) -> Result<Option<(Vec<usize>, Vec<PairMatches>)>> {
@@ -769,7 +803,10 @@ fn turn_left_out(
         return Ok(None);
     };
     let estimated = |i: usize| cameras.get(i).is_some_and(Option::is_some);
-    let left: Vec<usize> = (0..features.len()).filter(|&i| !estimated(i)).collect();
+    let already = |i: usize| turned_before.get(i).copied().unwrap_or(false);
+    let left: Vec<usize> = (0..features.len())
+        .filter(|&i| !estimated(i) && !already(i))
+        .collect();
     if left.is_empty() || features.len() - left.len() < 2 {
         return Ok(None);
     }
@@ -790,12 +827,12 @@ fn turn_left_out(
     let trial: Vec<(usize, usize)> = posediff_matching::pairs::retrieval_pairs(
         features,
         TURN_PARTNERS,
-        &posediff_matching::pairs::RetrievalOptions::default(),
+        &RetrievalOptions::default(),
     )
     .into_iter()
     .filter(|&(a, b)| is_left(a) != is_left(b))
     .collect();
-    let mut turned_flags = vec![false; features.len()];
+    let mut turned_flags: Vec<bool> = (0..features.len()).map(already).collect();
     for &j in &left {
         turned_flags[j] = true;
     }
@@ -859,7 +896,272 @@ fn turn_left_out(
         (counter, "turned pairs"),
     )?);
     out.sort_by_key(|p| (p.first, p.second));
+    for &j in &kept {
+        if let Some(t) = turned_before.get_mut(j) {
+            *t = true;
+        }
+    }
     Ok(Some((kept, out)))
+}
+
+/// Fewest verified matches of a pair that joins two images into one group for the orientation
+/// check ([`turn_components`]). Every good ALIKED + LightGlue pair of the shared sets has at
+/// least 96 and no unrelated pair more than 74 (docs/BENCHMARKS.md, "Pairs").
+pub const STRONG_PAIR: usize = 80;
+
+/// Most groups besides the largest that the orientation check tests, each by one image
+/// extracted turned: the check's cost is bounded however many frames a run has.
+pub const TURN_TESTS: usize = 8;
+
+/// The groups of images joined by pairs of at least `minimum` verified matches, the largest
+/// first (ties: the one with the lowest image first); an image without such a pair is a group
+/// of its own.
+fn strong_groups(n: usize, pairs: &[PairMatches], minimum: usize) -> Vec<Vec<usize>> {
+    let mut parent: Vec<usize> = (0..n).collect();
+    fn root(parent: &mut [usize], mut i: usize) -> usize {
+        while parent[i] != i {
+            parent[i] = parent[parent[i]];
+            i = parent[i];
+        }
+        i
+    }
+    for p in pairs.iter().filter(|p| p.len() >= minimum) {
+        if p.first < n && p.second < n {
+            let (a, b) = (root(&mut parent, p.first), root(&mut parent, p.second));
+            parent[a.max(b)] = a.min(b);
+        }
+    }
+    let mut groups: HashMap<usize, Vec<usize>> = HashMap::new();
+    for i in 0..n {
+        let r = root(&mut parent, i);
+        groups.entry(r).or_default().push(i);
+    }
+    let mut out: Vec<Vec<usize>> = groups.into_values().collect();
+    out.sort_by(|a, b| b.len().cmp(&a.len()).then(a.first().cmp(&b.first())));
+    out
+}
+
+/// How two groups of images lie to each other by the descriptor screen's verified matches of
+/// one group's representative with the other group's images, upright (`same`) and turned by
+/// 180° (`opposite`): `Some(true)` when turned wins clearly (at least
+/// [`crate::correspondences::SUPPORT_MIN_VERIFIED`] matches and twice the other way's),
+/// `Some(false)` when upright does, `None` when neither.
+fn orientation_evidence(same: usize, opposite: usize) -> Option<bool> {
+    let (high, low) = (same.max(opposite), same.min(opposite));
+    (high >= crate::correspondences::SUPPORT_MIN_VERIFIED && high >= 2 * low)
+        .then_some(opposite > same)
+}
+
+/// A learned matcher's orientation check before the map. ALIKED and DISK are not invariant to
+/// in-plane rotation: where some images are upside down relative to the others (the Middlebury
+/// temple's last five, a camera turned over), LightGlue matches each orientation well within
+/// itself and poorly or wrongly across, so the strong pairs ([`STRONG_PAIR`]) fall into groups
+/// by orientation. Each group besides the largest ([`TURN_TESTS`] at most) is tested by its
+/// best-matched image, extracted again turned by 180°: the descriptor screen
+/// ([`descriptor_support`], about 10 ms a pair) counts its verified matches, upright and
+/// turned, with the [`TURN_PARTNERS`] most similar images of other groups. Groups are then
+/// labelled from the largest along the clearest evidence ([`orientation_evidence`]), and the
+/// images of the groups found turned relative to the largest are extracted turned, their pairs
+/// matched again, and the turned images matched with their [`TURN_PARTNERS`] most similar
+/// images. Returns the turned images (their `turned` flags set, `features` holding their
+/// turned features) and the new pairs, or `None` (nothing changed) when the strong pairs form
+/// one group or no group is found turned.
+///
+/// # Errors
+/// Unreadable images, network and matching errors.
+fn turn_components(
+    images: &[PathBuf],
+    features: &mut [ImageFeatures],
+    pairs: &[PairMatches],
+    (turned, words): (&mut [bool], Option<&BagOfWords>),
+    config: &GeometricConfig,
+    counter: &dyn StepCounter,
+) -> Result<Option<(Vec<usize>, Vec<PairMatches>)>> {
+    let Some(learned) = config.learned.as_ref() else {
+        return Ok(None);
+    };
+    let n = features.len();
+    let clock = Instant::now();
+    let groups = strong_groups(n, pairs, STRONG_PAIR);
+    if groups.len() < 2 {
+        return Ok(None);
+    }
+    let mut group_of = vec![0usize; n];
+    for (g, members) in groups.iter().enumerate() {
+        for &i in members {
+            group_of[i] = g;
+        }
+    }
+    let mut strength = vec![0usize; n];
+    for p in pairs.iter().filter(|p| p.len() >= STRONG_PAIR) {
+        strength[p.first] += p.len();
+        strength[p.second] += p.len();
+    }
+    let reps: Vec<usize> = groups
+        .iter()
+        .skip(1)
+        .take(TURN_TESTS)
+        .filter_map(|g| {
+            g.iter()
+                .copied()
+                .max_by_key(|&i| (strength[i], std::cmp::Reverse(i)))
+        })
+        .collect();
+    log::info!(
+        "{}the strong pairs form {} groups: testing {} turned by 180°",
+        crate::estimate::run::WORK_STARTS,
+        groups.len(),
+        reps.len()
+    );
+    let is_rep = |i: usize| reps.contains(&i);
+    counter.stage("orientation check", reps.len() as u64);
+    let paths: Vec<&std::path::Path> = reps.iter().map(|&r| images[r].as_path()).collect();
+    let rep_turned = learned.0.extract_many(&paths, true, counter)?;
+    // Each representative with the most similar images of other groups, upright and turned
+    // (one vocabulary; not other representatives, which are turned during the screen), as
+    // (representative, partner).
+    let built;
+    let words = match words.filter(|w| w.len() == n) {
+        Some(w) => Some(w),
+        None => {
+            built = BagOfWords::build(features, &RetrievalOptions::default());
+            built.as_ref()
+        }
+    };
+    let mut trial: Vec<(usize, usize)> = Vec::new();
+    if let Some(words) = words {
+        for (&r, t) in reps.iter().zip(&rep_turned) {
+            let keep = |j: usize| group_of[j] != group_of[r] && !is_rep(j);
+            for h in [
+                words.histogram_of(r).unwrap_or_default(),
+                words.histogram(t),
+            ] {
+                trial.extend(
+                    words
+                        .most_similar(&h, TURN_PARTNERS, keep)
+                        .into_iter()
+                        .map(|p| (r, p)),
+                );
+            }
+        }
+    }
+    trial.sort_unstable();
+    trial.dedup();
+    let upright: Vec<ImageFeatures> = reps
+        .iter()
+        .zip(rep_turned)
+        .map(|(&r, f)| std::mem::replace(&mut features[r], f))
+        .collect();
+    let screened: Vec<(usize, usize)> = trial.iter().map(|&(r, p)| (r.min(p), r.max(p))).collect();
+    let opposite = descriptor_support(features, &screened, &config.matching);
+    let mut rep_turned: HashMap<usize, ImageFeatures> = reps
+        .iter()
+        .zip(upright)
+        .map(|(&r, f)| (r, std::mem::replace(&mut features[r], f)))
+        .collect();
+    let opposite = opposite?;
+    let same = descriptor_support(features, &screened, &config.matching)?;
+    // Evidence between groups, (smaller, larger) group index ↦ (same, opposite).
+    let mut evidence: HashMap<(usize, usize), (usize, usize)> = HashMap::new();
+    for (k, &(r, p)) in trial.iter().enumerate() {
+        let (a, b) = (group_of[r], group_of[p]);
+        let e = evidence.entry((a.min(b), a.max(b))).or_default();
+        e.0 += same[k];
+        e.1 += opposite[k];
+    }
+    let mut edges: Vec<((usize, usize), bool, usize)> = evidence
+        .iter()
+        .filter_map(|(&g, &(s, o))| orientation_evidence(s, o).map(|flip| (g, flip, s.max(o))))
+        .collect();
+    edges.sort_by(|x, y| y.2.cmp(&x.2).then(x.0.cmp(&y.0)));
+    // Labels from the largest group, strongest evidence first.
+    let mut label: Vec<Option<bool>> = vec![None; groups.len()];
+    label[0] = Some(false);
+    loop {
+        let next = edges
+            .iter()
+            .find_map(|&((a, b), flip, _)| match (label[a], label[b]) {
+                (Some(l), None) => Some((b, l != flip)),
+                (None, Some(l)) => Some((a, l != flip)),
+                _ => None,
+            });
+        let Some((g, l)) = next else { break };
+        label[g] = Some(l);
+    }
+    let mut flipped: Vec<usize> = groups
+        .iter()
+        .zip(&label)
+        .filter(|(_, l)| **l == Some(true))
+        .flat_map(|(g, _)| g.iter().copied())
+        .filter(|&i| !turned[i])
+        .collect();
+    flipped.sort_unstable();
+    log::info!(
+        "{}orientation check: {} images turned against the largest group ({:.1} s)",
+        crate::estimate::run::WORK_STARTS,
+        flipped.len(),
+        clock.elapsed().as_secs_f64()
+    );
+    if flipped.is_empty() {
+        return Ok(None);
+    }
+    // The turned features: the representatives' from the screen, the others extracted.
+    let rest: Vec<usize> = flipped
+        .iter()
+        .copied()
+        .filter(|i| !rep_turned.contains_key(i))
+        .collect();
+    let paths: Vec<&std::path::Path> = rest.iter().map(|&i| images[i].as_path()).collect();
+    counter.stage("turned images", rest.len() as u64);
+    for (&i, f) in rest
+        .iter()
+        .zip(learned.0.extract_many(&paths, true, counter)?)
+    {
+        rep_turned.insert(i, f);
+    }
+    for &i in &flipped {
+        if let Some(f) = rep_turned.remove(&i) {
+            features[i] = f;
+            turned[i] = true;
+        }
+    }
+    let is_flipped = |i: usize| flipped.binary_search(&i).is_ok();
+    let mut again: Vec<(usize, usize)> = pairs
+        .iter()
+        .filter(|p| is_flipped(p.first) || is_flipped(p.second))
+        .map(|p| (p.first, p.second))
+        .collect();
+    // Pairs the selection did not give (it saw the upright features): each turned image with
+    // its most similar images by its turned features.
+    let had: HashSet<(usize, usize)> = pairs.iter().map(|p| (p.first, p.second)).collect();
+    if let Some(words) = words {
+        for &i in &flipped {
+            let near =
+                words.most_similar(&words.histogram(&features[i]), TURN_PARTNERS, |j| j != i);
+            again.extend(
+                near.into_iter()
+                    .map(|j| (i.min(j), i.max(j)))
+                    .filter(|p| !had.contains(p)),
+            );
+        }
+    }
+    again.sort_unstable();
+    again.dedup();
+    let mut out: Vec<PairMatches> = pairs
+        .iter()
+        .filter(|p| !is_flipped(p.first) && !is_flipped(p.second))
+        .cloned()
+        .collect();
+    out.extend(match_pairs_turned(
+        features,
+        turned,
+        &again,
+        &config.matching,
+        Some(learned),
+        (counter, "turned pairs"),
+    )?);
+    out.sort_by_key(|p| (p.first, p.second));
+    Ok(Some((flipped, out)))
 }
 
 /// The pairs of [`Densify`]'s second pass: for each estimated image, its nearest estimated
@@ -899,16 +1201,22 @@ pub fn densify_pairs(
     out
 }
 
-/// What [`match_all`] gives: the features of every image, the matches of the selected pairs, their support
-/// flags (learned matchers with the support check), the seconds of extraction, selection and
-/// matching, and the selection's rules.
-type Matched = (
-    Vec<ImageFeatures>,
-    Vec<PairMatches>,
-    Option<Vec<bool>>,
-    [f64; 3],
-    String,
-);
+/// What [`match_all`] gives.
+struct Matched {
+    /// The features of every image.
+    features: Vec<ImageFeatures>,
+    /// The matches of the selected pairs.
+    pairs: Vec<PairMatches>,
+    /// Their support flags (learned matchers with the support check).
+    support: Option<Vec<bool>>,
+    /// The seconds of extraction, selection and matching.
+    times: [f64; 3],
+    /// The selection's rules.
+    selection: String,
+    /// The bag of words of the features, when a retrieval rule built it for a learned matcher
+    /// (the orientation check uses it again).
+    words: Option<BagOfWords>,
+}
 
 /// Extraction, pair selection, matching and (for a learned matcher) the support screen.
 fn match_all(
@@ -929,7 +1237,16 @@ fn match_all(
     let clock = Instant::now();
     let n = images.len();
     let (selection, densify) = config.plan(n);
-    let pair_list = select_pairs(n, &selection, Some(&features))?;
+    // The bag of words once, for a retrieval rule and the orientation check.
+    let words = (config.learned.is_some()
+        && config.support_min_verified.is_none()
+        && selection
+            .rules(n)
+            .iter()
+            .any(|r| matches!(r, PairRule::Retrieval(_))))
+    .then(|| BagOfWords::build(&features, &RetrievalOptions::default()))
+    .flatten();
+    let pair_list = select_pairs_with(n, &selection, Some(&features), words.as_ref())?;
     let mut rules: Vec<String> = selection.rules(n).iter().map(ToString::to_string).collect();
     if let Some(d) = densify {
         rules.push(format!("densify:{}deg,{}", d.max_angle_deg, d.per_image));
@@ -952,13 +1269,14 @@ fn match_all(
         ),
         _ => None,
     };
-    Ok((
+    Ok(Matched {
         features,
         pairs,
         support,
-        [extraction, selection, clock.elapsed().as_secs_f64()],
-        rules.join(","),
-    ))
+        times: [extraction, selection, clock.elapsed().as_secs_f64()],
+        selection: rules.join(","),
+        words,
+    })
 }
 
 /// Refines cameras from elsewhere (e.g. COLMAP's, converted to cameras.json) on the matches of
@@ -1000,7 +1318,13 @@ pub fn refine_given_cameras_counted(
             "no initial camera is estimated".into(),
         ));
     };
-    let (features, mut pairs, _, mut times, selection) = match_all(images, config, counter)?;
+    let Matched {
+        features,
+        mut pairs,
+        mut times,
+        selection,
+        ..
+    } = match_all(images, config, counter)?;
     let sizes: Vec<ImageSize> = features.iter().map(|f| f.image_size).collect();
     // The second pass needs no first map here: the given cameras say which images overlap.
     let mut densified = 0;
@@ -1734,5 +2058,50 @@ mod tests {
             (report.moved[0].image, report.moved[0].evidence),
             (4, Evidence::Tracks)
         );
+    }
+
+    /// Matches of `count` placeholder keypoints between `a` and `b`.
+    fn counted(a: usize, b: usize, count: usize) -> PairMatches {
+        PairMatches {
+            first: a,
+            second: b,
+            kp1: vec![[0.0; 2]; count],
+            kp2: vec![[0.0; 2]; count],
+            idx1: (0..count as u32).collect(),
+            idx2: (0..count as u32).collect(),
+        }
+    }
+
+    /// Strong pairs join, weak ones do not; groups come largest first, then by their first
+    /// image, and an image without a strong pair is a group of its own.
+    #[test]
+    fn strong_groups_follow_the_strong_pairs_only() {
+        let pairs = [
+            counted(0, 1, 200),
+            counted(1, 2, 80),
+            counted(2, 3, 79),
+            counted(3, 4, 500),
+            counted(5, 6, 100),
+            counted(4, 5, 20),
+        ];
+        let groups = strong_groups(8, &pairs, STRONG_PAIR);
+        assert_eq!(groups, vec![vec![0, 1, 2], vec![3, 4], vec![5, 6], vec![7]]);
+        assert_eq!(
+            strong_groups(3, &[], STRONG_PAIR),
+            vec![vec![0], vec![1], vec![2]]
+        );
+    }
+
+    /// Evidence decides only when one way has the screen's minimum and twice the other's.
+    #[test]
+    fn orientation_evidence_needs_a_clear_winner() {
+        let min = crate::correspondences::SUPPORT_MIN_VERIFIED;
+        assert_eq!(orientation_evidence(0, min), Some(true));
+        assert_eq!(orientation_evidence(min, 0), Some(false));
+        assert_eq!(orientation_evidence(0, min - 1), None);
+        assert_eq!(orientation_evidence(30, 59), None);
+        assert_eq!(orientation_evidence(30, 60), Some(true));
+        assert_eq!(orientation_evidence(60, 30), Some(false));
+        assert_eq!(orientation_evidence(0, 0), None);
     }
 }
