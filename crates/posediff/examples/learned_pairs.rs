@@ -3,8 +3,11 @@
 //! of the ground-truth epipolar geometry, with the pair's ground-truth rotation angle.
 //!
 //! `cargo run --release -p posediff --example learned_pairs -- <set folder> <weights dir>
-//! [aliked-n16 | aliked-n16rot] [screen] [probe=<layer>]` (a set folder holds `images/` and
-//! `cameras.json`). One line per pair on stdout.
+//! [aliked-n16 | aliked-n16rot] [screen] [probe=<layer>] [turned=<i,j,…>]` (a set folder holds
+//! `images/` and `cameras.json`). One line per pair on stdout.
+//!
+//! With `turned=<i,j,…>`, those images (0-based, in name order) are extracted turned by 180°
+//! and LightGlue sees their turned positions, as after the estimate's orientation check.
 //!
 //! With `probe=<layer>`, LightGlue also counts the matches of its assignment head after that
 //! layer (0-based; `LightGlueConfig::overlap_check` with no minimum, so the final matches are
@@ -20,7 +23,9 @@
 use std::path::PathBuf;
 
 use anyhow::{Context, Result};
-use posediff::correspondences::{LearnedMatcher, SharedLearned, extract_all, match_pairs};
+use posediff::correspondences::{
+    LearnedMatcher, NoCounter, SharedLearned, extract_all, match_pairs, match_pairs_turned,
+};
 use posediff_geometry::epipolar::{
     fundamental_from_cameras, rotation_angle_between_deg, sampson_error,
 };
@@ -38,9 +43,17 @@ fn main() -> Result<()> {
     let mut aliked = posediff_learned::WeightSet::AlikedN16;
     let mut screen = false;
     let mut probe = None;
+    let mut turned_list: Vec<usize> = Vec::new();
     for a in rest {
         if let Some(layer) = a.to_str().and_then(|a| a.strip_prefix("probe=")) {
             probe = Some(layer.parse::<usize>()?);
+            continue;
+        }
+        if let Some(list) = a.to_str().and_then(|a| a.strip_prefix("turned=")) {
+            turned_list = list
+                .split(',')
+                .map(str::parse)
+                .collect::<std::result::Result<_, _>>()?;
             continue;
         }
         match a.to_str() {
@@ -71,7 +84,17 @@ fn main() -> Result<()> {
     let learned = SharedLearned(std::sync::Arc::new(LearnedMatcher::load_with(
         weights, aliked,
     )?));
-    let features = extract_all(&images, &MatchConfig::default(), Some(&learned))?;
+    let mut features = extract_all(&images, &MatchConfig::default(), Some(&learned))?;
+    let mut turned = vec![false; images.len()];
+    for &i in &turned_list {
+        let path = images.get(i).context("turned= names an image beyond the set")?;
+        features[i] = learned.0.extract_turned(path, true)?;
+        turned[i] = true;
+    }
+    anyhow::ensure!(
+        turned_list.is_empty() || probe.is_none(),
+        "turned= and probe= do not go together"
+    );
     let pairs = posediff_matching::exhaustive_pairs(images.len());
     let raw_config = MatchConfig {
         verification: None,
@@ -79,7 +102,14 @@ fn main() -> Result<()> {
     };
     let (raw, probed) = match probe {
         None => (
-            match_pairs(&features, &pairs, &raw_config, Some(&learned))?,
+            match_pairs_turned(
+                &features,
+                &turned,
+                &pairs,
+                &raw_config,
+                Some(&learned),
+                (&NoCounter, "matching"),
+            )?,
             Vec::new(),
         ),
         Some(layer) => probe_pairs(&features, &pairs, &learned, layer)?,

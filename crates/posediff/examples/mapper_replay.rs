@@ -21,8 +21,12 @@
 //! `DENSIFY=<degrees>[,<per image>]` (the second matching pass on the first map's cameras,
 //! `geometric::Densify`), `PLAN=1` (the learned `auto` plan: exhaustive up to
 //! `LEARNED_EXHAUSTIVE_UP_TO` images, above it the first pass and the second), `PER=1` (a line
-//! per subset: its images, mAA(30), pairs used and kept, wrong among them). The turned retry of
-//! `estimate_geometric` needs the images themselves and is not replayed.
+//! per subset: its images, mAA(30), pairs used and kept, wrong among them), `MAPCHECK=1` (a line
+//! per pair of the result: its matches within 4 px² of the ground truth's and of the estimated
+//! cameras' epipolar geometry, and whether the averaging used it), `RECHECK=<fraction>` (the
+//! pairs with fewer of their matches within 4 px² of the estimated cameras' geometry dropped,
+//! and the mapper run again). The orientation check and the turned retry of
+//! `estimate_geometric` need the images themselves and are not replayed.
 #![allow(clippy::print_stdout)]
 
 use std::collections::BTreeMap;
@@ -492,6 +496,27 @@ fn main() -> Result<()> {
             selected += extra.len();
             result = estimate_from_supported_matches(&sub_sizes, more, support, &replay_config);
         }
+        // RECHECK=<fraction>: the pairs with fewer than that fraction of their matches within
+        // 4 px² of the estimated cameras' epipolar geometry dropped, and the mapper run again.
+        if let (Ok(min), Ok(e)) = (
+            std::env::var("RECHECK").map(|v| v.parse::<f64>()),
+            result.as_ref(),
+        ) {
+            let min = min?;
+            let consistent: Vec<PairMatches> = e
+                .pairs
+                .iter()
+                .filter(|p| match (&e.cameras[p.first], &e.cameras[p.second]) {
+                    (Some(a), Some(b)) => p.is_empty() || correct_fraction(p, a, b) >= min,
+                    _ => true,
+                })
+                .cloned()
+                .collect();
+            if consistent.len() < e.pairs.len() {
+                result =
+                    estimate_from_supported_matches(&sub_sizes, consistent, None, &replay_config);
+            }
+        }
         let mapper_s = mapper_clock.elapsed().as_secs_f64();
         let (maa, used, wrong_used) = match result {
             Ok(e) => {
@@ -506,6 +531,25 @@ fn main() -> Result<()> {
                         "  RRA@5/15/30 {:?}, RTA@5/15/30 {:?}",
                         scores.rra, scores.rta
                     );
+                }
+                if std::env::var("MAPCHECK").is_ok() {
+                    for p in e.pairs.iter().filter(|p| !p.is_empty()) {
+                        let (i, j) = (members[p.first], members[p.second]);
+                        let est = match (&e.cameras[p.first], &e.cameras[p.second]) {
+                            (Some(a), Some(b)) => correct_fraction(p, a, b),
+                            _ => -1.0,
+                        };
+                        let used = e
+                            .report
+                            .averaged_pairs
+                            .iter()
+                            .any(|u| *u == [p.first, p.second]);
+                        println!(
+                            "MAPCHECK N{m} {i}-{j} n {} gt {:.3} est {est:.3} used {used}",
+                            p.len(),
+                            correct[&(i.min(j), i.max(j))]
+                        );
+                    }
                 }
                 let used = &e.report.averaged_pairs;
                 let wrong: Vec<String> = used
