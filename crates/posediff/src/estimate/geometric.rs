@@ -260,9 +260,10 @@ pub struct GeometricReport {
     pub pairs_matched: usize,
     /// Of those, pairs of the second pass ([`Densify`]).
     pub pairs_densified: usize,
-    /// Images a learned matcher's map left out that matched the estimated ones once turned by
-    /// 180° and were mapped so (the turned retry, [`TURN_PARTNERS`]); their features are the
-    /// turned image's.
+    /// Images a learned matcher matched turned by 180°: the groups the orientation check found
+    /// turned against the largest (before the map), and the images the map left out that matched
+    /// the estimated ones better turned (the retry, [`TURN_PARTNERS`]). Their features are the
+    /// turned image's; keypoints and cameras are in the image as given.
     pub turned_images: Vec<usize>,
     /// Pairs with verified matches.
     pub pairs_with_matches: usize,
