@@ -11,7 +11,8 @@
 //!
 //! With `probe=<layer>`, LightGlue also counts the matches of its assignment head after that
 //! layer (0-based; `LightGlueConfig::overlap_check` with no minimum, so the final matches are
-//! unchanged): the columns `early` and `stop` (layers run).
+//! unchanged): the columns `early`, `stop` (layers run) and `vscore` (the mean LightGlue score
+//! of the verified matches).
 //!
 //! With `screen`, two cheap pair screens are measured beside it, as the columns `mnn` (mutual
 //! nearest neighbours of the ALIKED descriptors with Lowe's ratio, then the same MAGSAC: the
@@ -129,7 +130,7 @@ fn main() -> Result<()> {
     println!(
         "i j gt_angle raw inliers ratio good_fraction{}{}",
         if screen { " mnn lg512" } else { "" },
-        if probe.is_some() { " early stop" } else { "" }
+        if probe.is_some() { " early stop vscore" } else { "" }
     );
     for (k, ((r, v), &(i, j))) in raw.iter().zip(&verified).zip(&pairs).enumerate() {
         let (a, b) = (cams[i], cams[j]);
@@ -152,8 +153,16 @@ fn main() -> Result<()> {
         let scores: Vec<String> = screens.iter().map(|(_, _, s)| s[k].to_string()).collect();
         let probed = probed
             .get(k)
-            .map(|(early, stop): &(Option<usize>, usize)| {
-                format!(" {} {stop}", early.map_or(-1, |e| e as i64))
+            .map(|(early, stop, scores)| {
+                // The mean LightGlue score of the verified matches.
+                let vs: f32 = v
+                    .idx1
+                    .iter()
+                    .zip(&v.idx2)
+                    .filter_map(|(&a, &b)| scores.get(&(a, b)))
+                    .sum::<f32>()
+                    / v.len().max(1) as f32;
+                format!(" {} {stop} {vs:.3}", early.map_or(-1, |e| e as i64))
             })
             .unwrap_or_default();
         println!(
@@ -204,7 +213,7 @@ fn probe_pairs(
     layer: usize,
 ) -> Result<(
     Vec<posediff_matching::PairMatches>,
-    Vec<(Option<usize>, usize)>,
+    Vec<(Option<usize>, usize, std::collections::HashMap<(u32, u32), f32>)>,
 )> {
     let config = posediff_learned::LightGlueConfig {
         overlap_check: Some(posediff_learned::lightglue::OverlapCheck {
@@ -231,7 +240,13 @@ fn probe_pairs(
             j,
             &m.matches,
         ));
-        probed.push((m.early_matches, m.stop));
+        let scores = m
+            .matches
+            .iter()
+            .zip(&m.scores)
+            .map(|(&(a, b), &s)| ((a as u32, b as u32), s))
+            .collect();
+        probed.push((m.early_matches, m.stop, scores));
     }
     Ok((raw, probed))
 }
