@@ -88,7 +88,9 @@ fn main() -> Result<()> {
     let mut features = extract_all(&images, &MatchConfig::default(), Some(&learned))?;
     let mut turned = vec![false; images.len()];
     for &i in &turned_list {
-        let path = images.get(i).context("turned= names an image beyond the set")?;
+        let path = images
+            .get(i)
+            .context("turned= names an image beyond the set")?;
         features[i] = learned.0.extract_turned(path, true)?;
         turned[i] = true;
     }
@@ -130,7 +132,11 @@ fn main() -> Result<()> {
     println!(
         "i j gt_angle raw inliers ratio good_fraction{}{}",
         if screen { " mnn lg512" } else { "" },
-        if probe.is_some() { " early stop vscore" } else { "" }
+        if probe.is_some() {
+            " early stop vscore"
+        } else {
+            ""
+        }
     );
     for (k, ((r, v), &(i, j))) in raw.iter().zip(&verified).zip(&pairs).enumerate() {
         let (a, b) = (cams[i], cams[j]);
@@ -213,7 +219,11 @@ fn probe_pairs(
     layer: usize,
 ) -> Result<(
     Vec<posediff_matching::PairMatches>,
-    Vec<(Option<usize>, usize, std::collections::HashMap<(u32, u32), f32>)>,
+    Vec<(
+        Option<usize>,
+        usize,
+        std::collections::HashMap<(u32, u32), f32>,
+    )>,
 )> {
     let config = posediff_learned::LightGlueConfig {
         overlap_check: Some(posediff_learned::lightglue::OverlapCheck {

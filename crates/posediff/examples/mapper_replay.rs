@@ -539,11 +539,7 @@ fn main() -> Result<()> {
                             (Some(a), Some(b)) => correct_fraction(p, a, b),
                             _ => -1.0,
                         };
-                        let used = e
-                            .report
-                            .averaged_pairs
-                            .iter()
-                            .any(|u| *u == [p.first, p.second]);
+                        let used = e.report.averaged_pairs.contains(&[p.first, p.second]);
                         println!(
                             "MAPCHECK N{m} {i}-{j} n {} gt {:.3} est {est:.3} used {used}",
                             p.len(),

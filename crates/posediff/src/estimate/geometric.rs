@@ -905,8 +905,8 @@ fn turn_left_out(
     Ok(Some((kept, out)))
 }
 
-/// Fewest verified matches of a pair that joins two images into one group for the orientation
-/// check ([`turn_components`]). Every good ALIKED + LightGlue pair of the shared sets has at
+/// Fewest verified matches of a pair that joins two images into one group for a learned
+/// matcher's orientation check before the map. Every good ALIKED + LightGlue pair of the shared sets has at
 /// least 96 and no unrelated pair more than 74 (docs/BENCHMARKS.md, "Pairs").
 pub const STRONG_PAIR: usize = 80;
 
