@@ -995,8 +995,11 @@ fn turn_components(
     }
     let mut strength = vec![0usize; n];
     for p in pairs.iter().filter(|p| p.len() >= STRONG_PAIR) {
-        strength[p.first] += p.len();
-        strength[p.second] += p.len();
+        for i in [p.first, p.second] {
+            if let Some(s) = strength.get_mut(i) {
+                *s += p.len();
+            }
+        }
     }
     let reps: Vec<usize> = groups
         .iter()
