@@ -964,9 +964,10 @@ fn orientation_evidence(same: usize, opposite: usize) -> Option<bool> {
 /// labelled from the largest along the clearest evidence ([`orientation_evidence`]), and the
 /// images of the groups found turned relative to the largest are extracted turned, their pairs
 /// matched again, and the turned images matched with their [`TURN_PARTNERS`] most similar
-/// images. Returns the turned images (their `turned` flags set, `features` holding their
-/// turned features) and the new pairs, or `None` (nothing changed) when the strong pairs form
-/// one group or no group is found turned.
+/// images. The turn is kept when the turned images' pairs with the others verify more matches
+/// than they did upright. Returns the turned images (their `turned` flags set, `features`
+/// holding their turned features) and the new pairs, or `None` (nothing changed) when the
+/// strong pairs form one group, no group is found turned, or LightGlue does not confirm it.
 ///
 /// # Errors
 /// Unreadable images, network and matching errors.
@@ -1123,9 +1124,10 @@ fn turn_components(
     {
         rep_turned.insert(i, f);
     }
+    let mut upright: Vec<(usize, ImageFeatures)> = Vec::new();
     for &i in &flipped {
         if let Some(f) = rep_turned.remove(&i) {
-            features[i] = f;
+            upright.push((i, std::mem::replace(&mut features[i], f)));
             turned[i] = true;
         }
     }
@@ -1151,19 +1153,37 @@ fn turn_components(
     }
     again.sort_unstable();
     again.dedup();
-    let mut out: Vec<PairMatches> = pairs
-        .iter()
-        .filter(|p| !is_flipped(p.first) && !is_flipped(p.second))
-        .cloned()
-        .collect();
-    out.extend(match_pairs_turned(
+    let matched = match_pairs_turned(
         features,
         turned,
         &again,
         &config.matching,
         Some(learned),
         (counter, "turned pairs"),
-    )?);
+    )?;
+    // Kept only when the turned images verify more matches with the others turned than they
+    // did upright (LightGlue's word over the screen's, as the retry of left-out images asks;
+    // pairs within the turned images turn at both ends and are left out of the count).
+    let across = |p: &&PairMatches| is_flipped(p.first) != is_flipped(p.second);
+    let before: usize = pairs.iter().filter(across).map(PairMatches::len).sum();
+    let after: usize = matched.iter().filter(across).map(PairMatches::len).sum();
+    log::info!(
+        "{}orientation check: the turned images' pairs verify {after} matches against {before}",
+        crate::estimate::run::WORK_STARTS
+    );
+    if after <= before {
+        for (i, f) in upright {
+            features[i] = f;
+            turned[i] = false;
+        }
+        return Ok(None);
+    }
+    let mut out: Vec<PairMatches> = pairs
+        .iter()
+        .filter(|p| !is_flipped(p.first) && !is_flipped(p.second))
+        .cloned()
+        .collect();
+    out.extend(matched);
     out.sort_by_key(|p| (p.first, p.second));
     Ok(Some((flipped, out)))
 }
