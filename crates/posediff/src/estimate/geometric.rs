@@ -785,9 +785,10 @@ pub const TURN_PARTNERS: usize = 8;
 /// among its [`TURN_PARTNERS`] most similar; it is kept turned when those pairs verify more
 /// matches than its upright pairs with estimated images. A kept image's earlier pairs are
 /// dropped (their keypoint indices are the upright features') and its pairs with other kept
-/// images matched again. Returns the turned images and the new set of pairs, or `None` when
-/// no image was left out, fewer than two were estimated, or none is kept turned; `features`
-/// hold the turned features of the kept images afterwards.
+/// images matched again. Images already turned (`turned_before`, by the orientation check)
+/// are not retried. Returns the turned images (also set in `turned_before`) and the new set of
+/// pairs, or `None` when no image was left out, fewer than two were estimated, or none is kept
+/// turned; `features` hold the turned features of the kept images afterwards.
 ///
 /// # Errors
 /// Unreadable images, network and matching errors.
@@ -808,7 +809,7 @@ fn turn_left_out(
     let left: Vec<usize> = (0..features.len())
         .filter(|&i| !estimated(i) && !already(i))
         .collect();
-    if left.is_empty() || features.len() - left.len() < 2 {
+    if left.is_empty() || (0..features.len()).filter(|&i| estimated(i)).count() < 2 {
         return Ok(None);
     }
     log::info!(
@@ -831,7 +832,7 @@ fn turn_left_out(
         &RetrievalOptions::default(),
     )
     .into_iter()
-    .filter(|&(a, b)| is_left(a) != is_left(b))
+    .filter(|&(a, b)| (is_left(a) && estimated(b)) || (is_left(b) && estimated(a)))
     .collect();
     let mut turned_flags: Vec<bool> = (0..features.len()).map(already).collect();
     for &j in &left {
@@ -852,10 +853,10 @@ fn turn_left_out(
         score.entry(j).or_default().0 += p.len();
     }
     for p in pairs {
-        match (is_left(p.first), is_left(p.second)) {
-            (true, false) => score.entry(p.first).or_default().1 += p.len(),
-            (false, true) => score.entry(p.second).or_default().1 += p.len(),
-            _ => {}
+        if is_left(p.first) && estimated(p.second) {
+            score.entry(p.first).or_default().1 += p.len();
+        } else if is_left(p.second) && estimated(p.first) {
+            score.entry(p.second).or_default().1 += p.len();
         }
     }
     let kept: Vec<usize> = left
