@@ -112,6 +112,11 @@ pub struct ImageFeatures {
     pub keypoints: Vec<[f64; 2]>,
     /// One descriptor per keypoint.
     pub descriptors: Descriptors,
+    /// The descriptors were computed on the image turned by 180° (a learned extractor's, which
+    /// is not invariant to in-plane rotation); the keypoints are still in the original image's
+    /// pixels. A learned matcher gives them its positional encoding where they lie in the
+    /// turned image.
+    pub half_turned: bool,
 }
 
 /// Maps a keypoint of an image resized by `scale = (sx, sy)` back to the original image: pixel
@@ -247,6 +252,7 @@ pub fn extract_from_grey(grey: &Mat, config: &FeatureConfig) -> Result<ImageFeat
         image_size,
         keypoints: pts,
         descriptors,
+        half_turned: false,
     })
 }
 

@@ -522,6 +522,7 @@ mod tests {
                     image_size: ImageSize::new(10, 10).unwrap(),
                     keypoints: vec![[0.0, 0.0]; 200],
                     descriptors: Descriptors::Float { data, dim: 8 },
+                    half_turned: false,
                 }
             })
             .collect();

@@ -24,9 +24,7 @@
 use std::path::PathBuf;
 
 use anyhow::{Context, Result};
-use posediff::correspondences::{
-    LearnedMatcher, NoCounter, SharedLearned, extract_all, match_pairs, match_pairs_turned,
-};
+use posediff::correspondences::{LearnedMatcher, SharedLearned, extract_all, match_pairs};
 use posediff_geometry::epipolar::{
     fundamental_from_cameras, rotation_angle_between_deg, sampson_error,
 };
@@ -86,13 +84,11 @@ fn main() -> Result<()> {
         weights, aliked,
     )?));
     let mut features = extract_all(&images, &MatchConfig::default(), Some(&learned))?;
-    let mut turned = vec![false; images.len()];
     for &i in &turned_list {
         let path = images
             .get(i)
             .context("turned= names an image beyond the set")?;
         features[i] = learned.0.extract_turned(path, true)?;
-        turned[i] = true;
     }
     anyhow::ensure!(
         turned_list.is_empty() || probe.is_none(),
@@ -105,14 +101,7 @@ fn main() -> Result<()> {
     };
     let (raw, probed) = match probe {
         None => (
-            match_pairs_turned(
-                &features,
-                &turned,
-                &pairs,
-                &raw_config,
-                Some(&learned),
-                (&NoCounter, "matching"),
-            )?,
+            match_pairs(&features, &pairs, &raw_config, Some(&learned))?,
             Vec::new(),
         ),
         Some(layer) => probe_pairs(&features, &pairs, &learned, layer)?,

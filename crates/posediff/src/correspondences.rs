@@ -233,7 +233,8 @@ impl LearnedMatcher {
     /// given in the original image's pixels (`x ↦ w − 1 − x`, `y ↦ h − 1 − y` from the turned
     /// image's), the descriptors are those of the turned image. ALIKED and DISK are not
     /// invariant to in-plane rotation, so an image upside down relative to the others matches
-    /// them only this way; [`Self::prepare_turned`] gives LightGlue the turned positions.
+    /// them only this way. The features say so (`half_turned`), and [`Self::prepare`] gives
+    /// LightGlue the keypoints where they lie in the turned image.
     ///
     /// # Errors
     /// As [`Self::extract`].
@@ -302,6 +303,7 @@ impl LearnedMatcher {
                 data: kp.descriptors,
                 dim: kp.dim,
             },
+            half_turned: half_turn,
         })
     }
 
@@ -336,20 +338,13 @@ impl LearnedMatcher {
     }
 
     /// What LightGlue computes from one image alone ([`LightGlue::prepare_image`]), so that an
-    /// image matched with several others is prepared once.
+    /// image matched with several others is prepared once. For features of a turned image
+    /// ([`Self::extract_turned`]) LightGlue sees the keypoints where they lie in the turned
+    /// image its descriptors come from.
     ///
     /// # Errors
     /// Features that are not the extractor's; network errors.
     pub fn prepare(&self, f: &ImageFeatures) -> Result<PreparedImage> {
-        self.prepare_turned(f, false)
-    }
-
-    /// [`Self::prepare`] for features of [`Self::extract_turned`]: with `half_turn` LightGlue
-    /// sees the keypoints where they lie in the turned image its descriptors come from.
-    ///
-    /// # Errors
-    /// As [`Self::prepare`].
-    pub fn prepare_turned(&self, f: &ImageFeatures, half_turn: bool) -> Result<PreparedImage> {
         let data = match &f.descriptors {
             Descriptors::Float { data, dim } if *dim == self.lightglue.input_dim() => data,
             _ => {
@@ -362,7 +357,7 @@ impl LearnedMatcher {
             .keypoints
             .iter()
             .map(|&k| {
-                let k = if half_turn {
+                let k = if f.half_turned {
                     half_turned(k, f.image_size)
                 } else {
                     k
@@ -506,22 +501,6 @@ pub fn match_pairs_counted(
     pairs: &[(usize, usize)],
     config: &MatchConfig,
     learned: Option<&SharedLearned>,
-    counter: (&dyn StepCounter, &str),
-) -> Result<Vec<PairMatches>> {
-    match_pairs_turned(features, &[], pairs, config, learned, counter)
-}
-
-/// [`match_pairs_counted`] where the learned features of image `i` come from the image turned
-/// by 180° when `turned[i]` ([`LearnedMatcher::extract_turned`]; missing entries: not turned).
-///
-/// # Errors
-/// As [`match_pairs`].
-pub fn match_pairs_turned(
-    features: &[ImageFeatures],
-    turned: &[bool],
-    pairs: &[(usize, usize)],
-    config: &MatchConfig,
-    learned: Option<&SharedLearned>,
     (counter, name): (&dyn StepCounter, &str),
 ) -> Result<Vec<PairMatches>> {
     let Some(l) = learned else {
@@ -541,9 +520,7 @@ pub fn match_pairs_turned(
         images.dedup();
         let prepared: Vec<PreparedImage> = images
             .par_iter()
-            .map(|&i| {
-                l.0.prepare_turned(&features[i], turned.get(i).copied().unwrap_or(false))
-            })
+            .map(|&i| l.0.prepare(&features[i]))
             .collect::<Result<_>>()?;
         // By the sorted image list: no slot per image of the whole set in every window.
         let of = |i: usize| -> Result<&PreparedImage> {

@@ -384,7 +384,8 @@ fn a_turned_image_is_matched_as_the_upright_one() {
     let config = MatchConfig::default();
     let upright = learned.match_pair(&a, &b, 0, 1, &config).unwrap();
     let pa = learned.prepare(&a).unwrap();
-    let pt = learned.prepare_turned(&turned, true).unwrap();
+    assert!(turned.half_turned && !b.half_turned);
+    let pt = learned.prepare(&turned).unwrap();
     let matched = learned
         .match_prepared((&a, &pa), (&turned, &pt), 0, 1, &config)
         .unwrap();

@@ -34,7 +34,7 @@ use posediff_sfm::{
 
 use crate::correspondences::{
     NoCounter, SharedLearned, StepCounter, descriptor_support, extract_all_counted,
-    match_pairs_counted, match_pairs_turned,
+    match_pairs_counted,
 };
 use crate::error::{PosediffError, Result};
 use crate::estimate::run_report::Warning;
@@ -668,7 +668,6 @@ pub fn estimate_geometric_counted(
     // A learned matcher's orientation check and turned retry (not with the support check,
     // whose screen saw the upright features).
     let retry = config.learned.is_some() && support.is_none();
-    let mut turned = vec![false; images.len()];
     let mut turned_images = Vec::new();
     if retry {
         let clock = Instant::now();
@@ -676,7 +675,7 @@ pub fn estimate_geometric_counted(
             images,
             &mut features,
             &pairs,
-            (&mut turned, words.as_ref()),
+            words.as_ref(),
             config,
             counter,
         )? {
@@ -709,9 +708,8 @@ pub fn estimate_geometric_counted(
         if !extra.is_empty() {
             let clock = Instant::now();
             let learned = config.learned.as_ref();
-            pairs.extend(match_pairs_turned(
+            pairs.extend(match_pairs_counted(
                 features,
-                &turned,
                 &extra,
                 &config.matching,
                 learned,
@@ -734,15 +732,9 @@ pub fn estimate_geometric_counted(
     }
     if let (true, Some(features)) = (retry, features.as_mut()) {
         let clock = Instant::now();
-        if let Some((kept, turned_pairs)) = turn_left_out(
-            images,
-            features,
-            &pairs,
-            &estimate.cameras,
-            &mut turned,
-            config,
-            counter,
-        )? {
+        if let Some((kept, turned_pairs)) =
+            turn_left_out(images, features, &pairs, &estimate.cameras, config, counter)?
+        {
             times[2] += clock.elapsed().as_secs_f64();
             let earlier = estimate.report.times;
             counter.stage("mapping", 0);
@@ -785,9 +777,8 @@ pub const TURN_PARTNERS: usize = 8;
 /// among its [`TURN_PARTNERS`] most similar; it is kept turned when those pairs verify more
 /// matches than its upright pairs with estimated images. A kept image's earlier pairs are
 /// dropped (their keypoint indices are the upright features') and its pairs with other kept
-/// images matched again. Images already turned (`turned_before`, by the orientation check)
-/// are not retried. Returns the turned images (also set in `turned_before`) and the new set of
-/// pairs, or `None` when no image was left out, fewer than two were estimated, or none is kept
+/// images matched again. Images already turned (by the orientation check) are not retried.
+/// Returns the turned images and the new set of pairs, or `None` when no image was left out, fewer than two were estimated, or none is kept
 /// turned; `features` hold the turned features of the kept images afterwards.
 ///
 /// # Errors
@@ -797,7 +788,6 @@ fn turn_left_out(
     features: &mut [ImageFeatures],
     pairs: &[PairMatches],
     cameras: &[Option<Camera>],
-    turned_before: &mut [bool],
     config: &GeometricConfig,
     counter: &dyn StepCounter,
 ) -> Result<Option<(Vec<usize>, Vec<PairMatches>)>> {
@@ -805,9 +795,8 @@ fn turn_left_out(
         return Ok(None);
     };
     let estimated = |i: usize| cameras.get(i).is_some_and(Option::is_some);
-    let already = |i: usize| turned_before.get(i).copied().unwrap_or(false);
     let left: Vec<usize> = (0..features.len())
-        .filter(|&i| !estimated(i) && !already(i))
+        .filter(|&i| !estimated(i) && !features[i].half_turned)
         .collect();
     if left.is_empty() || (0..features.len()).filter(|&i| estimated(i)).count() < 2 {
         return Ok(None);
@@ -834,13 +823,8 @@ fn turn_left_out(
     .into_iter()
     .filter(|&(a, b)| (is_left(a) && estimated(b)) || (is_left(b) && estimated(a)))
     .collect();
-    let mut turned_flags: Vec<bool> = (0..features.len()).map(already).collect();
-    for &j in &left {
-        turned_flags[j] = true;
-    }
-    let matched = match_pairs_turned(
+    let matched = match_pairs_counted(
         features,
-        &turned_flags,
         &trial,
         &config.matching,
         Some(learned),
@@ -867,7 +851,6 @@ fn turn_left_out(
     for (j, f) in upright {
         if kept.binary_search(&j).is_err() {
             features[j] = f;
-            turned_flags[j] = false;
         }
     }
     if kept.is_empty() {
@@ -889,20 +872,14 @@ fn turn_left_out(
             .into_iter()
             .filter(|p| is_kept(p.first) || is_kept(p.second)),
     );
-    out.extend(match_pairs_turned(
+    out.extend(match_pairs_counted(
         features,
-        &turned_flags,
         &both,
         &config.matching,
         Some(learned),
         (counter, "turned pairs"),
     )?);
     out.sort_by_key(|p| (p.first, p.second));
-    for &j in &kept {
-        if let Some(t) = turned_before.get_mut(j) {
-            *t = true;
-        }
-    }
     Ok(Some((kept, out)))
 }
 
@@ -966,8 +943,8 @@ fn orientation_evidence(same: usize, opposite: usize) -> Option<bool> {
 /// images of the groups found turned relative to the largest are extracted turned, their pairs
 /// matched again, and the turned images matched with their [`TURN_PARTNERS`] most similar
 /// images. The turn is kept when the turned images' pairs with the others verify more matches
-/// than they did upright. Returns the turned images (their `turned` flags set, `features`
-/// holding their turned features) and the new pairs, or `None` (nothing changed) when the
+/// than they did upright. Returns the turned images (`features` holding their turned features)
+/// and the new pairs, or `None` (nothing changed) when the
 /// strong pairs form one group, no group is found turned, or LightGlue does not confirm it.
 ///
 /// # Errors
@@ -976,7 +953,7 @@ fn turn_components(
     images: &[PathBuf],
     features: &mut [ImageFeatures],
     pairs: &[PairMatches],
-    (turned, words): (&mut [bool], Option<&BagOfWords>),
+    words: Option<&BagOfWords>,
     config: &GeometricConfig,
     counter: &dyn StepCounter,
 ) -> Result<Option<(Vec<usize>, Vec<PairMatches>)>> {
@@ -1099,7 +1076,7 @@ fn turn_components(
         .zip(&label)
         .filter(|(_, l)| **l == Some(true))
         .flat_map(|(g, _)| g.iter().copied())
-        .filter(|&i| !turned[i])
+        .filter(|&i| !features[i].half_turned)
         .collect();
     flipped.sort_unstable();
     log::info!(
@@ -1129,7 +1106,6 @@ fn turn_components(
     for &i in &flipped {
         if let Some(f) = rep_turned.remove(&i) {
             upright.push((i, std::mem::replace(&mut features[i], f)));
-            turned[i] = true;
         }
     }
     let is_flipped = |i: usize| flipped.binary_search(&i).is_ok();
@@ -1154,9 +1130,8 @@ fn turn_components(
     }
     again.sort_unstable();
     again.dedup();
-    let matched = match_pairs_turned(
+    let matched = match_pairs_counted(
         features,
-        turned,
         &again,
         &config.matching,
         Some(learned),
@@ -1175,7 +1150,6 @@ fn turn_components(
     if after <= before {
         for (i, f) in upright {
             features[i] = f;
-            turned[i] = false;
         }
         return Ok(None);
     }
