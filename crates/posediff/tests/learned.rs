@@ -188,12 +188,8 @@ fn estimate_learned(set: &std::path::Path, dir: &std::path::Path) -> (PathBuf, s
 #[test]
 fn the_cli_estimates_with_the_learned_matcher() {
     let dir = posediff_fixtures::temp_dir("learned-cli");
-    let set = dir.join("set");
-    std::fs::create_dir_all(&set).unwrap();
-    for p in apple(3) {
-        std::fs::copy(&p, set.join(p.file_name().unwrap())).unwrap();
-    }
-    let (out, run) = estimate_learned(&set, &dir);
+    apple_with_turned(&dir, 3, &[]);
+    let (out, run) = estimate_learned(&dir.join("set"), &dir);
     assert_eq!(run["matcher"], "aliked-lightglue");
     let cams: Vec<serde_json::Value> =
         serde_json::from_str(&std::fs::read_to_string(out.join("cameras.json")).unwrap()).unwrap();
@@ -421,7 +417,7 @@ fn rotation_of(c: &serde_json::Value) -> nalgebra::Matrix3<f64> {
     nalgebra::Matrix3::from_fn(|r, k| c["R"][r][k].as_f64().unwrap())
 }
 
-/// The first `n` apple frames in a new folder, the frames `turned` written upside down.
+/// The first `n` apple frames copied into `<dir>/set`, the frames `turned` written upside down.
 fn apple_with_turned(dir: &std::path::Path, n: usize, turned: &[usize]) -> Vec<PathBuf> {
     let set = dir.join("set");
     std::fs::create_dir_all(&set).unwrap();
