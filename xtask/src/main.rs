@@ -57,6 +57,7 @@
 //! xtask stays light (std + anyhow): it shells out to cargo for the heavy work.
 
 mod cuda_build;
+mod modcycles;
 
 use std::process::Command;
 use std::time::Instant;
@@ -1087,10 +1088,15 @@ fn deps_check() -> Result<()> {
             }
         }
     }
+    // No import circles between the modules of one crate.
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    for cycle in modcycles::workspace_cycles(&root)? {
+        bad.push(format!("module circle in {cycle}"));
+    }
     if !bad.is_empty() {
         bail!("dependency invariants broken:\n  {}", bad.join("\n  "));
     }
-    eprintln!("dependency invariants hold");
+    eprintln!("dependency invariants hold (crates and module circles)");
     Ok(())
 }
 

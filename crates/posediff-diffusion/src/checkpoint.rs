@@ -432,7 +432,7 @@ impl Checkpoint {
         sorted.sort();
         for key in sorted {
             let t = &tensors[key];
-            if !crate::sampler::all_finite(t)? {
+            if !crate::finite::all_finite(t)? {
                 let values: Vec<f64> = t.flatten_all()?.to_dtype(DType::F64)?.to_vec1()?;
                 let n = values.iter().filter(|v| !v.is_finite()).count();
                 bad.push(format!("{key} ({n} of {})", values.len()));

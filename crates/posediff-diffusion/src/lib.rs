@@ -16,6 +16,8 @@ pub mod checkpoint;
 pub mod denoiser;
 pub mod error;
 pub mod features;
+pub mod finite;
+mod head_scratch;
 pub mod linear;
 pub mod norm;
 pub mod resize;

@@ -63,15 +63,4 @@ pub fn softmax_last_dim(x: &Tensor) -> Result<Tensor> {
     crate::softmax::softmax_last_dim(x)
 }
 
-/// candle's softmax: its fused kernel, or the composed, differentiable one when gradients are
-/// tracked.
-///
-/// # Errors
-/// Tensor errors.
-pub fn softmax_last_dim_candle(x: &Tensor) -> Result<Tensor> {
-    Ok(if x.track_op() {
-        candle_nn::ops::softmax(x, D::Minus1)?
-    } else {
-        candle_nn::ops::softmax_last_dim(x)?
-    })
-}
+pub use crate::softmax::softmax_last_dim_candle;

@@ -191,15 +191,7 @@ pub fn sample_from(
     )
 }
 
-/// Whether every value of `t` is finite (one reduction in f64: a NaN or ±inf makes the sum
-/// of squares non-finite; f32/f16 values squared cannot overflow f64).
-///
-/// # Errors
-/// Tensor errors.
-pub fn all_finite(t: &Tensor) -> Result<bool> {
-    let s = t.to_dtype(candle_core::DType::F64)?.sqr()?.sum_all()?;
-    Ok(s.to_scalar::<f64>()?.is_finite())
-}
+pub use crate::finite::all_finite;
 
 fn reverse_diffusion(
     denoiser: &Denoiser,

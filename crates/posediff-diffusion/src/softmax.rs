@@ -346,7 +346,20 @@ pub fn softmax_last_dim(x: &Tensor) -> Result<Tensor> {
     if fast_path(x) {
         return Ok(x.contiguous()?.apply_op1_no_bwd(&SoftmaxF32)?);
     }
-    crate::norm::softmax_last_dim_candle(x)
+    softmax_last_dim_candle(x)
+}
+
+/// candle's softmax: its fused kernel, or the composed, differentiable one when gradients are
+/// tracked.
+///
+/// # Errors
+/// Tensor errors.
+pub fn softmax_last_dim_candle(x: &Tensor) -> Result<Tensor> {
+    Ok(if x.track_op() {
+        candle_nn::ops::softmax(x, candle_core::D::Minus1)?
+    } else {
+        candle_nn::ops::softmax_last_dim(x)?
+    })
 }
 
 /// As [`softmax_last_dim`], in place when `x` is a contiguous F32 CPU tensor that nothing

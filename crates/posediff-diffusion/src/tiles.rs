@@ -174,7 +174,7 @@ pub(crate) fn attend_heads(
             // S = Q Kᵀ: B = Kᵀ (d × n); O = P V: B = V (n × d).
             t.keys.pack_transposed(kh, n, d, d)?;
             t.values.pack(vh, n, d, d)?;
-            crate::attention::SCORES.with_borrow_mut(|(scores, inv)| -> Result<()> {
+            crate::head_scratch::SCORES.with_borrow_mut(|(scores, inv)| -> Result<()> {
                 scores.resize(rows * n, 0.0);
                 inv.resize(rows, 0.0);
                 for start in (0..m).step_by(rows) {
@@ -208,7 +208,7 @@ pub(crate) fn cross_attend_heads(
     out: &mut [f32],
     (h, m, n, d): (usize, usize, usize, usize),
 ) -> Result<()> {
-    let rows = block_rows(m, n, crate::attention::HEAD_BLOCK);
+    let rows = block_rows(m, n, crate::head_scratch::HEAD_BLOCK);
     let head = |(i, dst): (usize, &mut [f32])| -> Result<()> {
         let (dst_a, dst_b) = dst.split_at_mut(m * d);
         let (ah, vah) = (
@@ -232,7 +232,7 @@ pub(crate) fn cross_attend_heads(
             t.column_out.clear();
             t.column_out.resize(d * n, 0.0);
             t.alpha.resize(n, 1.0);
-            crate::attention::CROSS.with_borrow_mut(
+            crate::head_scratch::CROSS.with_borrow_mut(
                 |(scores, _, inv, block_max)| -> Result<()> {
                     scores.resize(rows * n, 0.0);
                     inv.resize(rows, 0.0);
@@ -247,7 +247,7 @@ pub(crate) fn cross_attend_heads(
                         // The accumulated out_bᵀ's columns are rescaled in one pass.
                         t.alpha.fill(1.0);
                         let mut rescaled = false;
-                        crate::attention::raise_column_maxima(
+                        crate::head_scratch::raise_column_maxima(
                             s,
                             block_max,
                             (&mut col_max, &mut col_sum),

@@ -22,6 +22,11 @@ use crate::error::{MatchingError, Result};
 
 /// Which OpenCV detector and descriptor.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(rename_all = "snake_case")
+)]
 pub enum Detector {
     /// SIFT: 128 float descriptors, L2.
     #[default]
@@ -32,6 +37,11 @@ pub enum Detector {
 
 /// Feature extraction settings.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(default, deny_unknown_fields)
+)]
 pub struct FeatureConfig {
     /// Detector and descriptor.
     pub detector: Detector,

@@ -30,11 +30,16 @@ use rayon::prelude::*;
 
 pub use error::{MatchingError, Result};
 pub use features::{Descriptors, Detector, FeatureConfig, ImageFeatures, extract};
-pub use pairs::{PairRule, PairSelection, select_pairs};
+pub use pairs::{AutoPairs, PairRule, PairSelection, select_pairs};
 pub use two_view::{RelativePose, TwoViewConfig};
 
 /// Geometric verification of a pair's matches.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(default, deny_unknown_fields)
+)]
 pub struct Verification {
     /// Inlier threshold in pixels of the original images (OpenCV's `ransacReprojThreshold`).
     pub threshold_px: f64,
@@ -70,6 +75,11 @@ pub const DEFAULT_MIN_VERIFIED: usize = 20;
 
 /// Matching settings.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(default, deny_unknown_fields)
+)]
 pub struct MatchConfig {
     /// Keypoints and descriptors.
     pub features: FeatureConfig,

@@ -42,12 +42,49 @@ pub enum PairSelection {
     Rules(Vec<PairRule>),
 }
 
+/// What `auto` means: every pair up to `exhaustive_up_to` images, above it each image with
+/// the next `sequential` and its `retrieval` most similar (measured on the synthetic orbits and
+/// forward paths of `cargo xtask bench-scale`, docs/BENCHMARKS.md: 60 images exhaustive cost
+/// about as much as `sequential:10,retrieval:20`, which kept every scale's mAA(30) at 1.000).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(default, deny_unknown_fields)
+)]
+pub struct AutoPairs {
+    /// Sets of up to this many images are matched exhaustively.
+    pub exhaustive_up_to: usize,
+    /// Above it: each image with the next this many (input order).
+    pub sequential: usize,
+    /// Above it: each image with its this many most similar by the bag of words.
+    pub retrieval: usize,
+}
+
+impl Default for AutoPairs {
+    fn default() -> Self {
+        Self {
+            exhaustive_up_to: EXHAUSTIVE_UP_TO,
+            sequential: 10,
+            retrieval: 20,
+        }
+    }
+}
+
 impl PairSelection {
-    /// The rules used for `n` images.
+    /// The rules used for `n` images, `auto` as [`AutoPairs::default`].
     pub fn rules(&self, n: usize) -> Vec<PairRule> {
+        self.rules_with(n, &AutoPairs::default())
+    }
+
+    /// The rules used for `n` images, `auto` as `auto` says.
+    pub fn rules_with(&self, n: usize, auto: &AutoPairs) -> Vec<PairRule> {
         match self {
-            Self::Auto if n <= EXHAUSTIVE_UP_TO => vec![PairRule::Exhaustive],
-            Self::Auto => vec![PairRule::Sequential(10), PairRule::Retrieval(20)],
+            Self::Auto if n <= auto.exhaustive_up_to => vec![PairRule::Exhaustive],
+            Self::Auto => vec![
+                PairRule::Sequential(auto.sequential),
+                PairRule::Retrieval(auto.retrieval),
+            ],
             Self::Rules(r) => r.clone(),
         }
     }
@@ -79,6 +116,22 @@ impl fmt::Display for PairSelection {
                 write!(f, "{}", parts.join(","))
             }
         }
+    }
+}
+
+/// As its text (`auto`, `sequential:10,retrieval:20`), the form `--pairs` takes.
+#[cfg(feature = "serde")]
+impl serde::Serialize for PairSelection {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> std::result::Result<S::Ok, S::Error> {
+        s.collect_str(self)
+    }
+}
+
+#[cfg(feature = "serde")]
+impl<'de> serde::Deserialize<'de> for PairSelection {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> std::result::Result<Self, D::Error> {
+        let text = String::deserialize(d)?;
+        text.parse().map_err(serde::de::Error::custom)
     }
 }
 
@@ -170,6 +223,11 @@ pub fn select_pairs_with(
 
 /// Settings of the bag of words.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(default, deny_unknown_fields)
+)]
 pub struct RetrievalOptions {
     /// Visual words (k-means centres).
     pub words: usize,

@@ -13,6 +13,11 @@ use crate::error::Result;
 
 /// Settings of the two-view estimates.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(default, deny_unknown_fields)
+)]
 pub struct TwoViewConfig {
     /// Inlier threshold in pixels (essential matrix and homography).
     pub threshold_px: f64,

@@ -607,7 +607,9 @@ struct Call {
 }
 
 /// The options `estimate` takes as keywords (the CLI's flags).
-const OPTION_NAMES: [&str; 13] = [
+const OPTION_NAMES: [&str; 15] = [
+    "config",
+    "options",
     "focal_px",
     "intrinsics",
     "init",
@@ -636,6 +638,43 @@ where
         }),
         _ => Ok(default),
     }
+}
+
+/// The options tree from the keywords: `config` (a TOML or JSON file), then `pairs`, then
+/// `options` (a dict of dotted keys, or of tables, to values), as the CLI's `--config`,
+/// `--pairs` and `--set`.
+fn pipeline_options(
+    options: Option<&Bound<'_, PyDict>>,
+    pairs: Option<&str>,
+) -> PyResult<posediff::estimate::options::PipelineOptions> {
+    let mut pipeline = posediff::estimate::options::PipelineOptions::default();
+    if let Some(path) = option::<Option<PathBuf>>(options, "config", None)? {
+        pipeline = pipeline.with_file(&path).map_err(py_err)?;
+    }
+    if let Some(pairs) = pairs {
+        pipeline.pairs.selection = pairs
+            .parse()
+            .map_err(|e| value_err(format!("pairs {pairs:?}: {e}")))?;
+    }
+    let fields = options
+        .map(|o| o.get_item("options"))
+        .transpose()?
+        .flatten()
+        .filter(|v| !v.is_none());
+    if let Some(fields) = fields {
+        let fields: Bound<'_, PyDict> = fields
+            .extract()
+            .map_err(|_| value_err("options must be a dict of option keys to values"))?;
+        let json = fields.py().import("json")?;
+        for (key, value) in fields.iter() {
+            let key: String = key.extract().map_err(|_| {
+                value_err("options' keys must be strings such as \"orientation.strong_pair\"")
+            })?;
+            let text: String = json.call_method1("dumps", (value,))?.extract()?;
+            pipeline = pipeline.with_field(&key, &text).map_err(py_err)?;
+        }
+    }
+    Ok(pipeline)
 }
 
 /// The keyword options of an estimation, checked.
@@ -668,8 +707,8 @@ fn call_options(options: Option<&Bound<'_, PyDict>>) -> PyResult<Call> {
     let refine = refine.as_str();
     let matcher: String = option(options, "matcher", "sift".to_owned())?;
     let matcher = matcher.as_str();
-    let pairs: String = option(options, "pairs", "auto".to_owned())?;
-    let pairs = pairs.as_str();
+    let pairs: Option<String> = option(options, "pairs", None)?;
+    let pipeline = pipeline_options(options, pairs.as_deref())?;
     let samples: usize = option(options, "samples", 1)?;
     let seed: u64 = option(options, "seed", 0)?;
     let ggs: bool = option(options, "ggs", true)?;
@@ -723,9 +762,7 @@ fn call_options(options: Option<&Bound<'_, PyDict>>) -> PyResult<Call> {
                 )));
             }
         },
-        pairs: pairs
-            .parse()
-            .map_err(|e| value_err(format!("pairs {pairs:?}: {e}")))?,
+        pipeline,
         matcher: matcher.parse().map_err(py_err)?,
         weights_dir: option::<Option<PathBuf>>(options, "weights_dir", None)?,
         seed,

@@ -28,6 +28,11 @@ use crate::tracks::{Observation, Track};
 
 /// Bundle-adjustment settings.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(default, deny_unknown_fields)
+)]
 pub struct BundleOptions {
     /// Cauchy scale of the reprojection error, pixels.
     pub cauchy_px: f64,

@@ -62,6 +62,11 @@ pub fn total_cost(pairs: &[PairFundamental], phi: f64) -> f64 {
 
 /// Search range and resolution of [`self_calibrate`].
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(default, deny_unknown_fields)
+)]
 pub struct FocalSearch {
     /// Smallest `φ`.
     pub min: f64,

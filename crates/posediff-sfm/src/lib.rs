@@ -39,6 +39,7 @@ pub mod report;
 pub mod resection;
 pub mod rotation_averaging;
 pub mod sampson_refine;
+pub mod solver;
 pub mod tracks;
 pub mod translation_averaging;
 pub mod view_graph;

@@ -20,6 +20,11 @@ use crate::error::{Result, SfmError};
 
 /// How a [`BlockSystem`] is factorised.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(rename_all = "snake_case")
+)]
 pub enum Solver {
     /// Sparse Cholesky with the symbolic factorisation reused (the default).
     #[default]

@@ -36,6 +36,11 @@ pub trait LeastSquares {
 
 /// Settings of [`minimize`].
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(default, deny_unknown_fields)
+)]
 pub struct LmOptions {
     /// Accepted steps at most.
     pub max_iterations: usize,

@@ -15,7 +15,7 @@
 use std::collections::HashSet;
 use std::time::Instant;
 
-use nalgebra::{Matrix3, Rotation3, Vector3};
+use nalgebra::{Matrix3, Rotation3};
 use posediff_geometry::PairMatches;
 use rayon::prelude::*;
 
@@ -25,7 +25,7 @@ use crate::error::{Result, SfmError};
 use crate::focal::{FocalSearch, PairFundamental, focal_from_homographies, self_calibrate};
 use crate::intrinsics::ImageIntrinsics;
 use crate::report::{FocalSource, FocalStart, MapperReport, NotEstimated, SupportReport};
-use crate::resection::{AbsolutePose, ResectionOptions, resect_bridged_sides};
+use crate::resection::{ResectionOptions, resect_bridged_sides};
 use crate::rotation_averaging::{
     RelativeRotation, RotationAveragingOptions, RotationAveragingReport, average_rotations,
     confirmed_by_trusted_triangles, keep_bridges, rotation_residuals_deg, unconfirmed_by_cycles,
@@ -39,59 +39,15 @@ use crate::translation_averaging::{
 };
 use crate::view_graph::largest_component;
 
-pub use posediff_geometry::TwoViewPose as RelativePose;
-
-/// A pair's homography and the fraction of its matches it explains.
-pub type Homography = Option<(Matrix3<f64>, f64)>;
-
-/// Two-view geometry from matches and one-view geometry (resection) from 3D points, provided by
-/// the caller (OpenCV in the umbrella crate), so this crate stays free of image libraries.
-/// Called from several threads.
-pub trait GeometrySolver: Sync {
-    /// A homography fit and the fraction of matches it explains (within the solver's
-    /// threshold); `None` when none can be fitted.
-    ///
-    /// # Errors
-    /// The solver's own failures.
-    fn homography(&self, pair: &PairMatches) -> Result<Option<(Matrix3<f64>, f64)>>;
-
-    /// A least-squares fundamental matrix `x_bᵀ F x_a = 0` of the pair, `None` if degenerate.
-    ///
-    /// # Errors
-    /// The solver's own failures.
-    fn fundamental(&self, pair: &PairMatches) -> Result<Option<Matrix3<f64>>>;
-
-    /// The relative pose at intrinsics `k_a`, `k_b`, given the pair's [`Self::homography`]
-    /// (computed once, whatever the focal); `None` when there is none.
-    ///
-    /// # Errors
-    /// The solver's own failures.
-    fn relative_pose(
-        &self,
-        pair: &PairMatches,
-        homography: Option<(Matrix3<f64>, f64)>,
-        k_a: &Matrix3<f64>,
-        k_b: &Matrix3<f64>,
-    ) -> Result<Option<RelativePose>>;
-
-    /// The pose of `image` (intrinsics `k`) that sees `points[i]` at `pixels[i]`, robust to
-    /// outliers, with the correspondences within `threshold_px` of reprojection error as its
-    /// inliers; `None` when no pose is found.
-    ///
-    /// # Errors
-    /// The solver's own failures.
-    fn absolute_pose(
-        &self,
-        image: usize,
-        points: &[Vector3<f64>],
-        pixels: &[[f64; 2]],
-        k: &Matrix3<f64>,
-        threshold_px: f64,
-    ) -> Result<Option<AbsolutePose>>;
-}
+pub use crate::solver::{GeometrySolver, Homography, RelativePose};
 
 /// Settings of the mapper, one struct per stage.
 #[derive(Debug, Clone, PartialEq)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(default, deny_unknown_fields)
+)]
 pub struct MapperOptions {
     /// Self-calibration search range (`φ = f / s`).
     pub focal_search: FocalSearch,
@@ -100,6 +56,8 @@ pub struct MapperOptions {
     /// The focal factor used (fixed) when the data cannot determine it: COLMAP's `1.2`.
     pub focal_prior: f64,
     /// A pair whose homography explains at least this fraction of its matches has no parallax.
+    /// (Not in the serialised options: the umbrella sets it from its two-view settings.)
+    #[cfg_attr(feature = "serde", serde(skip))]
     pub homography_fraction: f64,
     /// Rotation averaging.
     pub rotation_averaging: RotationAveragingOptions,
@@ -171,6 +129,11 @@ impl Default for MapperOptions {
 
 /// Settings of the cycle check on the view graph's triangles.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(default, deny_unknown_fields)
+)]
 pub struct CycleCheck {
     /// A triangle confirms its edges when its rotations compose to within this angle.
     pub threshold_deg: f64,

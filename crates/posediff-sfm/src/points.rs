@@ -17,6 +17,11 @@ use crate::tracks::{Observation, TrackReport, build_tracks};
 
 /// How points are triangulated and filtered.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(default, deny_unknown_fields)
+)]
 pub struct PointOptions {
     /// An observation further than this from its point's projection is dropped, px.
     pub max_reprojection_px: f64,

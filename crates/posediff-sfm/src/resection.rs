@@ -45,24 +45,20 @@ use crate::bundle::{project, triangulate};
 use crate::camera::CameraPose;
 use crate::error::{Result, SfmError};
 use crate::intrinsics::ImageIntrinsics;
-use crate::mapper::GeometrySolver;
 use crate::sampson_refine::{pair_fundamental, sampson_residual};
+use crate::solver::GeometrySolver;
 use crate::tracks::{Observation, Track};
 use crate::view_graph::{bridges, side_of};
 
-/// A resected camera, `x_cam = R X + t`, and the indices of its inlier correspondences.
-#[derive(Debug, Clone, PartialEq)]
-pub struct AbsolutePose {
-    /// World → camera rotation.
-    pub rotation: Matrix3<f64>,
-    /// Translation.
-    pub translation: Vector3<f64>,
-    /// Indices of the correspondences within the threshold.
-    pub inliers: Vec<usize>,
-}
+pub use crate::solver::AbsolutePose;
 
 /// Settings of the bridge resection.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(default, deny_unknown_fields)
+)]
 pub struct ResectionOptions {
     /// Reprojection error of an inlier, pixels (triangulation check and PnP).
     pub threshold_px: f64,
@@ -100,6 +96,11 @@ impl Default for ResectionOptions {
 
 /// Settings of the plane-induced pose of a bridge.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(default, deny_unknown_fields)
+)]
 pub struct PlaneOptions {
     /// Fewest anchor points seen by the bridge's anchor camera.
     pub min_points: usize,
@@ -862,7 +863,7 @@ pub fn resect_bridged_sides(
 mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
-    use crate::mapper::RelativePose;
+    use crate::solver::RelativePose;
     use crate::tracks::build_tracks;
 
     /// A solver whose resection always fails (the other methods are not used here).

@@ -26,6 +26,11 @@ pub struct RelativeRotation {
 
 /// Rotation-averaging settings.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(default, deny_unknown_fields)
+)]
 pub struct RotationAveragingOptions {
     /// Cauchy scale of the residual angle, degrees.
     pub cauchy_deg: f64,

@@ -28,6 +28,11 @@ use crate::lm::{LeastSquares, LmOptions, LmReport, Termination, minimize};
 
 /// Refinement settings.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(default, deny_unknown_fields)
+)]
 pub struct SampsonRefineOptions {
     /// Cauchy scale of the Sampson distance, pixels.
     pub cauchy_px: f64,

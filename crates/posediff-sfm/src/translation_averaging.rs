@@ -33,6 +33,11 @@ pub struct CenterDirection {
 
 /// Translation-averaging settings.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(default, deny_unknown_fields)
+)]
 pub struct TranslationAveragingOptions {
     /// IRLS iterations.
     pub max_iterations: usize,

@@ -41,24 +41,22 @@ fn peak_rss_mb() -> f64 {
 fn run_case(images_dir: &Path, gt: &Path, out: &Path, pairs: &str) -> Result<()> {
     let images = posediff::io::loader::image_files(images_dir)?;
     let n = images.len();
-    let config = GeometricConfig {
-        pairs: pairs.parse::<PairSelection>().map_err(anyhow::Error::msg)?,
-        ..GeometricConfig::default()
-    };
+    let mut config = GeometricConfig::default();
+    config.options.pairs.selection = pairs.parse::<PairSelection>().map_err(anyhow::Error::msg)?;
     let mut stages = Vec::new();
     let total = Instant::now();
     let clock = Instant::now();
-    let features = extract_all(&images, &config.matching)?;
+    let features = extract_all(&images, &config.options.matching)?;
     stages.push(("extraction", clock.elapsed().as_secs_f64(), peak_rss_mb()));
     let clock = Instant::now();
-    let pair_list = select_pairs(n, &config.pairs, Some(&features))?;
+    let pair_list = select_pairs(n, &config.options.pairs.selection, Some(&features))?;
     stages.push((
         "pair selection",
         clock.elapsed().as_secs_f64(),
         peak_rss_mb(),
     ));
     let clock = Instant::now();
-    let matches = match_pairs(&features, &pair_list, &config.matching)?;
+    let matches = match_pairs(&features, &pair_list, &config.options.matching)?;
     let sizes: Vec<_> = features.iter().map(|f| f.image_size).collect();
     drop(features);
     stages.push(("matching", clock.elapsed().as_secs_f64(), peak_rss_mb()));

@@ -27,25 +27,25 @@ fn main() -> anyhow::Result<()> {
     let mut config = GeometricConfig::default();
     let env = |k: &str| std::env::var(k).ok().and_then(|v| v.parse::<f64>().ok());
     if let Some(v) = env("KP") {
-        config.matching.features.max_keypoints = v as usize;
+        config.options.matching.features.max_keypoints = v as usize;
     }
     if let Some(v) = env("CT") {
-        config.matching.features.contrast_threshold = v;
+        config.options.matching.features.contrast_threshold = v;
     }
     if let Some(v) = env("MINV") {
-        config.matching.min_verified = v as usize;
+        config.options.matching.min_verified = v as usize;
     }
     if let Some(v) = env("RATIO") {
-        config.matching.ratio = Some(v as f32);
+        config.options.matching.ratio = Some(v as f32);
     }
-    if let (Some(v), Some(ver)) = (env("VTH"), config.matching.verification.as_mut()) {
+    if let (Some(v), Some(ver)) = (env("VTH"), config.options.matching.verification.as_mut()) {
         ver.threshold_px = v;
     }
     if let Some(v) = env("SIDE") {
-        config.matching.features.max_image_side = v as u32;
+        config.options.matching.features.max_image_side = v as u32;
     }
     if env("NOBA").is_some() {
-        config.mapper.bundle = None;
+        config.options.mapper.bundle = None;
     }
     if let Some(v) = env("FOCAL") {
         config.intrinsics = posediff::estimate::geometric::KnownIntrinsics::FocalPx(v);

@@ -135,7 +135,7 @@ fn correct_fraction(p: &PairMatches, a: &Camera, b: &Camera) -> f64 {
 /// and keypoint budget (defaults 1024 and 2048).
 fn matching_config(matcher: MatcherChoice, weights: Option<&String>) -> Result<GeometricConfig> {
     let mut config = GeometricConfig::default();
-    config.matching.features.detector = matcher.detector();
+    config.options.matching.features.detector = matcher.detector();
     if let Some(aliked) = matcher.extractor_weights() {
         let weights = weights.map_or_else(posediff_learned::weights::default_dir, PathBuf::from);
         let mut learned = LearnedMatcher::load_with(&weights, aliked)?;
@@ -172,17 +172,17 @@ fn main() -> Result<()> {
         let images: Vec<PathBuf> = names.iter().map(|n| dir.join(n)).collect();
         let started = std::time::Instant::now();
         let learned = config.learned.as_ref();
-        let features = extract_all(&images, &config.matching, learned)?;
+        let features = extract_all(&images, &config.options.matching, learned)?;
         let list = posediff_matching::exhaustive_pairs(images.len());
         let raw_config = posediff_matching::MatchConfig {
             verification: None,
-            ..config.matching
+            ..config.options.matching
         };
         let raw = match_pairs(&features, &list, &raw_config, learned)?;
         let raw_counts: Vec<usize> = raw.iter().map(PairMatches::len).collect();
         let verified = raw
             .into_iter()
-            .map(|r| Ok(posediff_matching::verify(r, &config.matching)?))
+            .map(|r| Ok(posediff_matching::verify(r, &config.options.matching)?))
             .collect::<Result<Vec<_>>>()?;
         eprintln!(
             "matched {} pairs of {} images in {:.1} s",
@@ -191,7 +191,7 @@ fn main() -> Result<()> {
             started.elapsed().as_secs_f64()
         );
         let started = std::time::Instant::now();
-        let screen = descriptor_support(&features, &list, &config.matching)?;
+        let screen = descriptor_support(&features, &list, &config.options.matching)?;
         eprintln!(
             "descriptor screen of {} pairs in {:.1} s",
             list.len(),
@@ -265,7 +265,7 @@ fn main() -> Result<()> {
             let images: Vec<PathBuf> = names.iter().map(|n| dir.join(n)).collect();
             Some(extract_all(
                 &images,
-                &config.matching,
+                &config.options.matching,
                 config.learned.as_ref(),
             )?)
         }
@@ -283,7 +283,7 @@ fn main() -> Result<()> {
     let support_min = match std::env::var("SUPPORT").ok().as_deref() {
         Some("off") => None,
         Some(v) => Some(v.parse::<usize>()?),
-        None => GeometricConfig::default().support_min_verified,
+        None => GeometricConfig::default().options.support.min_verified,
     }
     .filter(|_| matcher.extractor_weights().is_some());
     let correct: BTreeMap<(usize, usize), f64> = pairs
@@ -437,19 +437,20 @@ fn main() -> Result<()> {
             .count();
         let mut replay_config = GeometricConfig::default();
         if let Ok(v) = std::env::var("SUPPORT_DEG") {
-            replay_config.mapper.support_triangle_deg = v.parse()?;
+            replay_config.options.mapper.support_triangle_deg = v.parse()?;
         }
         // As the umbrella does with a learned matcher; SCORE_DROPPED=0|1 overrides.
-        replay_config.mapper.score_dropped_as_missing = match std::env::var("SCORE_DROPPED") {
+        replay_config.options.mapper.score_dropped_as_missing = match std::env::var("SCORE_DROPPED")
+        {
             Ok(v) => v == "1",
             Err(_) => matcher.extractor_weights().is_some(),
         };
         // CYCLE=off, or CYCLE=<degrees>,<min triangles>: the cycle check to replay with.
         match std::env::var("CYCLE").ok().as_deref() {
-            Some("off") => replay_config.mapper.cycle_check = None,
+            Some("off") => replay_config.options.mapper.cycle_check = None,
             Some(v) => {
                 let (d, t) = v.split_once(',').context("CYCLE=<degrees>,<triangles>")?;
-                replay_config.mapper.cycle_check = Some(posediff_sfm::mapper::CycleCheck {
+                replay_config.options.mapper.cycle_check = Some(posediff_sfm::mapper::CycleCheck {
                     threshold_deg: d.parse()?,
                     min_triangles: t.parse()?,
                 });

@@ -27,20 +27,7 @@ use rayon::prelude::*;
 
 use crate::error::{PosediffError, Result};
 
-/// Steps of a long stage reported from any thread (the CLI's progress bars; the learned
-/// matcher's images and pairs take about half a second each).
-pub trait StepCounter: Sync {
-    /// A stage begins with `total` steps (0: not counted).
-    fn stage(&self, _name: &str, _total: u64) {}
-    /// One step of the current stage is done.
-    fn step(&self) {}
-}
-
-/// Counts nothing.
-#[derive(Debug, Clone, Copy, Default)]
-pub struct NoCounter;
-
-impl StepCounter for NoCounter {}
+pub use crate::progress::{NoCounter, StepCounter};
 
 /// Long side the learned matcher resizes every image to (the reference setting).
 pub const LEARNED_IMAGE_SIDE: u32 = 1024;
@@ -461,7 +448,7 @@ pub fn extract_all_counted(
 ) -> Result<Vec<ImageFeatures>> {
     log::info!(
         "{}extracting features of {} images",
-        crate::estimate::run::WORK_STARTS,
+        crate::progress::WORK_STARTS,
         images.len()
     );
     let Some(l) = learned else {

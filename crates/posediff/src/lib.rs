@@ -21,6 +21,7 @@ pub mod estimate;
 pub mod fuzzing;
 pub mod io;
 pub mod plot;
+pub mod progress;
 pub mod reconstruction;
 pub mod train;
 

@@ -12,7 +12,41 @@ use posediff_sfm::points::{PointOptions, PointsReport, triangulate_points};
 use rayon::prelude::*;
 
 use crate::error::{PosediffError, Result};
-use crate::io::export::ImageCamera;
+
+/// One camera and the image it belongs to (path relative to the input folder).
+#[derive(Debug, Clone, PartialEq)]
+pub struct NamedCamera {
+    /// Image path relative to the input folder.
+    pub image: String,
+    /// The camera, original image pixels.
+    pub camera: Camera,
+}
+
+/// One image of a set and its camera, `None` where none was estimated.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ImageCamera {
+    /// Image path relative to the input folder.
+    pub image: String,
+    /// The image's size.
+    pub size: ImageSize,
+    /// The camera.
+    pub camera: Option<Camera>,
+}
+
+impl ImageCamera {
+    /// The estimated cameras of `images` as named cameras (the others left out).
+    pub fn estimated(images: &[ImageCamera]) -> Vec<NamedCamera> {
+        images
+            .iter()
+            .filter_map(|e| {
+                e.camera.map(|camera| NamedCamera {
+                    image: e.image.clone(),
+                    camera,
+                })
+            })
+            .collect()
+    }
+}
 
 /// One keypoint of an image that occurs in a verified match (OpenCV pixels), and the point it
 /// observes.

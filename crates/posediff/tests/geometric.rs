@@ -539,7 +539,8 @@ fn the_bundle_refinement_pulls_given_cameras_to_the_truth() {
     let (images, gt) = set("strecha_fountainP11");
     let (images, gt) = (&images[..5], &gt[..5]);
     let config = GeometricConfig::default();
-    let (_, pairs) = posediff_matching::match_images(images, None, &config.matching).unwrap();
+    let (_, pairs) =
+        posediff_matching::match_images(images, None, &config.options.matching).unwrap();
     assert!(
         pairs.iter().all(|p| p.idx1.len() == p.len()),
         "keypoint ids travel with the matches"
@@ -602,7 +603,7 @@ fn the_support_check_drops_a_wrong_pair_and_keeps_confirmed_bridges() {
     let (images, gt) = (&images[..6], &gt[..6]);
     let config = GeometricConfig::default();
     let (features, mut pairs) =
-        posediff_matching::match_images(images, None, &config.matching).unwrap();
+        posediff_matching::match_images(images, None, &config.options.matching).unwrap();
     let sizes: Vec<_> = features.iter().map(|f| f.image_size).collect();
     let donor = pairs
         .iter()
@@ -653,19 +654,14 @@ fn the_support_check_drops_a_wrong_pair_and_keeps_confirmed_bridges() {
 /// within the angle, matched and mapped, and the cameras stay within a degree.
 #[test]
 fn the_second_pass_matches_the_pairs_the_first_map_puts_close() {
-    use posediff::estimate::geometric::Densify;
+    use posediff::estimate::options::{DensifyOptions, DensifyWhen};
     let (images, gt) = set("strecha_fountainP11");
-    let chain = GeometricConfig {
-        pairs: "sequential:1".parse().unwrap(),
-        ..GeometricConfig::default()
-    };
-    let densify = Densify {
+    let mut config = GeometricConfig::default();
+    config.options.pairs.selection = "sequential:1".parse().unwrap();
+    config.options.densify = DensifyOptions {
+        when: DensifyWhen::Always,
         max_angle_deg: 30.0,
         per_image: 3,
-    };
-    let config = GeometricConfig {
-        densify: Some(densify),
-        ..chain
     };
     let e = estimate_geometric(&images, &config).unwrap();
     assert!(e.report.pair_selection.contains("densify:30deg,3"));

@@ -276,8 +276,9 @@ fn the_learned_auto_plan_is_exhaustive_for_small_sets_then_two_passes() {
         ))),
         ..GeometricConfig::default()
     };
+    let exhaustive = PairSelection::Rules(vec![posediff_matching::PairRule::Exhaustive]);
     let small = config.plan(LEARNED_EXHAUSTIVE_UP_TO);
-    assert_eq!(small, (PairSelection::Auto, None));
+    assert_eq!(small, (exhaustive.clone(), None));
     assert_eq!(
         PairSelection::Auto.rules(LEARNED_EXHAUSTIVE_UP_TO),
         vec![posediff_matching::PairRule::Exhaustive]
@@ -285,11 +286,14 @@ fn the_learned_auto_plan_is_exhaustive_for_small_sets_then_two_passes() {
     let (selection, densify) = config.plan(LEARNED_EXHAUSTIVE_UP_TO + 1);
     assert_eq!(selection, PairSelection::Rules(LEARNED_FIRST_PASS.to_vec()));
     assert_eq!(densify, Some(Densify::default()));
-    let explicit = GeometricConfig {
-        pairs: "exhaustive".parse().unwrap(),
-        ..config
-    };
-    assert_eq!(explicit.plan(100), (explicit.pairs.clone(), None));
+    let mut explicit = config.clone();
+    explicit.options.pairs.selection = "exhaustive".parse().unwrap();
+    assert_eq!(explicit.plan(100), (exhaustive.clone(), None));
+    // The thresholds are the options tree's: a larger exhaustive bound, a forced second pass.
+    let mut wider = config.clone();
+    wider.options.pairs.learned_exhaustive_up_to = 100;
+    wider.options.densify.when = posediff::estimate::options::DensifyWhen::Always;
+    assert_eq!(wider.plan(100), (exhaustive, Some(Densify::default())));
 }
 
 /// The stages a run reports, as (name, total, steps counted).

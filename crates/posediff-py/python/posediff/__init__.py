@@ -17,7 +17,7 @@ that failed), each with posediff's message.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Callable, Optional, Sequence, TypedDict, Union
+from typing import TYPE_CHECKING, Any, Callable, Dict, Optional, Sequence, TypedDict, Union
 
 from . import _native
 from ._native import (
@@ -62,6 +62,8 @@ ProgressCallback = Callable[[str, int, int, bool], Any]
 class EstimateOptions(TypedDict, total=False):
     """The keyword options of :func:`estimate` and :meth:`Estimator.estimate` (the CLI's flags)."""
 
+    config: "Union[str, PathLike[str]]"
+    options: Dict[str, Any]
     focal_px: float
     intrinsics: "Union[str, PathLike[str], npt.NDArray[np.float64]]"
     init: "Union[str, PathLike[str]]"
@@ -125,7 +127,9 @@ def estimate(images: Any, *, weights: Any = None, device: str = "cpu",
     ``"disk-lightglue"``), ``weights_dir`` (the learned matcher's
     weights, from ``cargo xtask weights``), ``pairs`` (``"auto"``, ``"exhaustive"``, ``"sequential:K"``,
     ``"retrieval:K"``), ``samples``, ``seed``, ``ggs``, ``device`` (``"cpu"``, ``"cuda"``),
-    ``skip_bad_images``. ``progress``: ``True`` for tqdm bars when tqdm is installed, ``False``,
+    ``skip_bad_images``; the pipeline's options tree (run.json's ``options``) from ``config``
+    (a TOML or JSON file, the CLI's ``--config``) and ``options`` (``{"orientation.strong_pair":
+    100}``, the CLI's ``--set``). ``progress``: ``True`` for tqdm bars when tqdm is installed, ``False``,
     or a callable ``(stage, done, total, finished)``.
     """
     return _native.estimate(images, dict(options), weights=weights, device=device,

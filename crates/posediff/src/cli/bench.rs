@@ -186,7 +186,7 @@ fn with_matcher(
         learned: options.load_learned()?,
         ..Default::default()
     };
-    config.matching.features.detector = choice.detector();
+    config.options.matching.features.detector = choice.detector();
     Ok(Box::new(posediff::bench::Geometric {
         config,
         label: Some(format!("posediff geometric ({choice})")),

@@ -5,6 +5,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, bail};
 use candle_core::Device;
 use clap::ValueEnum;
+use posediff::estimate::options::PipelineOptions;
 use posediff::estimate::run::{
     DEFAULT_START_STEP, InitSource, Inputs, IntrinsicsSource, Network, RefineMode, RunOptions,
     load_estimator, run,
@@ -70,8 +71,18 @@ pub struct Args {
     /// cameras: each image with up to 5 unmatched images within 45°), `exhaustive`,
     /// `sequential:K` (each image with the next K), `retrieval:K` (its K most similar by a bag
     /// of visual words), or a union such as `sequential:10,retrieval:20`.
-    #[arg(long, default_value = "auto")]
-    pairs: posediff_matching::PairSelection,
+    /// (Sets the options tree's `pairs.selection`; default `auto`.)
+    #[arg(long)]
+    pairs: Option<posediff_matching::PairSelection>,
+    /// The pipeline's options from a TOML (`.toml`) or JSON file: any subset of the tree
+    /// run.json's `options` shows (e.g. `[orientation]` / `strong_pair = 100`). Applied before
+    /// `--pairs` and `--set`.
+    #[arg(long, value_name = "FILE")]
+    config: Option<PathBuf>,
+    /// One option of the tree, `key.path=value` (e.g. `orientation.strong_pair=100`,
+    /// `densify.when=always`, `mapper.bundle=null`); repeatable, applied last, in order.
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    set: Vec<String>,
     /// Output folder (created).
     #[arg(long)]
     out: PathBuf,
@@ -151,7 +162,7 @@ impl Args {
         // Every cheap check first: options, paths, files that name the images, the output
         // folder, the images' headers, the checkpoint's keys and shapes; only then features and
         // matching.
-        let mut options = self.run_options();
+        let mut options = self.run_options()?;
         options.check()?;
         if self.start_step != DEFAULT_START_STEP && self.init.is_none() {
             bail!(
@@ -201,8 +212,19 @@ impl Args {
         Ok(())
     }
 
-    fn run_options(&self) -> RunOptions {
-        RunOptions {
+    fn run_options(&self) -> posediff::Result<RunOptions> {
+        let mut pipeline = PipelineOptions::default();
+        if let Some(path) = &self.config {
+            pipeline = pipeline.with_file(path)?;
+        }
+        if let Some(pairs) = &self.pairs {
+            pipeline.pairs.selection = pairs.clone();
+        }
+        for assignment in &self.set {
+            pipeline = pipeline.with_assignment(assignment)?;
+        }
+        pipeline.check()?;
+        Ok(RunOptions {
             init: self.init.clone(),
             start_step: self.start_step,
             intrinsics: match (self.focal_px, &self.intrinsics) {
@@ -216,14 +238,14 @@ impl Args {
                 RefineArg::Official => RefineMode::Official,
                 RefineArg::None => RefineMode::None,
             },
-            pairs: self.pairs.clone(),
+            pipeline,
             matcher: self.matcher.into(),
             weights_dir: self.weights_dir.clone(),
             seed: self.seed,
             samples: self.samples,
             ggs: !self.no_ggs,
             thumbnail_side: None,
-        }
+        })
     }
 }
 

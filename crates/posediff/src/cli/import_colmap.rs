@@ -27,7 +27,7 @@ impl Args {
         let Args { model, images, out } = self;
         let entries = match images {
             Some(dir) => {
-                posediff::io::export::colmap_for_images(&model, &image_files(&dir)?, &dir)?
+                posediff::io::records::colmap_for_images(&model, &image_files(&dir)?, &dir)?
             }
             None => {
                 let mut cams = posediff::io::export::read_colmap_cameras(&model)?;

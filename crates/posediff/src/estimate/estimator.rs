@@ -14,7 +14,7 @@ use posediff_guidance::{GgsConfig, GgsSolver, MatchSet};
 use posediff_matching::{MatchConfig, PairMatches};
 
 use crate::error::{PosediffError, Result};
-use crate::estimate::geometric::{KnownIntrinsics, resolve_intrinsics};
+use crate::estimate::options::{KnownIntrinsics, resolve_intrinsics};
 use crate::io::export::NamedCamera;
 use crate::io::loader::{LoadedImage, load_images};
 
@@ -463,7 +463,7 @@ impl Estimator {
         let mut warnings = Vec::new();
         log::info!(
             "{}loading {} images",
-            crate::estimate::run::WORK_STARTS,
+            crate::progress::WORK_STARTS,
             images.len()
         );
         progress.start("images", 0);

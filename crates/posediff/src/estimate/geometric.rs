@@ -20,17 +20,14 @@ use posediff_matching::pairs::{BagOfWords, RetrievalOptions, select_pairs_with};
 use posediff_matching::two_view::{
     fundamental_least_squares, homography_fit, relative_pose_with_homography,
 };
-use posediff_matching::{
-    ImageFeatures, MatchConfig, PairMatches, PairRule, PairSelection, TwoViewConfig,
-};
+use posediff_matching::{ImageFeatures, PairMatches, PairRule, PairSelection, TwoViewConfig};
 use posediff_sfm::bundle::{BundleOptions, Point, bundle_adjust};
 use posediff_sfm::mapper::{GeometrySolver, RelativePose};
 use posediff_sfm::resection::AbsolutePose;
-use posediff_sfm::sampson_refine::{SampsonRefineOptions, SampsonRefineReport, refine_sampson};
+use posediff_sfm::sampson_refine::{SampsonRefineOptions, refine_sampson};
 use posediff_sfm::tracks::build_tracks;
-use posediff_sfm::{
-    CameraPose, GlobalMapper, ImageIntrinsics, MapperOptions, MapperReport, SfmError,
-};
+use posediff_sfm::view_graph::UnionFind;
+use posediff_sfm::{CameraPose, GlobalMapper, ImageIntrinsics, MapperOptions, SfmError};
 
 use crate::correspondences::{
     NoCounter, SharedLearned, StepCounter, descriptor_support, extract_all_counted,
@@ -41,16 +38,10 @@ use crate::estimate::run_report::Warning;
 
 pub use posediff_sfm::intrinsics::{focal_scale, image_centre};
 
-/// What is known of the intrinsics.
-#[derive(Debug, Clone, PartialEq)]
-pub enum KnownIntrinsics {
-    /// Nothing: a shared focal is estimated.
-    Unknown,
-    /// One focal length in pixels for every image (principal points at the centres).
-    FocalPx(f64),
-    /// Full intrinsics per image (fixed; the focal is not refined).
-    PerImage(Vec<Intrinsics>),
-}
+use crate::estimate::options::{DensifyWhen, PipelineOptions};
+pub use crate::estimate::options::{
+    GEOMETRIC_CONTRAST_THRESHOLD, GEOMETRIC_MAX_KEYPOINTS, KnownIntrinsics, resolve_intrinsics,
+};
 
 /// How the cameras are refined after the initialisation.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -64,48 +55,22 @@ pub enum Refinement {
     Official(GgsConfig),
 }
 
-/// Settings of the geometric estimate.
+/// Settings of the geometric estimate: the options tree and what the run knows.
 #[derive(Debug, Clone, PartialEq)]
 pub struct GeometricConfig {
-    /// Matching.
-    pub matching: MatchConfig,
-    /// Which pairs are matched.
-    pub pairs: PairSelection,
-    /// Two-view geometry.
-    pub two_view: TwoViewConfig,
+    /// Every threshold of the pipeline ([`PipelineOptions`]).
+    pub options: PipelineOptions,
     /// Known intrinsics.
     pub intrinsics: KnownIntrinsics,
-    /// The mapper's stages (its `sampson` is set from `refinement`; `bundle: None` skips the
-    /// bundle adjustment).
-    pub mapper: MapperOptions,
     /// Refinement.
     pub refinement: Refinement,
     /// The learned matcher, when the run uses it instead of OpenCV's.
     pub learned: Option<SharedLearned>,
-    /// With a learned matcher: a pair is supported when its extractor's descriptors alone
-    /// verify at least this many matches ([`crate::correspondences::descriptor_support`]), and
-    /// the mapper keeps an unsupported pair only when a triangle of kept pairs confirms it
-    /// ([`posediff_sfm::GlobalMapper::run_with_support`]). `None`: every pair is kept as
-    /// matched (the default: measured on the shared sets, as many wrong pairs reach the
-    /// averaging with the check as without, and small subsets lose good pairs,
-    /// docs/BENCHMARKS.md). Without a learned matcher it does nothing (the matches are the
-    /// descriptors').
-    pub support_min_verified: Option<usize>,
-    /// A second matching pass after a first map ([`Densify`]). `None`: only where `auto`
-    /// chooses it ([`GeometricConfig::plan`]: a learned matcher on more than
-    /// [`LEARNED_EXHAUSTIVE_UP_TO`] images).
-    pub densify: Option<Densify>,
 }
 
-/// The second matching pass: after mapping the first pairs, each estimated image is matched
-/// with up to `per_image` others that were not matched yet and whose estimated rotations are
-/// within `max_angle_deg` of its own (nearest first; COLMAP's spatial matcher on estimated
-/// poses), and the mapper runs again on all pairs. It recovers the wide bridges a sparse first
-/// selection misses (apple, 20 frames, ALIKED + LightGlue: `sequential:3,retrieval:3` alone
-/// 0.824 mAA(30), with this pass 0.888 on 80 pairs, exhaustive 0.883 on 190;
-/// docs/BENCHMARKS.md). At most `per_image · n` more pairs. 45°: the same accuracy as 60°
-/// (96 pairs) and 30° (68 pairs) on apple, the view pairs of the first map with the most
-/// overlap.
+/// The second matching pass as it runs ([`crate::estimate::options::DensifyOptions`] has
+/// the why): each estimated image matched with up to `per_image` unmatched images within
+/// `max_angle_deg` of its rotation. At most `per_image · n` more pairs.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Densify {
     /// Largest rotation between the two estimated cameras, degrees.
@@ -116,64 +81,65 @@ pub struct Densify {
 
 impl Default for Densify {
     fn default() -> Self {
+        let d = crate::estimate::options::DensifyOptions::default();
         Self {
-            max_angle_deg: 45.0,
-            per_image: 5,
+            max_angle_deg: d.max_angle_deg,
+            per_image: d.per_image,
         }
     }
 }
-
-/// With a learned matcher and the `auto` pair selection, sets of up to this many images are
-/// matched exhaustively; larger ones on [`LEARNED_FIRST_PASS`] and then [`Densify`]. LightGlue
-/// costs about 0.9 s a pair on two AVX-512 cores at 2048 keypoints (1.3–1.4 s on AVX2):
-/// exhaustive pairs grow as n².
-pub const LEARNED_EXHAUSTIVE_UP_TO: usize = 12;
-
-/// The first pass of a learned matcher's `auto` selection above [`LEARNED_EXHAUSTIVE_UP_TO`]:
-/// each image with the next 3 and its 3 most similar (measured against `retrieval:3..8`,
-/// `sequential:3..5` and the descriptor screen as ranking on the shared sets).
-pub const LEARNED_FIRST_PASS: [PairRule; 2] = [PairRule::Sequential(3), PairRule::Retrieval(3)];
 
 impl Default for GeometricConfig {
     fn default() -> Self {
-        let mut matching = MatchConfig::default();
-        matching.features.contrast_threshold = GEOMETRIC_CONTRAST_THRESHOLD;
-        matching.features.max_keypoints = GEOMETRIC_MAX_KEYPOINTS;
+        let options = PipelineOptions::default();
         Self {
-            matching,
-            pairs: PairSelection::Auto,
-            two_view: TwoViewConfig::default(),
+            refinement: Refinement::Converge(options.mapper.sampson.unwrap_or_default()),
+            options,
             intrinsics: KnownIntrinsics::Unknown,
-            mapper: MapperOptions::default(),
-            refinement: Refinement::Converge(SampsonRefineOptions::default()),
             learned: None,
-            support_min_verified: None,
-            densify: None,
         }
     }
 }
 
+/// The default of `pairs.learned_exhaustive_up_to` ([`crate::estimate::options::PairOptions`]).
+pub const LEARNED_EXHAUSTIVE_UP_TO: usize = 12;
+
+/// The default of `pairs.learned_first_pass` ([`crate::estimate::options::PairOptions`]).
+pub const LEARNED_FIRST_PASS: [PairRule; 2] = [PairRule::Sequential(3), PairRule::Retrieval(3)];
+
 impl GeometricConfig {
-    /// The pair selection and the second pass used for `n` images: as configured, except that
-    /// `auto` with a learned matcher above [`LEARNED_EXHAUSTIVE_UP_TO`] images is
-    /// [`LEARNED_FIRST_PASS`] plus [`Densify`] (its default unless one is configured).
+    /// The pair selection (its rules resolved for `n` images) and the second pass used for
+    /// `n` images: `auto` is `pairs.auto` with OpenCV's matchers; with a learned matcher,
+    /// exhaustive up to `pairs.learned_exhaustive_up_to` images and above it
+    /// `pairs.learned_first_pass` plus the second pass. `densify.when` forces the second pass
+    /// on or off.
     pub fn plan(&self, n: usize) -> (PairSelection, Option<Densify>) {
-        if self.pairs == PairSelection::Auto
-            && self.learned.is_some()
-            && n > LEARNED_EXHAUSTIVE_UP_TO
-        {
-            return (
-                PairSelection::Rules(LEARNED_FIRST_PASS.to_vec()),
-                Some(self.densify.unwrap_or_default()),
-            );
-        }
-        (self.pairs.clone(), self.densify)
+        let o = &self.options;
+        let d = Densify {
+            max_angle_deg: o.densify.max_angle_deg,
+            per_image: o.densify.per_image,
+        };
+        let auto = o.pairs.selection == PairSelection::Auto;
+        let learned_auto = auto && self.learned.is_some() && n > o.pairs.learned_exhaustive_up_to;
+        let selection = if learned_auto {
+            PairSelection::Rules(o.pairs.learned_first_pass.rules(n))
+        } else if auto && self.learned.is_some() {
+            PairSelection::Rules(vec![PairRule::Exhaustive])
+        } else {
+            PairSelection::Rules(o.pairs.selection.rules_with(n, &o.pairs.auto))
+        };
+        let densify = match o.densify.when {
+            DensifyWhen::Auto => learned_auto.then_some(d),
+            DensifyWhen::Always => Some(d),
+            DensifyWhen::Never => None,
+        };
+        (selection, densify)
     }
 
     /// The mapper's options for this refinement.
     fn mapper_options(&self) -> MapperOptions {
-        let mut o = self.mapper.clone();
-        o.homography_fraction = self.two_view.homography_fraction;
+        let mut o = self.options.mapper.clone();
+        o.homography_fraction = self.options.two_view.homography_fraction;
         // A learned matcher's wrong pairs must not decide the focal (MapperOptions' doc).
         o.score_dropped_as_missing |= self.learned.is_some();
         match self.refinement {
@@ -187,309 +153,10 @@ impl GeometricConfig {
     }
 }
 
-/// SIFT contrast threshold of the checkpoint-free path: below OpenCV's 0.04, for the weakly
-/// textured objects of object-centric captures (measured on the shared sets; see
-/// docs/BENCHMARKS.md).
-pub const GEOMETRIC_CONTRAST_THRESHOLD: f64 = 0.03;
-
-/// Keypoints per image of the checkpoint-free path (COLMAP's default; the official GGS
-/// matching keeps hloc's 4096).
-pub const GEOMETRIC_MAX_KEYPOINTS: usize = 8192;
-
-/// Wall-clock seconds per stage.
-#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
-pub struct GeometricTimes {
-    /// Feature extraction.
-    pub extraction: f64,
-    /// Pair selection (retrieval when used).
-    pub pair_selection: f64,
-    /// Matching and verification of the selected pairs.
-    pub matching_pairs: f64,
-    /// Extraction, selection and matching together.
-    pub matching: f64,
-    /// Homography tests, least-squares F and relative poses (all focal starts).
-    pub two_view: f64,
-    /// Rotation and translation averaging (all starts).
-    pub averaging: f64,
-    /// Every focal start: two-view geometry, averaging and the Sampson refinement.
-    pub initialisation: f64,
-    /// Tracks, bridge resection and bundle adjustment of the chosen start (or the official GGS
-    /// schedule).
-    pub refinement: f64,
-    /// Of that, the resection of the cameras on view-graph bridges.
-    pub resection: f64,
-}
-
-impl GeometricTimes {
-    /// Adds the mapping stages of an earlier run (the first pass before [`Densify`]).
-    fn add_mapping(&mut self, earlier: &Self) {
-        self.two_view += earlier.two_view;
-        self.averaging += earlier.averaging;
-        self.initialisation += earlier.initialisation;
-        self.refinement += earlier.refinement;
-        self.resection += earlier.resection;
-    }
-}
-
-/// A stage that iterates: how it ended.
-#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
-pub struct StageOutcome {
-    /// Iterations (accepted steps for refinements, rounds for averaging).
-    pub iterations: usize,
-    /// Stopped at a minimum / fixed point (not at the iteration limit).
-    pub converged: bool,
-    /// Why it stopped, where the stage says.
-    pub termination: String,
-}
-
-/// An image that was not estimated, with the reason.
-#[derive(Debug, Clone, PartialEq, serde::Serialize)]
-pub struct NotEstimatedImage {
-    /// Image index.
-    pub image: usize,
-    /// Why.
-    pub reason: String,
-}
-
-/// What the estimate did, for run.json.
-#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
-pub struct GeometricReport {
-    /// The pair selection used (e.g. `exhaustive`, `sequential:10,retrieval:20`).
-    pub pair_selection: String,
-    /// Pairs matched (both passes).
-    pub pairs_matched: usize,
-    /// Of those, pairs of the second pass ([`Densify`]).
-    pub pairs_densified: usize,
-    /// Images a learned matcher matched turned by 180°: the groups the orientation check found
-    /// turned against the largest (before the map), and the images the map left out that matched
-    /// the estimated ones better turned (the retry, [`TURN_PARTNERS`]). Their features are the
-    /// turned image's; keypoints and cameras are in the image as given.
-    pub turned_images: Vec<usize>,
-    /// Pairs with verified matches.
-    pub pairs_with_matches: usize,
-    /// Pairs with a relative pose (general or rotation-only).
-    pub pairs_with_pose: usize,
-    /// Of those, rotation-only pairs.
-    pub rotation_only_pairs: usize,
-    /// Pairs dropped by the rotation-consistency check.
-    pub inconsistent_pairs: usize,
-    /// Pairs dropped by the cycle check (every triangle of the view graph through them
-    /// contradicts their relative rotation).
-    pub cycle_rejected_pairs: usize,
-    /// The support check of a learned matcher's pairs (`null` when not run).
-    pub support: Option<SupportOutcome>,
-    /// The pairs whose relative poses the averaging used (image indices).
-    pub averaged_pairs: Vec<[usize; 2]>,
-    /// The images estimated (the largest view-graph component).
-    pub estimated: Vec<usize>,
-    /// The others and why.
-    pub not_estimated: Vec<NotEstimatedImage>,
-    /// Where the focal came from.
-    pub focal_source: FocalOrigin,
-    /// `φ = f / max(W, H)` before refinement.
-    pub focal_factor_initial: f64,
-    /// `φ` after refinement.
-    pub focal_factor: f64,
-    /// Rotation averaging.
-    pub rotation_averaging: StageOutcome,
-    /// Translation averaging.
-    pub translation_averaging: StageOutcome,
-    /// Refinement: accepted steps.
-    pub refine_iterations: usize,
-    /// Refinement converged (not stopped by the iteration limit).
-    pub refine_converged: bool,
-    /// Why the refinement stopped.
-    pub refine_termination: String,
-    /// Matches within 3 px of their epipolar geometry after refinement / used.
-    pub refine_inliers: usize,
-    /// Matches used by the refinement.
-    pub refine_matches: usize,
-    /// RMS Sampson distance of those inliers, px.
-    pub refine_inlier_rms_px: f64,
-    /// Bridges of the view graph: pairs that no cycle confirms (0: resection not run).
-    pub bridges: usize,
-    /// The smaller sides of bridges moved to where the other side's tracks or plane resect
-    /// them.
-    pub resected_sides: Vec<ResectedSide>,
-    /// Bridges the resection could not check (the solver failed): `[first, second]` and why.
-    pub unchecked_bridges: Vec<([usize; 2], String)>,
-    /// Tracks built from the matches (0: not run).
-    pub tracks: usize,
-    /// Tracks dropped because they see an image twice.
-    pub inconsistent_tracks: usize,
-    /// Points triangulated and adjusted by the bundle adjustment (0: not run).
-    pub bundle_points: usize,
-    /// Their observations.
-    pub bundle_observations: usize,
-    /// RMS reprojection error after the bundle adjustment, px.
-    pub bundle_rms_px: f64,
-    /// How the bundle adjustment ended.
-    pub bundle: StageOutcome,
-    /// Stage timings.
-    pub times: GeometricTimes,
-}
-
-/// The support check of a learned matcher's pairs (run.json).
-#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
-pub struct SupportOutcome {
-    /// Pairs with matches that the extractor's descriptors support.
-    pub supported: usize,
-    /// Unsupported pairs confirmed by a triangle of kept pairs.
-    pub confirmed: usize,
-    /// Unsupported pairs dropped before the mapper used them.
-    pub rejected: usize,
-}
-
-/// One side of a view-graph bridge moved by resection (run.json).
-#[derive(Debug, Clone, PartialEq, serde::Serialize)]
-pub struct ResectedSide {
-    /// The bridge pair (image indices).
-    pub bridge: [usize; 2],
-    /// The camera placed by the evidence.
-    pub image: usize,
-    /// Cameras moved (the side).
-    pub images: usize,
-    /// What placed it: `tracks` (PnP) or `plane` (the bridge's homography and the plane).
-    pub evidence: &'static str,
-    /// The correspondences weighed: 2D–3D (tracks) or the bridge pair's matches (plane).
-    pub correspondences: usize,
-    /// Inliers among them with the pose before.
-    pub inliers_before: usize,
-    /// Inliers among them with the new pose.
-    pub inliers_after: usize,
-    /// The side's scale change; `null` when unobserved (kept).
-    pub scale: Option<f64>,
-}
-
-impl GeometricReport {
-    /// Takes the refinement's statistics.
-    fn record_refine(&mut self, r: &SampsonRefineReport) {
-        self.refine_iterations = r.iterations;
-        self.refine_converged = r.converged;
-        self.refine_termination = r.termination.as_str().into();
-        self.refine_inliers = r.inliers;
-        self.refine_matches = r.matches;
-        self.refine_inlier_rms_px = r.inlier_rms_px;
-    }
-
-    /// Takes the mapper's report.
-    fn record_mapper(&mut self, m: &MapperReport) {
-        self.pairs_with_matches = m.pairs_with_matches;
-        self.pairs_with_pose = m.pairs_with_pose;
-        self.rotation_only_pairs = m.rotation_only_pairs;
-        self.inconsistent_pairs = m.inconsistent_pairs;
-        self.averaged_pairs = m.averaged_pairs.clone();
-        self.cycle_rejected_pairs = m.cycle_rejected_pairs;
-        self.support = m.support.as_ref().map(|s| SupportOutcome {
-            supported: s.supported,
-            confirmed: s.confirmed,
-            rejected: s.rejected,
-        });
-        self.estimated = m.estimated.clone();
-        self.not_estimated = m
-            .not_estimated
-            .iter()
-            .map(|(image, reason)| NotEstimatedImage {
-                image: *image,
-                reason: reason.as_str().into(),
-            })
-            .collect();
-        self.focal_source = m.focal_source.into();
-        self.focal_factor_initial = m.focal_factor_initial;
-        self.focal_factor = m.focal_factor;
-        let r = &m.rotation_averaging;
-        self.rotation_averaging = StageOutcome {
-            iterations: r.iterations,
-            converged: r.converged,
-            termination: format!("median residual {:.3}°", r.median_residual_deg),
-        };
-        let t = &m.translation_averaging;
-        self.translation_averaging = StageOutcome {
-            iterations: t.iterations,
-            converged: t.converged,
-            termination: format!(
-                "{} centres, {} edges, {} scales at the bound, {} unreachable",
-                t.centres, t.edges, t.scales_at_bound, t.unreachable
-            ),
-        };
-        if let Some(r) = &m.sampson {
-            self.record_refine(r);
-        }
-        if let Some(r) = &m.resection {
-            self.bridges = r.bridges;
-            self.resected_sides = r
-                .moved
-                .iter()
-                .map(|s| ResectedSide {
-                    bridge: [s.first, s.second],
-                    image: s.image,
-                    images: s.images,
-                    evidence: s.evidence.as_str(),
-                    correspondences: s.correspondences,
-                    inliers_before: s.inliers_before,
-                    inliers_after: s.inliers_after,
-                    scale: s.scale,
-                })
-                .collect();
-            self.unchecked_bridges = r
-                .unchecked
-                .iter()
-                .map(|(a, b, why)| ([*a, *b], why.clone()))
-                .collect();
-        }
-        if let Some(t) = &m.tracks {
-            self.tracks = t.tracks;
-            self.inconsistent_tracks = t.inconsistent;
-        }
-        if let (Some(b), false) = (&m.bundle, m.bundle_undone) {
-            self.bundle_points = b.points;
-            self.bundle_observations = b.observations;
-            self.bundle_rms_px = b.rms_px;
-            self.bundle = StageOutcome {
-                iterations: b.iterations,
-                converged: b.converged,
-                termination: b.termination.as_str().into(),
-            };
-        } else if m.bundle_undone {
-            self.bundle.termination =
-                "undone: the points drove the focal out of the search range".into();
-        }
-        let s = &m.times;
-        self.times.two_view = s.pair_geometry + s.two_view;
-        self.times.averaging = s.averaging;
-        self.times.initialisation =
-            s.pair_geometry + s.focal + s.two_view + s.averaging + s.refinement;
-        self.times.refinement = s.resection + s.bundle;
-        self.times.resection = s.resection;
-    }
-}
-
-/// Where the focal of a geometric estimate came from (run.json's `focal_source`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum FocalOrigin {
-    /// Known intrinsics were given.
-    #[default]
-    Given,
-    /// Self-calibration from pairwise fundamental matrices.
-    SelfCalibration,
-    /// Rotation homographies (no pair with parallax).
-    Homographies,
-    /// The mean focal of the initial cameras (`--init cameras.json`).
-    #[serde(rename = "initial cameras")]
-    InitialCameras,
-}
-
-impl From<posediff_sfm::report::FocalSource> for FocalOrigin {
-    fn from(s: posediff_sfm::report::FocalSource) -> Self {
-        use posediff_sfm::report::FocalSource;
-        match s {
-            FocalSource::Given => Self::Given,
-            FocalSource::SelfCalibration => Self::SelfCalibration,
-            FocalSource::Homographies => Self::Homographies,
-        }
-    }
-}
+pub use crate::estimate::geometric_report::{
+    FocalOrigin, GeometricReport, GeometricTimes, NotEstimatedImage, ResectedSide, StageOutcome,
+    SupportOutcome,
+};
 
 /// The cameras of a geometric estimate: `None` for images that were not estimated.
 #[derive(Debug, Clone, PartialEq)]
@@ -667,9 +334,11 @@ pub fn estimate_geometric_counted(
     let (_, densify) = config.plan(images.len());
     // A learned matcher's orientation check and turned retry (not with the support check,
     // whose screen saw the upright features).
-    let retry = config.learned.is_some() && support.is_none();
+    let learned_checks = config.learned.is_some() && support.is_none();
+    let retry = learned_checks && config.options.retry.enabled;
+    let orient = learned_checks && config.options.orientation.enabled;
     let mut turned_images = Vec::new();
-    if retry {
+    if orient {
         let clock = Instant::now();
         if let Some((flipped, new_pairs)) = turn_components(
             images,
@@ -711,13 +380,15 @@ pub fn estimate_geometric_counted(
             pairs.extend(match_pairs_counted(
                 features,
                 &extra,
-                &config.matching,
+                &config.options.matching,
                 learned,
                 (counter, "second pass"),
             )?);
-            if let (Some(flags), Some(minimum)) = (&mut support, config.support_min_verified) {
+            if let (Some(flags), Some(minimum)) =
+                (&mut support, config.options.support.min_verified)
+            {
                 flags.extend(
-                    descriptor_support(features, &extra, &config.matching)?
+                    descriptor_support(features, &extra, &config.options.matching)?
                         .into_iter()
                         .map(|count| count >= minimum),
                 );
@@ -764,10 +435,7 @@ pub fn estimate_geometric_counted(
     Ok(estimate)
 }
 
-/// Partners of an image retried turned by 180° (the turned retry after the map, for learned
-/// matchers: an image the map left out is extracted again turned, matched with these and kept
-/// turned when it matches better so): the estimated images among its most similar ones by the
-/// bag of words of [`posediff_matching::pairs::retrieval_pairs`].
+/// The default of `retry.partners` ([`crate::estimate::options::RetryOptions`]).
 pub const TURN_PARTNERS: usize = 8;
 
 /// A learned matcher's retry of the images its map left out. ALIKED and DISK are not
@@ -803,7 +471,7 @@ fn turn_left_out(
     }
     log::info!(
         "{}{} images left out: matching them turned by 180°",
-        crate::estimate::run::WORK_STARTS,
+        crate::progress::WORK_STARTS,
         left.len()
     );
     counter.stage("turned images", left.len() as u64);
@@ -817,7 +485,7 @@ fn turn_left_out(
     let is_left = |i: usize| left.binary_search(&i).is_ok();
     let trial: Vec<(usize, usize)> = posediff_matching::pairs::retrieval_pairs(
         features,
-        TURN_PARTNERS,
+        config.options.retry.partners,
         &RetrievalOptions::default(),
     )
     .into_iter()
@@ -826,7 +494,7 @@ fn turn_left_out(
     let matched = match_pairs_counted(
         features,
         &trial,
-        &config.matching,
+        &config.options.matching,
         Some(learned),
         (counter, "turned pairs"),
     )?;
@@ -875,7 +543,7 @@ fn turn_left_out(
     out.extend(match_pairs_counted(
         features,
         &both,
-        &config.matching,
+        &config.options.matching,
         Some(learned),
         (counter, "turned pairs"),
     )?);
@@ -883,52 +551,29 @@ fn turn_left_out(
     Ok(Some((kept, out)))
 }
 
-/// Fewest verified matches of a pair that joins two images into one group for a learned
-/// matcher's orientation check before the map. Every good ALIKED + LightGlue pair of the shared sets has at
-/// least 96 and no unrelated pair more than 74 (docs/BENCHMARKS.md, "Pairs").
+/// The default of `orientation.strong_pair` ([`crate::estimate::options::OrientationOptions`]).
 pub const STRONG_PAIR: usize = 80;
 
-/// Most groups besides the largest that the orientation check tests, each by one image
-/// extracted turned: the check's cost is bounded however many frames a run has.
+/// The default of `orientation.tests` ([`crate::estimate::options::OrientationOptions`]).
 pub const TURN_TESTS: usize = 8;
 
 /// The groups of images joined by pairs of at least `minimum` verified matches, the largest
 /// first (ties: the one with the lowest image first); an image without such a pair is a group
 /// of its own.
 fn strong_groups(n: usize, pairs: &[PairMatches], minimum: usize) -> Vec<Vec<usize>> {
-    let mut parent: Vec<usize> = (0..n).collect();
-    fn root(parent: &mut [usize], mut i: usize) -> usize {
-        while parent[i] != i {
-            parent[i] = parent[parent[i]];
-            i = parent[i];
-        }
-        i
-    }
+    let mut sets = UnionFind::new(n);
     for p in pairs.iter().filter(|p| p.len() >= minimum) {
         if p.first < n && p.second < n {
-            let (a, b) = (root(&mut parent, p.first), root(&mut parent, p.second));
-            parent[a.max(b)] = a.min(b);
+            sets.union(p.first, p.second);
         }
     }
     let mut groups: HashMap<usize, Vec<usize>> = HashMap::new();
     for i in 0..n {
-        let r = root(&mut parent, i);
-        groups.entry(r).or_default().push(i);
+        groups.entry(sets.find(i)).or_default().push(i);
     }
     let mut out: Vec<Vec<usize>> = groups.into_values().collect();
     out.sort_by(|a, b| b.len().cmp(&a.len()).then(a.first().cmp(&b.first())));
     out
-}
-
-/// How two groups of images lie to each other by the descriptor screen's verified matches of
-/// one group's representative with the other group's images, upright (`same`) and turned by
-/// 180° (`opposite`): `Some(true)` when turned wins clearly (at least
-/// [`crate::correspondences::SUPPORT_MIN_VERIFIED`] matches and twice the other way's),
-/// `Some(false)` when upright does, `None` when neither.
-fn orientation_evidence(same: usize, opposite: usize) -> Option<bool> {
-    let (high, low) = (same.max(opposite), same.min(opposite));
-    (high >= crate::correspondences::SUPPORT_MIN_VERIFIED && high >= 2 * low)
-        .then_some(opposite > same)
 }
 
 /// A learned matcher's orientation check before the map. ALIKED and DISK are not invariant to
@@ -939,7 +584,8 @@ fn orientation_evidence(same: usize, opposite: usize) -> Option<bool> {
 /// best-matched image, extracted again turned by 180°: the descriptor screen
 /// ([`descriptor_support`], about 10 ms a pair) counts its verified matches, upright and
 /// turned, with the [`TURN_PARTNERS`] most similar images of other groups. Groups are then
-/// labelled from the largest along the clearest evidence ([`orientation_evidence`]), and the
+/// labelled from the largest along the clearest evidence
+/// ([`crate::estimate::options::OrientationOptions::evidence`]), and the
 /// images of the groups found turned relative to the largest are extracted turned, their pairs
 /// matched again, and the turned images matched with their [`TURN_PARTNERS`] most similar
 /// images. The turn is kept when the turned images' pairs with the others verify more matches
@@ -962,7 +608,8 @@ fn turn_components(
     };
     let n = features.len();
     let clock = Instant::now();
-    let groups = strong_groups(n, pairs, STRONG_PAIR);
+    let orientation = &config.options.orientation;
+    let groups = strong_groups(n, pairs, orientation.strong_pair);
     if groups.len() < 2 {
         return Ok(None);
     }
@@ -973,7 +620,7 @@ fn turn_components(
         }
     }
     let mut strength = vec![0usize; n];
-    for p in pairs.iter().filter(|p| p.len() >= STRONG_PAIR) {
+    for p in pairs.iter().filter(|p| p.len() >= orientation.strong_pair) {
         for i in [p.first, p.second] {
             if let Some(s) = strength.get_mut(i) {
                 *s += p.len();
@@ -983,7 +630,7 @@ fn turn_components(
     let reps: Vec<usize> = groups
         .iter()
         .skip(1)
-        .take(TURN_TESTS)
+        .take(orientation.tests)
         .filter_map(|g| {
             g.iter()
                 .copied()
@@ -992,7 +639,7 @@ fn turn_components(
         .collect();
     log::info!(
         "{}the strong pairs form {} groups: testing {} turned by 180°",
-        crate::estimate::run::WORK_STARTS,
+        crate::progress::WORK_STARTS,
         groups.len(),
         reps.len()
     );
@@ -1021,7 +668,7 @@ fn turn_components(
             ] {
                 trial.extend(
                     words
-                        .most_similar(&h, TURN_PARTNERS, keep)
+                        .most_similar(&h, orientation.partners, keep)
                         .into_iter()
                         .map(|p| (r, p)),
                 );
@@ -1036,14 +683,14 @@ fn turn_components(
         .map(|(&r, f)| std::mem::replace(&mut features[r], f))
         .collect();
     let screened: Vec<(usize, usize)> = trial.iter().map(|&(r, p)| (r.min(p), r.max(p))).collect();
-    let opposite = descriptor_support(features, &screened, &config.matching);
+    let opposite = descriptor_support(features, &screened, &config.options.matching);
     let mut rep_turned: HashMap<usize, ImageFeatures> = reps
         .iter()
         .zip(upright)
         .map(|(&r, f)| (r, std::mem::replace(&mut features[r], f)))
         .collect();
     let opposite = opposite?;
-    let same = descriptor_support(features, &screened, &config.matching)?;
+    let same = descriptor_support(features, &screened, &config.options.matching)?;
     // Evidence between groups, (smaller, larger) group index ↦ (same, opposite).
     let mut evidence: HashMap<(usize, usize), (usize, usize)> = HashMap::new();
     for (k, &(r, p)) in trial.iter().enumerate() {
@@ -1054,7 +701,7 @@ fn turn_components(
     }
     let mut edges: Vec<((usize, usize), bool, usize)> = evidence
         .iter()
-        .filter_map(|(&g, &(s, o))| orientation_evidence(s, o).map(|flip| (g, flip, s.max(o))))
+        .filter_map(|(&g, &(s, o))| orientation.evidence(s, o).map(|flip| (g, flip, s.max(o))))
         .collect();
     edges.sort_by(|x, y| y.2.cmp(&x.2).then(x.0.cmp(&y.0)));
     // Labels from the largest group, strongest evidence first.
@@ -1081,7 +728,7 @@ fn turn_components(
     flipped.sort_unstable();
     log::info!(
         "{}orientation check: {} images turned against the largest group ({:.1} s)",
-        crate::estimate::run::WORK_STARTS,
+        crate::progress::WORK_STARTS,
         flipped.len(),
         clock.elapsed().as_secs_f64()
     );
@@ -1120,7 +767,9 @@ fn turn_components(
     if let Some(words) = words {
         for &i in &flipped {
             let near =
-                words.most_similar(&words.histogram(&features[i]), TURN_PARTNERS, |j| j != i);
+                words.most_similar(&words.histogram(&features[i]), orientation.partners, |j| {
+                    j != i
+                });
             again.extend(
                 near.into_iter()
                     .map(|j| (i.min(j), i.max(j)))
@@ -1133,7 +782,7 @@ fn turn_components(
     let matched = match_pairs_counted(
         features,
         &again,
-        &config.matching,
+        &config.options.matching,
         Some(learned),
         (counter, "turned pairs"),
     )?;
@@ -1145,7 +794,7 @@ fn turn_components(
     let after: usize = matched.iter().filter(across).map(PairMatches::len).sum();
     log::info!(
         "{}orientation check: the turned images' pairs verify {after} matches against {before}",
-        crate::estimate::run::WORK_STARTS
+        crate::progress::WORK_STARTS
     );
     if after <= before {
         for (i, f) in upright {
@@ -1231,14 +880,14 @@ fn match_all(
     }
     let clock = Instant::now();
     let learned = config.learned.as_ref();
-    let features = extract_all_counted(images, &config.matching, learned, counter)?;
+    let features = extract_all_counted(images, &config.options.matching, learned, counter)?;
     let extraction = clock.elapsed().as_secs_f64();
     let clock = Instant::now();
     let n = images.len();
     let (selection, densify) = config.plan(n);
     // The bag of words once, for a retrieval rule and the orientation check.
     let words = (config.learned.is_some()
-        && config.support_min_verified.is_none()
+        && config.options.support.min_verified.is_none()
         && selection
             .rules(n)
             .iter()
@@ -1255,13 +904,13 @@ fn match_all(
     let pairs = match_pairs_counted(
         &features,
         &pair_list,
-        &config.matching,
+        &config.options.matching,
         learned,
         (counter, "matching"),
     )?;
-    let support = match (learned, config.support_min_verified) {
+    let support = match (learned, config.options.support.min_verified) {
         (Some(_), Some(minimum)) => Some(
-            descriptor_support(&features, &pair_list, &config.matching)?
+            descriptor_support(&features, &pair_list, &config.options.matching)?
                 .into_iter()
                 .map(|count| count >= minimum)
                 .collect(),
@@ -1334,7 +983,7 @@ pub fn refine_given_cameras_counted(
         pairs.extend(match_pairs_counted(
             &features,
             &extra,
-            &config.matching,
+            &config.options.matching,
             config.learned.as_ref(),
             (counter, "second pass"),
         )?);
@@ -1413,38 +1062,6 @@ pub fn refine_given_cameras_counted(
     })
 }
 
-/// Per image, the known intrinsics in original pixels (`None` when unknown); a focal alone puts
-/// the principal point at the image centre.
-///
-/// # Errors
-/// A count that does not match the images, a non-positive focal.
-pub fn resolve_intrinsics(
-    known: &KnownIntrinsics,
-    sizes: &[ImageSize],
-) -> Result<Option<Vec<Intrinsics>>> {
-    match known {
-        KnownIntrinsics::Unknown => Ok(None),
-        KnownIntrinsics::FocalPx(f) => sizes
-            .iter()
-            .map(|s| {
-                let c = image_centre(*s);
-                Intrinsics::new(*f, *f, c[0], c[1]).map_err(|_| {
-                    PosediffError::InvalidArgument(format!(
-                        "focal length must be positive, got {f}"
-                    ))
-                })
-            })
-            .collect::<Result<Vec<_>>>()
-            .map(Some),
-        KnownIntrinsics::PerImage(k) if k.len() == sizes.len() => Ok(Some(k.clone())),
-        KnownIntrinsics::PerImage(k) => Err(PosediffError::InvalidArgument(format!(
-            "{} intrinsics for {} images",
-            k.len(),
-            sizes.len()
-        ))),
-    }
-}
-
 /// The per-image principal points and focal scales, and `φ` when the focal is known.
 fn intrinsics_layout(
     sizes: &[ImageSize],
@@ -1499,7 +1116,7 @@ fn map_supported_matches(
     let (layout, known_phi) = intrinsics_layout(sizes, &config.intrinsics)?;
     let mapper = GlobalMapper::new(config.mapper_options());
     let solver = OpenCvTwoView {
-        config: &config.two_view,
+        config: &config.options.two_view,
         cache: Some(cache),
     };
     let reconstruction = match &support {
@@ -1622,28 +1239,7 @@ pub fn official_ggs(
     Ok(())
 }
 
-/// What [`bundle_refine_cameras`] did, for run.json.
-#[derive(Debug, Clone, PartialEq, serde::Serialize)]
-pub struct BundleRefinement {
-    /// Tracks built from the matches.
-    pub tracks: usize,
-    /// Points adjusted.
-    pub points: usize,
-    /// Their observations.
-    pub observations: usize,
-    /// RMS reprojection error at the end, px.
-    pub rms_px: f64,
-    /// Accepted steps.
-    pub iterations: usize,
-    /// Why it stopped.
-    pub termination: String,
-    /// Accepted steps of the Sampson refinement before.
-    pub sampson_iterations: usize,
-    /// Why it stopped.
-    pub sampson_termination: String,
-    /// The factor applied to every focal (1 when the intrinsics are known).
-    pub focal_factor: f64,
-}
+pub use crate::estimate::geometric_report::BundleRefinement;
 
 /// The hybrid of the paper's future work: cameras from elsewhere (PoseDiffusion after GGS)
 /// refined by the mapper: the Sampson refinement to convergence, then the bundle adjustment
@@ -1806,18 +1402,23 @@ mod tests {
         assert!(densify_pairs(&cams, &matched, &none).is_empty());
     }
 
-    /// Without a learned matcher `auto` is the configured selection, and the second pass only
-    /// runs when configured.
+    /// Without a learned matcher `auto` is `pairs.auto` resolved for the set's size, and the
+    /// second pass only runs when configured.
     #[test]
     fn the_plan_without_a_learned_matcher_is_the_configuration() {
-        let config = GeometricConfig::default();
-        assert_eq!(config.plan(200), (PairSelection::Auto, None));
-        let d = Densify::default();
-        let config = GeometricConfig {
-            densify: Some(d),
-            ..GeometricConfig::default()
-        };
-        assert_eq!(config.plan(5), (PairSelection::Auto, Some(d)));
+        let mut config = GeometricConfig::default();
+        let rules = |r: &[PairRule]| PairSelection::Rules(r.to_vec());
+        let big = rules(&[PairRule::Sequential(10), PairRule::Retrieval(20)]);
+        assert_eq!(config.plan(200), (big, None));
+        assert_eq!(config.plan(60), (rules(&[PairRule::Exhaustive]), None));
+        config.options.pairs.auto.exhaustive_up_to = 4;
+        config.options.pairs.auto.sequential = 2;
+        assert_eq!(
+            config.plan(5).0,
+            rules(&[PairRule::Sequential(2), PairRule::Retrieval(20)])
+        );
+        config.options.densify.when = crate::estimate::options::DensifyWhen::Always;
+        assert_eq!(config.plan(5).1, Some(Densify::default()));
     }
 
     /// Six cameras on an arc 2.5 above a table (`z = 0`), looking at its centre.
@@ -2094,13 +1695,23 @@ mod tests {
     /// Evidence decides only when one way has the screen's minimum and twice the other's.
     #[test]
     fn orientation_evidence_needs_a_clear_winner() {
-        let min = crate::correspondences::SUPPORT_MIN_VERIFIED;
-        assert_eq!(orientation_evidence(0, min), Some(true));
-        assert_eq!(orientation_evidence(min, 0), Some(false));
-        assert_eq!(orientation_evidence(0, min - 1), None);
-        assert_eq!(orientation_evidence(30, 59), None);
-        assert_eq!(orientation_evidence(30, 60), Some(true));
-        assert_eq!(orientation_evidence(60, 30), Some(false));
-        assert_eq!(orientation_evidence(0, 0), None);
+        let o = crate::estimate::options::OrientationOptions::default();
+        let min = o.min_matches;
+        assert_eq!(o.evidence(0, min), Some(true));
+        assert_eq!(o.evidence(min, 0), Some(false));
+        assert_eq!(o.evidence(0, min - 1), None);
+        assert_eq!(o.evidence(30, 59), None);
+        assert_eq!(o.evidence(30, 60), Some(true));
+        assert_eq!(o.evidence(60, 30), Some(false));
+        assert_eq!(o.evidence(0, 0), None);
+        // The thresholds are the options' own.
+        let strict = crate::estimate::options::OrientationOptions {
+            min_matches: 50,
+            ratio: 4.0,
+            ..o
+        };
+        assert_eq!(strict.evidence(0, 40), None);
+        assert_eq!(strict.evidence(20, 79), None);
+        assert_eq!(strict.evidence(20, 80), Some(true));
     }
 }

@@ -9,5 +9,7 @@
 
 pub mod estimator;
 pub mod geometric;
+pub mod geometric_report;
+pub mod options;
 pub mod run;
 pub mod run_report;

@@ -12,22 +12,22 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use posediff_geometry::{Camera, PairMatches};
-use posediff_matching::PairSelection;
 use posediff_sfm::points::PointOptions;
-use serde::Serialize;
 
 use crate::correspondences::{LearnedMatcher, MatcherChoice, SharedLearned, learned_weight_files};
 use crate::error::{PosediffError, Result};
-use crate::estimate::estimator::{EstimateInput, Estimator, Progress, relative_name};
+use crate::estimate::estimator::{EstimateInput, Estimator, Progress};
 use crate::estimate::geometric::{
     GeometricConfig, KnownIntrinsics, Refinement, bundle_refine_cameras,
     estimate_geometric_counted, refine_given_cameras_counted,
 };
+use crate::estimate::options::PipelineOptions;
 use crate::estimate::run_report::{
     MethodReport, NetworkReport, NetworkSeconds, PairCount, PointsSummary, RunReport, SampleSpread,
     SkippedImage, Warning,
 };
 use crate::io::export::{ImageCamera, read_cameras_json_partial};
+use crate::io::loader::relative_name;
 use crate::io::loader::{check_images, image_files};
 use crate::io::outputs::{InputImages, OutputOptions, Written, write_outputs};
 use crate::io::records::{Matched, match_by_name};
@@ -182,22 +182,7 @@ pub enum IntrinsicsSource {
     PerImage(Vec<posediff_geometry::Intrinsics>),
 }
 
-/// How the cameras are refined (`--refine`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]
-#[serde(rename_all = "snake_case")]
-pub enum RefineMode {
-    /// Levenberg–Marquardt on the Sampson distances until the cost stops falling, then the
-    /// bundle adjustment with tracks.
-    #[default]
-    Converge,
-    /// With a checkpoint: PoseDiffusion's cameras (after GGS) refined by the mapper's bundle
-    /// adjustment; without, as `Converge`.
-    Bundle,
-    /// The official five-phase GGS schedule (7000 SGD iterations) in the 224 crops.
-    Official,
-    /// The averaged cameras as they are.
-    None,
-}
+pub use crate::estimate::options::RefineMode;
 
 /// Everything a run is asked to do besides its images and its checkpoint.
 #[derive(Debug, Clone)]
@@ -210,8 +195,9 @@ pub struct RunOptions {
     pub intrinsics: IntrinsicsSource,
     /// Refinement.
     pub refine: RefineMode,
-    /// Which pairs the checkpoint-free path matches.
-    pub pairs: PairSelection,
+    /// Every threshold of the checkpoint-free pipeline (`--pairs` is its
+    /// `pairs.selection`; `matching.features.detector` follows [`Self::matcher`]).
+    pub pipeline: PipelineOptions,
     /// The matcher of both paths.
     pub matcher: MatcherChoice,
     /// Where the learned matcher's weights are (`None`: [`posediff_learned::weights::default_dir`]).
@@ -234,7 +220,7 @@ impl Default for RunOptions {
             start_step: DEFAULT_START_STEP,
             intrinsics: IntrinsicsSource::Estimate,
             refine: RefineMode::Converge,
-            pairs: PairSelection::Auto,
+            pipeline: PipelineOptions::default(),
             matcher: MatcherChoice::Sift,
             weights_dir: None,
             seed: 0,
@@ -254,6 +240,7 @@ impl RunOptions {
     /// # Errors
     /// An option out of range, naming it.
     pub fn check(&self) -> Result<()> {
+        self.pipeline.check()?;
         if self.samples == 0 {
             return Err(PosediffError::InvalidArgument(
                 "--samples must be at least 1".into(),
@@ -309,23 +296,28 @@ impl RunOptions {
         ))))
     }
 
+    /// The options tree as the run uses it: the detector is the matcher's.
+    pub fn pipeline_options(&self) -> PipelineOptions {
+        let mut o = self.pipeline.clone();
+        o.matching.features.detector = self.matcher.detector();
+        o
+    }
+
     fn geometric_config(&self, intrinsics: &KnownIntrinsics) -> GeometricConfig {
-        let mut config = GeometricConfig {
+        let options = self.pipeline_options();
+        let sampson = options.mapper.sampson.unwrap_or_default();
+        GeometricConfig {
             intrinsics: intrinsics.clone(),
-            pairs: self.pairs.clone(),
             refinement: match self.refine {
-                RefineMode::Converge | RefineMode::Bundle => Refinement::Converge(
-                    posediff_sfm::sampson_refine::SampsonRefineOptions::default(),
-                ),
+                RefineMode::Converge | RefineMode::Bundle => Refinement::Converge(sampson),
                 RefineMode::Official => {
                     Refinement::Official(posediff_guidance::GgsConfig::default())
                 }
                 RefineMode::None => Refinement::None,
             },
-            ..GeometricConfig::default()
-        };
-        config.matching.features.detector = self.matcher.detector();
-        config
+            options,
+            learned: None,
+        }
     }
 }
 
@@ -490,6 +482,7 @@ pub fn run(
                 },
             );
             report.matches_per_pair = pair_counts(&result.pairs);
+            report.options = Some(geometric.options.clone());
             (entries, result.pairs, report)
         }
         Some(net) => network_run(
@@ -578,7 +571,7 @@ fn network_run(
         intrinsics: known.clone(),
         ..net.estimator.config().clone()
     };
-    config.matching.features.detector = options.matcher.detector();
+    config.matching = geometric.options.matching;
     config.learned = geometric.learned.clone();
     let estimator = net.estimator.with_config(config);
     let estimate = estimator.estimate(
@@ -652,6 +645,7 @@ fn network_run(
             sample_spread,
         })),
     );
+    report.options = Some(geometric.options.clone());
     report.matches_per_pair = estimate
         .matches_per_pair
         .iter()
@@ -688,10 +682,7 @@ fn read_per_image(path: &Path, names: &[String], what: &str) -> Result<Matched<I
     .map_err(|e| PosediffError::invalid(path, format!("{what}: {e}")))
 }
 
-/// The prefix of the info-level log line each expensive stage starts with (loading the images
-/// for the network, extracting features): the tests of bad inputs check that no such line
-/// precedes an error that needs no computation. (A checkpoint is loaded, and checked, before.)
-pub const WORK_STARTS: &str = "stage: ";
+pub use crate::progress::WORK_STARTS;
 
 /// Loads a checkpoint, timing it (for [`Network::load_seconds`]).
 ///

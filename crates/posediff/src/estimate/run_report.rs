@@ -4,8 +4,20 @@ use std::path::PathBuf;
 
 use serde::Serialize;
 
-use crate::estimate::geometric::GeometricReport;
-use crate::io::outputs::Written;
+use crate::estimate::geometric_report::GeometricReport;
+
+/// What was written, for the summary line and run.json.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+pub struct Written {
+    /// Files and folders written, relative to the output folder.
+    pub files: Vec<String>,
+    /// Points in the model.
+    pub points: usize,
+    /// Their mean reprojection error, px.
+    pub mean_reprojection_error_px: Option<f64>,
+    /// Mean track length.
+    pub mean_track_length: f64,
+}
 
 /// The version of run.json's layout; raised when a field changes meaning or goes.
 pub const RUN_REPORT_SCHEMA: u32 = 2;
@@ -17,7 +29,7 @@ pub enum MethodReport {
     /// Without a checkpoint: the mapper of `posediff-sfm`.
     Geometric {
         /// `--refine`.
-        refine: crate::estimate::run::RefineMode,
+        refine: crate::estimate::options::RefineMode,
         /// What each stage did.
         report: Box<GeometricReport>,
     },
@@ -39,7 +51,7 @@ pub struct NetworkReport {
     /// Whether GGS ran.
     pub ggs: bool,
     /// The hybrid bundle adjustment's report (`--refine bundle`).
-    pub bundle: Option<crate::estimate::geometric::BundleRefinement>,
+    pub bundle: Option<crate::estimate::geometric_report::BundleRefinement>,
     /// `cpu` or `cuda`.
     pub device: &'static str,
     /// Seconds per stage.
@@ -221,6 +233,9 @@ pub struct RunReport {
     /// How the cameras were estimated.
     #[serde(flatten)]
     pub method: MethodReport,
+    /// The options tree that decided the cameras (the checkpoint-free path; `None` with a
+    /// checkpoint, whose matching options are in its method report's settings).
+    pub options: Option<crate::estimate::options::PipelineOptions>,
     /// Verified matches per pair.
     pub matches_per_pair: Vec<PairCount>,
     /// The points of the exports (filled when they are triangulated).
@@ -242,6 +257,7 @@ impl RunReport {
             init: None,
             matcher: None,
             method,
+            options: None,
             matches_per_pair: Vec::new(),
             points: None,
             warnings: Vec::new(),

@@ -17,8 +17,12 @@ use nalgebra::Vector3;
 use posediff_geometry::{Camera, ImageSize, Intrinsics, Pose, Quaternion, QuaternionSign};
 
 use crate::error::{PosediffError, Result, read_text};
-use crate::io::export::{ImageCamera, NamedCamera, PIXEL_CENTRE_OFFSET};
-use crate::reconstruction::{ImageRecord, Keypoint, Reconstruction, ScenePoint, TrackElement};
+use crate::reconstruction::{
+    ImageCamera, ImageRecord, Keypoint, NamedCamera, Reconstruction, ScenePoint, TrackElement,
+};
+
+/// COLMAP's and nerfstudio's pixel centres sit half a pixel from OpenCV's.
+pub const PIXEL_CENTRE_OFFSET: f64 = 0.5;
 
 /// Text or binary model files.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]

@@ -24,17 +24,8 @@ use crate::error::{PosediffError, Result, read_text};
 use crate::io::colmap::{ColmapFormat, ColmapModel};
 use crate::reconstruction::{Reconstruction, ScenePoint};
 
-/// COLMAP's and nerfstudio's pixel centres sit half a pixel from OpenCV's.
-pub const PIXEL_CENTRE_OFFSET: f64 = 0.5;
-
-/// One camera and the image it belongs to (path relative to the input folder).
-#[derive(Debug, Clone, PartialEq)]
-pub struct NamedCamera {
-    /// Image path relative to the input folder.
-    pub image: String,
-    /// The camera, original image pixels.
-    pub camera: Camera,
-}
+pub use crate::io::colmap::PIXEL_CENTRE_OFFSET;
+pub use crate::reconstruction::{ImageCamera, NamedCamera};
 
 fn write(path: &Path, contents: &str) -> Result<()> {
     std::fs::write(path, contents).map_err(|source| PosediffError::Write {
@@ -74,32 +65,6 @@ pub fn read_cameras_json(path: &Path) -> Result<Vec<NamedCamera>> {
             }),
         })
         .collect()
-}
-
-/// One image of a set and its camera, `None` where none was estimated.
-#[derive(Debug, Clone, PartialEq)]
-pub struct ImageCamera {
-    /// Image path relative to the input folder.
-    pub image: String,
-    /// The image's size.
-    pub size: posediff_geometry::ImageSize,
-    /// The camera.
-    pub camera: Option<Camera>,
-}
-
-impl ImageCamera {
-    /// The estimated cameras of `images` as named cameras (the others left out).
-    pub fn estimated(images: &[ImageCamera]) -> Vec<NamedCamera> {
-        images
-            .iter()
-            .filter_map(|e| {
-                e.camera.map(|camera| NamedCamera {
-                    image: e.image.clone(),
-                    camera,
-                })
-            })
-            .collect()
-    }
 }
 
 /// The `cameras.json` entry of an image without a camera.
@@ -521,64 +486,4 @@ pub fn write_pytorch3d(path: &Path, images: &[ImageCamera]) -> Result<()> {
         })
         .collect::<Result<Vec<_>>>()?;
     write(path, &serde_json::to_string_pretty(&records)?)
-}
-
-/// The cameras of a COLMAP model for the images of a folder, in the folder's order, matched
-/// by name ([`crate::io::records`]): an image COLMAP did not register is not estimated.
-///
-/// # Errors
-/// An unreadable model; a model none of whose images is in the folder, or whose images name
-/// the folder's only ambiguously; an image of the folder that cannot be read for its size.
-pub fn colmap_for_images(
-    model: &Path,
-    images: &[std::path::PathBuf],
-    root: &Path,
-) -> Result<Vec<ImageCamera>> {
-    let cams = read_colmap_cameras(model)?;
-    let names: Vec<String> = images
-        .iter()
-        .map(|p| crate::estimate::estimator::relative_name(p, Some(root)))
-        .collect();
-    let matched = crate::io::records::match_by_name(
-        &names,
-        cams.into_iter()
-            .map(|c| (c.image.clone(), c.camera))
-            .collect(),
-    )
-    .map_err(|e| PosediffError::invalid(model, e))?;
-    if matched.matched() == 0 && !names.is_empty() {
-        return Err(PosediffError::invalid(
-            model,
-            matched.mismatch("the COLMAP model", model),
-        ));
-    }
-    if !matched.records_without_image.is_empty() {
-        log::warn!(
-            "{}: {} registered image(s) are not in {}: {}",
-            model.display(),
-            matched.records_without_image.len(),
-            root.display(),
-            matched.records_without_image.join(", ")
-        );
-    }
-    images
-        .iter()
-        .zip(names)
-        .zip(matched.per_image)
-        .map(|((path, name), camera)| match camera {
-            Some(c) => Ok(ImageCamera {
-                image: name,
-                size: c.image_size,
-                camera: Some(c),
-            }),
-            None => {
-                let img = crate::reconstruction::read_colour(path)?;
-                Ok(ImageCamera {
-                    image: name,
-                    size: crate::reconstruction::mat_size(&img, path)?,
-                    camera: None,
-                })
-            }
-        })
-        .collect()
 }

@@ -180,3 +180,12 @@ pub fn check_images(files: &[PathBuf]) -> (Vec<PathBuf>, Vec<(PathBuf, String)>)
     }
     (good, bad)
 }
+
+/// A path relative to `root` when under it, else its file name.
+pub fn relative_name(path: &Path, root: Option<&Path>) -> String {
+    root.and_then(|r| path.strip_prefix(r).ok())
+        .or_else(|| path.file_name().map(Path::new))
+        .unwrap_or(path)
+        .to_string_lossy()
+        .into_owned()
+}

@@ -185,7 +185,7 @@ fn names(inputs: &InputImages) -> Vec<String> {
     inputs
         .files
         .iter()
-        .map(|p| crate::estimate::estimator::relative_name(p, inputs.folder.as_deref()))
+        .map(|p| crate::io::loader::relative_name(p, inputs.folder.as_deref()))
         .collect()
 }
 
@@ -249,18 +249,7 @@ fn symlink(target: &Path, link: &Path) -> std::io::Result<()> {
     std::fs::copy(target, link).map(|_| ())
 }
 
-/// What was written, for the summary line and run.json.
-#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
-pub struct Written {
-    /// Files and folders written, relative to the output folder.
-    pub files: Vec<String>,
-    /// Points in the model.
-    pub points: usize,
-    /// Their mean reprojection error, px.
-    pub mean_reprojection_error_px: Option<f64>,
-    /// Mean track length.
-    pub mean_track_length: f64,
-}
+pub use crate::estimate::run_report::Written;
 
 /// Writes every output of `r` into `out` (see the module's layout), `run` as run.json with
 /// its `outputs` filled. The viewer's thumbnails are `thumbnails_made` when given (e.g. from

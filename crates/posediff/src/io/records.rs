@@ -163,6 +163,66 @@ pub fn ground_truth_for(
     .map_err(|e| crate::PosediffError::invalid(gt, e))
 }
 
+/// The cameras of a COLMAP model for the images of a folder, in the folder's order, matched
+/// by name ([`match_by_name`]): an image COLMAP did not register is not estimated.
+///
+/// # Errors
+/// An unreadable model; a model none of whose images is in the folder, or whose images name
+/// the folder's only ambiguously; an image of the folder that cannot be read for its size.
+pub fn colmap_for_images(
+    model: &Path,
+    images: &[std::path::PathBuf],
+    root: &Path,
+) -> crate::Result<Vec<crate::reconstruction::ImageCamera>> {
+    let cams = crate::io::export::read_colmap_cameras(model)?;
+    let names: Vec<String> = images
+        .iter()
+        .map(|p| crate::io::loader::relative_name(p, Some(root)))
+        .collect();
+    let matched = match_by_name(
+        &names,
+        cams.into_iter()
+            .map(|c| (c.image.clone(), c.camera))
+            .collect(),
+    )
+    .map_err(|e| crate::PosediffError::invalid(model, e))?;
+    if matched.matched() == 0 && !names.is_empty() {
+        return Err(crate::PosediffError::invalid(
+            model,
+            matched.mismatch("the COLMAP model", model),
+        ));
+    }
+    if !matched.records_without_image.is_empty() {
+        log::warn!(
+            "{}: {} registered image(s) are not in {}: {}",
+            model.display(),
+            matched.records_without_image.len(),
+            root.display(),
+            matched.records_without_image.join(", ")
+        );
+    }
+    images
+        .iter()
+        .zip(names)
+        .zip(matched.per_image)
+        .map(|((path, name), camera)| match camera {
+            Some(c) => Ok(crate::reconstruction::ImageCamera {
+                image: name,
+                size: c.image_size,
+                camera: Some(c),
+            }),
+            None => {
+                let img = crate::reconstruction::read_colour(path)?;
+                Ok(crate::reconstruction::ImageCamera {
+                    image: name,
+                    size: crate::reconstruction::mat_size(&img, path)?,
+                    camera: None,
+                })
+            }
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     #![allow(clippy::unwrap_used)]

@@ -268,7 +268,7 @@ mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
 
-    use crate::io::export::ImageCamera;
+    use crate::reconstruction::ImageCamera;
     use nalgebra::Rotation3;
     use posediff_geometry::{ImageSize, Intrinsics, Pose};
 
