@@ -196,6 +196,42 @@ def test_bad_inputs_raise_the_right_exceptions(tmp_path: Path) -> None:
     assert issubclass(posediff.Error, Exception)
 
 
+def test_the_options_tree_from_python_is_the_clis(cli: Path, tmp_path: Path) -> None:
+    """``config=`` and ``options=`` set the tree as ``--config`` and ``--set`` do: the same
+    decision (the pair plan), the same files, the tree in the report; a misspelt key is a
+    ValueError naming it."""
+    folder = tmp_path / "fountain"
+    folder.mkdir()
+    for f in sorted(images_of("strecha_fountainP11").glob("*"))[:4]:
+        (folder / f.name).write_bytes(f.read_bytes())
+    config = tmp_path / "opts.toml"
+    config.write_text("[pairs.auto]\nexhaustive_up_to = 2\nsequential = 1\nretrieval = 1\n")
+    rec = posediff.estimate(
+        folder,
+        config=config,
+        options={"orientation.strong_pair": 120, "mapper": {"focal_prior": 1.5}},
+        progress=False,
+    )
+    report = rec.report
+    assert report["report"]["pair_selection"] == "sequential:1,retrieval:1"
+    assert report["options"]["orientation"]["strong_pair"] == 120
+    assert report["options"]["mapper"]["focal_prior"] == 1.5
+    assert report["options"]["mapper"]["focal_starts"] == [0.4, 0.6, 0.9, 1.35, 2.0, 3.0]
+    rec.write(tmp_path / "py")
+    run_cli(
+        cli, "estimate", folder, "--out", tmp_path / "cli", "--quiet", "--no-view",
+        "--config", config, "--set", "orientation.strong_pair=120",
+        "--set", "mapper.focal_prior=1.5",
+    )
+    same_files(tmp_path / "py", tmp_path / "cli")
+    cli_report = json.loads((tmp_path / "cli" / "run.json").read_text())
+    assert cli_report["options"] == report["options"]
+    with pytest.raises(ValueError, match="orientation.strong_pairs"):
+        posediff.estimate(folder, options={"orientation.strong_pairs": 1}, progress=False)
+    with pytest.raises(ValueError, match="options must be a dict"):
+        posediff.estimate(folder, options=["orientation.strong_pair"], progress=False)
+
+
 def test_the_gil_is_released_while_estimating() -> None:
     folder = images_of("middlebury_templeSR")
     result: dict[str, object] = {}

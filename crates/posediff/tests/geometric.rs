@@ -695,3 +695,96 @@ fn the_second_pass_matches_the_pairs_the_first_map_puts_close() {
     let (rot, trans) = worst_pair_errors(&est, &gt);
     assert!(rot < 1.0 && trans < 1.0, "worst pair: {rot}° / {trans}°");
 }
+
+/// The options tree from the CLI: a `--config` file changes the pair plan (`pairs.auto` with a
+/// bound of 2 images makes four fountain views sequential + retrieval), run.json carries the
+/// tree as used, `--set` overrides the file field by field, and a misspelt key or a wrong type
+/// is an error naming it and the file before any work.
+#[test]
+fn the_options_tree_is_read_from_a_file_and_overridden_per_field() {
+    let (images, _) = set("strecha_fountainP11");
+    let dir = posediff_fixtures::temp_dir("geometric-options-tree");
+    let imgs = dir.join("images");
+    std::fs::create_dir_all(&imgs).unwrap();
+    for img in &images[..4] {
+        std::fs::copy(img, imgs.join(img.file_name().unwrap())).unwrap();
+    }
+    let config = dir.join("opts.toml");
+    std::fs::write(
+        &config,
+        "[pairs.auto]\nexhaustive_up_to = 2\nsequential = 1\nretrieval = 1\n\n[orientation]\nstrong_pair = 120\n",
+    )
+    .unwrap();
+    let run = |out: &str, extra: &[&str], ok: bool| {
+        let out = dir.join(out);
+        let mut args = vec![
+            OsString::from("estimate"),
+            OsString::from(&imgs),
+            OsString::from("--out"),
+            OsString::from(&out),
+            OsString::from("--quiet"),
+            OsString::from("--no-view"),
+            OsString::from("--config"),
+            OsString::from(&config),
+        ];
+        args.extend(extra.iter().map(OsString::from));
+        let r = Command::new(env!("CARGO_BIN_EXE_posediff"))
+            .args(&args)
+            .output()
+            .unwrap();
+        assert_eq!(
+            r.status.success(),
+            ok,
+            "{}",
+            String::from_utf8_lossy(&r.stderr)
+        );
+        (out, String::from_utf8_lossy(&r.stderr).into_owned())
+    };
+    let report = |out: &Path| -> serde_json::Value {
+        serde_json::from_str(&std::fs::read_to_string(out.join("run.json")).unwrap()).unwrap()
+    };
+
+    let (out, _) = run("from-file", &[], true);
+    let r = report(&out);
+    assert_eq!(r["report"]["pair_selection"], "sequential:1,retrieval:1");
+    assert_eq!(r["options"]["pairs"]["auto"]["exhaustive_up_to"], 2);
+    assert_eq!(r["options"]["orientation"]["strong_pair"], 120);
+    // Fields the file did not name keep their defaults.
+    assert_eq!(r["options"]["orientation"]["tests"], 8);
+    assert_eq!(r["options"]["pairs"]["selection"], "auto");
+
+    let (out, _) = run(
+        "overridden",
+        &[
+            "--set",
+            "pairs.auto.exhaustive_up_to=60",
+            "--set",
+            "mapper.focal_prior=1.5",
+        ],
+        true,
+    );
+    let r = report(&out);
+    assert_eq!(r["report"]["pair_selection"], "exhaustive");
+    assert_eq!(r["options"]["pairs"]["auto"]["exhaustive_up_to"], 60);
+    assert_eq!(r["options"]["mapper"]["focal_prior"], 1.5);
+    // `--pairs` is `pairs.selection`.
+    let (out, _) = run("flag", &["--pairs", "sequential:2"], true);
+    assert_eq!(report(&out)["report"]["pair_selection"], "sequential:2");
+
+    // Errors: an unknown key names the key, the keys there and the file; a wrong type names
+    // the key; no work starts.
+    std::fs::write(&config, "[orientation]\nstrong_pairs = 120\n").unwrap();
+    let (out, err) = run("misspelt", &[], false);
+    assert!(
+        err.contains("orientation.strong_pairs")
+            && err.contains("strong_pair,")
+            && err.contains("opts.toml"),
+        "{err}"
+    );
+    assert!(!out.join("cameras.json").exists());
+    std::fs::write(&config, "").unwrap();
+    let (_, err) = run("wrong-type", &["--set", "orientation.tests=many"], false);
+    assert!(err.contains("--set orientation.tests"), "{err}");
+    let (_, err) = run("no-equals", &["--set", "orientation.tests"], false);
+    assert!(err.contains("key.path=value"), "{err}");
+}
