@@ -424,6 +424,151 @@ impl PartialEq for SharedLearned {
     }
 }
 
+/// Features of images and the verified matches of requested pairs: what every pass of the
+/// pipeline asks of a matcher (the first matching, the orientation check, the second pass, the
+/// turned retry). OpenCV's SIFT/ORB ([`OpenCvCorrespondences`]) and a learned extractor with
+/// its LightGlue ([`LearnedCorrespondences`]) implement it; the mapper never sees either.
+pub trait Correspondences: Sync {
+    /// The features of every image, in order; each image a step of stage "features" on
+    /// `counter` where the matcher counts them.
+    ///
+    /// # Errors
+    /// Fewer than two images, unreadable images (named), extraction errors.
+    fn extract(&self, images: &[PathBuf], counter: &dyn StepCounter) -> Result<Vec<ImageFeatures>>;
+
+    /// The verified matches of `pairs` (indices into `features`), each pair a step of stage
+    /// `name` on `counter` where the matcher counts them; pairs without enough verified matches
+    /// are left out.
+    ///
+    /// # Errors
+    /// Invalid pairs, matching errors.
+    fn match_pairs(
+        &self,
+        features: &[ImageFeatures],
+        pairs: &[(usize, usize)],
+        stage: (&dyn StepCounter, &str),
+    ) -> Result<Vec<PairMatches>>;
+
+    /// Whether the matcher's features change with the image's in-plane orientation (learned
+    /// extractors: ALIKED and DISK are not rotation-invariant), so that images upside down
+    /// relative to the others need matching turned.
+    fn depends_on_orientation(&self) -> bool;
+
+    /// The features of `images` turned by 180° (keypoints in the image's own pixels,
+    /// [`ImageFeatures::half_turned`] set), or `None` for a matcher that does not depend on the
+    /// image's orientation: the orientation check and the turned retry run only where this
+    /// gives features.
+    ///
+    /// # Errors
+    /// As [`Self::extract`].
+    fn extract_turned(
+        &self,
+        images: &[&Path],
+        counter: &dyn StepCounter,
+    ) -> Result<Option<Vec<ImageFeatures>>>;
+}
+
+/// OpenCV's SIFT or ORB, mutual nearest neighbours and MAGSAC (`posediff-matching`).
+#[derive(Debug, Clone, Copy)]
+pub struct OpenCvCorrespondences<'a>(pub &'a MatchConfig);
+
+impl Correspondences for OpenCvCorrespondences<'_> {
+    fn extract(&self, images: &[PathBuf], counter: &dyn StepCounter) -> Result<Vec<ImageFeatures>> {
+        log::info!(
+            "{}extracting features of {} images",
+            crate::progress::WORK_STARTS,
+            images.len()
+        );
+        counter.stage("features", 0);
+        Ok(posediff_matching::extract_all(images, self.0)?)
+    }
+
+    fn match_pairs(
+        &self,
+        features: &[ImageFeatures],
+        pairs: &[(usize, usize)],
+        (counter, name): (&dyn StepCounter, &str),
+    ) -> Result<Vec<PairMatches>> {
+        counter.stage(name, 0);
+        Ok(posediff_matching::match_pairs(features, pairs, self.0)?)
+    }
+
+    /// SIFT and ORB describe each keypoint in its own orientation.
+    fn depends_on_orientation(&self) -> bool {
+        false
+    }
+
+    /// SIFT and ORB describe each keypoint in its own orientation: nothing to turn.
+    fn extract_turned(
+        &self,
+        _images: &[&Path],
+        _counter: &dyn StepCounter,
+    ) -> Result<Option<Vec<ImageFeatures>>> {
+        Ok(None)
+    }
+}
+
+/// ALIKED or DISK keypoints matched by their LightGlue (`posediff-learned`), verified by the
+/// same MAGSAC and minimum as OpenCV's matches (`config`).
+#[derive(Debug, Clone, Copy)]
+pub struct LearnedCorrespondences<'a> {
+    /// The networks.
+    pub learned: &'a SharedLearned,
+    /// The verification and minimum of verified matches.
+    pub config: &'a MatchConfig,
+}
+
+impl Correspondences for LearnedCorrespondences<'_> {
+    fn extract(&self, images: &[PathBuf], counter: &dyn StepCounter) -> Result<Vec<ImageFeatures>> {
+        log::info!(
+            "{}extracting features of {} images",
+            crate::progress::WORK_STARTS,
+            images.len()
+        );
+        if images.len() < 2 {
+            return Err(PosediffError::TooFewImages {
+                needed: 2,
+                got: images.len(),
+            });
+        }
+        counter.stage("features", images.len() as u64);
+        let paths: Vec<&Path> = images.iter().map(PathBuf::as_path).collect();
+        self.learned.0.extract_many(&paths, false, counter)
+    }
+
+    fn match_pairs(
+        &self,
+        features: &[ImageFeatures],
+        pairs: &[(usize, usize)],
+        stage: (&dyn StepCounter, &str),
+    ) -> Result<Vec<PairMatches>> {
+        learned_match_pairs(&self.learned.0, features, pairs, self.config, stage)
+    }
+
+    fn depends_on_orientation(&self) -> bool {
+        true
+    }
+
+    fn extract_turned(
+        &self,
+        images: &[&Path],
+        counter: &dyn StepCounter,
+    ) -> Result<Option<Vec<ImageFeatures>>> {
+        self.learned.0.extract_many(images, true, counter).map(Some)
+    }
+}
+
+/// The matcher the options ask for: `learned` when given, else OpenCV's with `config`.
+pub fn correspondences<'a>(
+    config: &'a MatchConfig,
+    learned: Option<&'a SharedLearned>,
+) -> Box<dyn Correspondences + 'a> {
+    match learned {
+        Some(learned) => Box::new(LearnedCorrespondences { learned, config }),
+        None => Box::new(OpenCvCorrespondences(config)),
+    }
+}
+
 /// Features of every image with the configured matcher (`learned` when given, else OpenCV).
 ///
 /// # Errors
@@ -446,24 +591,7 @@ pub fn extract_all_counted(
     learned: Option<&SharedLearned>,
     counter: &dyn StepCounter,
 ) -> Result<Vec<ImageFeatures>> {
-    log::info!(
-        "{}extracting features of {} images",
-        crate::progress::WORK_STARTS,
-        images.len()
-    );
-    let Some(l) = learned else {
-        counter.stage("features", 0);
-        return Ok(posediff_matching::extract_all(images, config)?);
-    };
-    if images.len() < 2 {
-        return Err(PosediffError::TooFewImages {
-            needed: 2,
-            got: images.len(),
-        });
-    }
-    counter.stage("features", images.len() as u64);
-    let paths: Vec<&Path> = images.iter().map(PathBuf::as_path).collect();
-    l.0.extract_many(&paths, false, counter)
+    correspondences(config, learned).extract(images, counter)
 }
 
 /// Matches `pairs` with the configured matcher.
@@ -488,12 +616,19 @@ pub fn match_pairs_counted(
     pairs: &[(usize, usize)],
     config: &MatchConfig,
     learned: Option<&SharedLearned>,
+    stage: (&dyn StepCounter, &str),
+) -> Result<Vec<PairMatches>> {
+    correspondences(config, learned).match_pairs(features, pairs, stage)
+}
+
+/// LightGlue on `pairs`, each image prepared once per window of pairs ([`prepared_windows`]).
+fn learned_match_pairs(
+    l: &LearnedMatcher,
+    features: &[ImageFeatures],
+    pairs: &[(usize, usize)],
+    config: &MatchConfig,
     (counter, name): (&dyn StepCounter, &str),
 ) -> Result<Vec<PairMatches>> {
-    let Some(l) = learned else {
-        counter.stage(name, 0);
-        return Ok(posediff_matching::match_pairs(features, pairs, config)?);
-    };
     counter.stage(name, pairs.len() as u64);
     posediff_matching::check_pairs(features.len(), pairs)?;
     let mut out: Vec<Option<PairMatches>> = vec![None; pairs.len()];
@@ -507,7 +642,7 @@ pub fn match_pairs_counted(
         images.dedup();
         let prepared: Vec<PreparedImage> = images
             .par_iter()
-            .map(|&i| l.0.prepare(&features[i]))
+            .map(|&i| l.prepare(&features[i]))
             .collect::<Result<_>>()?;
         // By the sorted image list: no slot per image of the whole set in every window.
         let of = |i: usize| -> Result<&PreparedImage> {
@@ -523,13 +658,8 @@ pub fn match_pairs_counted(
             .par_iter()
             .map(|&k| {
                 let (i, j) = pairs[k];
-                let m = l.0.match_prepared(
-                    (&features[i], of(i)?),
-                    (&features[j], of(j)?),
-                    i,
-                    j,
-                    config,
-                );
+                let m =
+                    l.match_prepared((&features[i], of(i)?), (&features[j], of(j)?), i, j, config);
                 counter.step();
                 m
             })

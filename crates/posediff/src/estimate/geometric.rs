@@ -30,8 +30,7 @@ use posediff_sfm::view_graph::UnionFind;
 use posediff_sfm::{CameraPose, GlobalMapper, ImageIntrinsics, MapperOptions, SfmError};
 
 use crate::correspondences::{
-    NoCounter, SharedLearned, StepCounter, descriptor_support, extract_all_counted,
-    match_pairs_counted,
+    Correspondences, NoCounter, SharedLearned, StepCounter, descriptor_support,
 };
 use crate::error::{PosediffError, Result};
 use crate::estimate::run_report::Warning;
@@ -134,6 +133,11 @@ impl GeometricConfig {
             DensifyWhen::Never => None,
         };
         (selection, densify)
+    }
+
+    /// The matcher the options ask for ([`crate::correspondences::correspondences`]).
+    pub fn correspondences(&self) -> Box<dyn Correspondences + '_> {
+        crate::correspondences::correspondences(&self.options.matching, self.learned.as_ref())
     }
 
     /// The mapper's options for this refinement.
@@ -330,6 +334,7 @@ pub fn estimate_geometric_counted(
         selection,
         words,
     } = match_all(images, config, counter)?;
+    let matcher = config.correspondences();
     let sizes: Vec<ImageSize> = features.iter().map(|f| f.image_size).collect();
     let (_, densify) = config.plan(images.len());
     // A learned matcher's orientation check and turned retry (not with the support check,
@@ -376,14 +381,7 @@ pub fn estimate_geometric_counted(
         let extra = densify_pairs(&estimate.cameras, &matched, &d);
         if !extra.is_empty() {
             let clock = Instant::now();
-            let learned = config.learned.as_ref();
-            pairs.extend(match_pairs_counted(
-                features,
-                &extra,
-                &config.options.matching,
-                learned,
-                (counter, "second pass"),
-            )?);
+            pairs.extend(matcher.match_pairs(features, &extra, (counter, "second pass"))?);
             if let (Some(flags), Some(minimum)) =
                 (&mut support, config.options.support.min_verified)
             {
@@ -459,9 +457,10 @@ fn turn_left_out(
     config: &GeometricConfig,
     counter: &dyn StepCounter,
 ) -> Result<Option<(Vec<usize>, Vec<PairMatches>)>> {
-    let Some(learned) = config.learned.as_ref() else {
+    let matcher = config.correspondences();
+    if !matcher.depends_on_orientation() {
         return Ok(None);
-    };
+    }
     let estimated = |i: usize| cameras.get(i).is_some_and(Option::is_some);
     let left: Vec<usize> = (0..features.len())
         .filter(|&i| !estimated(i) && !features[i].half_turned)
@@ -476,7 +475,7 @@ fn turn_left_out(
     );
     counter.stage("turned images", left.len() as u64);
     let paths: Vec<&std::path::Path> = left.iter().map(|&j| images[j].as_path()).collect();
-    let turned = learned.0.extract_many(&paths, true, counter)?;
+    let turned = turned_features(matcher.as_ref(), &paths, counter)?;
     let upright: Vec<(usize, ImageFeatures)> = left
         .iter()
         .zip(turned)
@@ -491,13 +490,7 @@ fn turn_left_out(
     .into_iter()
     .filter(|&(a, b)| (is_left(a) && estimated(b)) || (is_left(b) && estimated(a)))
     .collect();
-    let matched = match_pairs_counted(
-        features,
-        &trial,
-        &config.options.matching,
-        Some(learned),
-        (counter, "turned pairs"),
-    )?;
+    let matched = matcher.match_pairs(features, &trial, (counter, "turned pairs"))?;
     // Verified matches with estimated images: turned against upright.
     let mut score: HashMap<usize, (usize, usize)> = HashMap::new();
     for p in &matched {
@@ -540,15 +533,20 @@ fn turn_left_out(
             .into_iter()
             .filter(|p| is_kept(p.first) || is_kept(p.second)),
     );
-    out.extend(match_pairs_counted(
-        features,
-        &both,
-        &config.options.matching,
-        Some(learned),
-        (counter, "turned pairs"),
-    )?);
+    out.extend(matcher.match_pairs(features, &both, (counter, "turned pairs"))?);
     out.sort_by_key(|p| (p.first, p.second));
     Ok(Some((kept, out)))
+}
+
+/// `images` extracted turned by 180° by a matcher that depends on the orientation.
+fn turned_features(
+    matcher: &dyn Correspondences,
+    images: &[&std::path::Path],
+    counter: &dyn StepCounter,
+) -> Result<Vec<ImageFeatures>> {
+    matcher.extract_turned(images, counter)?.ok_or_else(|| {
+        PosediffError::InvalidArgument("this matcher does not extract turned images".into())
+    })
 }
 
 /// The default of `orientation.strong_pair` ([`crate::estimate::options::OrientationOptions`]).
@@ -603,9 +601,10 @@ fn turn_components(
     config: &GeometricConfig,
     counter: &dyn StepCounter,
 ) -> Result<Option<(Vec<usize>, Vec<PairMatches>)>> {
-    let Some(learned) = config.learned.as_ref() else {
+    let matcher = config.correspondences();
+    if !matcher.depends_on_orientation() {
         return Ok(None);
-    };
+    }
     let n = features.len();
     let clock = Instant::now();
     let orientation = &config.options.orientation;
@@ -646,7 +645,7 @@ fn turn_components(
     let is_rep = |i: usize| reps.contains(&i);
     counter.stage("orientation check", reps.len() as u64);
     let paths: Vec<&std::path::Path> = reps.iter().map(|&r| images[r].as_path()).collect();
-    let rep_turned = learned.0.extract_many(&paths, true, counter)?;
+    let rep_turned = turned_features(matcher.as_ref(), &paths, counter)?;
     // Each representative with the most similar images of other groups, upright and turned
     // (one vocabulary; not other representatives, which are turned during the screen), as
     // (representative, partner).
@@ -745,7 +744,7 @@ fn turn_components(
     counter.stage("turned images", rest.len() as u64);
     for (&i, f) in rest
         .iter()
-        .zip(learned.0.extract_many(&paths, true, counter)?)
+        .zip(turned_features(matcher.as_ref(), &paths, counter)?)
     {
         rep_turned.insert(i, f);
     }
@@ -779,13 +778,7 @@ fn turn_components(
     }
     again.sort_unstable();
     again.dedup();
-    let matched = match_pairs_counted(
-        features,
-        &again,
-        &config.options.matching,
-        Some(learned),
-        (counter, "turned pairs"),
-    )?;
+    let matched = matcher.match_pairs(features, &again, (counter, "turned pairs"))?;
     // Kept only when the turned images verify more matches with the others turned than they
     // did upright (LightGlue's word over the screen's, as the retry of left-out images asks;
     // pairs within the turned images turn at both ends and are left out of the count).
@@ -879,8 +872,8 @@ fn match_all(
         });
     }
     let clock = Instant::now();
-    let learned = config.learned.as_ref();
-    let features = extract_all_counted(images, &config.options.matching, learned, counter)?;
+    let matcher = config.correspondences();
+    let features = matcher.extract(images, counter)?;
     let extraction = clock.elapsed().as_secs_f64();
     let clock = Instant::now();
     let n = images.len();
@@ -901,14 +894,8 @@ fn match_all(
     }
     let selection = clock.elapsed().as_secs_f64();
     let clock = Instant::now();
-    let pairs = match_pairs_counted(
-        &features,
-        &pair_list,
-        &config.options.matching,
-        learned,
-        (counter, "matching"),
-    )?;
-    let support = match (learned, config.options.support.min_verified) {
+    let pairs = matcher.match_pairs(&features, &pair_list, (counter, "matching"))?;
+    let support = match (config.learned.as_ref(), config.options.support.min_verified) {
         (Some(_), Some(minimum)) => Some(
             descriptor_support(&features, &pair_list, &config.options.matching)?
                 .into_iter()
@@ -973,6 +960,7 @@ pub fn refine_given_cameras_counted(
         selection,
         ..
     } = match_all(images, config, counter)?;
+    let matcher = config.correspondences();
     let sizes: Vec<ImageSize> = features.iter().map(|f| f.image_size).collect();
     // The second pass needs no first map here: the given cameras say which images overlap.
     let mut densified = 0;
@@ -980,13 +968,7 @@ pub fn refine_given_cameras_counted(
         let matched: HashSet<(usize, usize)> = pairs.iter().map(|p| (p.first, p.second)).collect();
         let extra = densify_pairs(init, &matched, &d);
         let clock = Instant::now();
-        pairs.extend(match_pairs_counted(
-            &features,
-            &extra,
-            &config.options.matching,
-            config.learned.as_ref(),
-            (counter, "second pass"),
-        )?);
+        pairs.extend(matcher.match_pairs(&features, &extra, (counter, "second pass"))?);
         times[2] += clock.elapsed().as_secs_f64();
         densified = extra.len();
     }
