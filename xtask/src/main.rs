@@ -121,7 +121,7 @@ const FORBIDDEN: [(&str, &[&str]); 8] = [
 ];
 
 /// Per crate: the workspace crates it may depend on.
-const ALLOWED_WORKSPACE_DEPS: [(&str, &[&str]); 9] = [
+const ALLOWED_WORKSPACE_DEPS: [(&str, &[&str]); 10] = [
     ("posediff-sfm", &["posediff-geometry"]),
     ("posediff-synth", &["posediff-geometry"]),
     ("posediff-geometry", &[]),
@@ -131,6 +131,18 @@ const ALLOWED_WORKSPACE_DEPS: [(&str, &[&str]); 9] = [
     ("posediff-amx", &[]),
     ("posediff-matching", &["posediff-geometry"]),
     ("posediff-learned", &["posediff-diffusion"]),
+    // The checkpoint-free controller: the stages below it, never the umbrella.
+    (
+        "posediff-pipeline",
+        &[
+            "posediff-geometry",
+            "posediff-matching",
+            "posediff-learned",
+            "posediff-diffusion",
+            "posediff-sfm",
+            "posediff-guidance",
+        ],
+    ),
 ];
 
 /// The one cargo profile CI builds.

@@ -632,40 +632,4 @@ pub fn relative_name(path: &Path, root: Option<&Path>) -> String {
         .into_owned()
 }
 
-/// Matches in original pixels → the 224-crop frame of each image, as a GGS match set over the
-/// images that have a crop (`crops[i]`: image `i`'s crop, `None` to leave it out). The set's
-/// frame `k` is the `k`-th image with a crop; pairs touching an image without one are
-/// skipped.
-///
-/// # Errors
-/// Invalid pairs.
-pub fn model_frame_matches(
-    pairs: &[PairMatches],
-    crops: &[Option<CenterCrop>],
-) -> Result<MatchSet> {
-    let mut frame_of = vec![None; crops.len()];
-    let mut members = 0;
-    for (slot, crop) in frame_of.iter_mut().zip(crops) {
-        if crop.is_some() {
-            *slot = Some(members);
-            members += 1;
-        }
-    }
-    let (mut kp1, mut kp2, mut frames) = (Vec::new(), Vec::new(), Vec::new());
-    for p in pairs {
-        let (Some(Some(a)), Some(Some(b)), Some(Some(ca)), Some(Some(cb))) = (
-            frame_of.get(p.first),
-            frame_of.get(p.second),
-            crops.get(p.first),
-            crops.get(p.second),
-        ) else {
-            continue;
-        };
-        for (x, y) in p.kp1.iter().zip(&p.kp2) {
-            kp1.push(ca.to_model(*x));
-            kp2.push(cb.to_model(*y));
-            frames.push((*a, *b));
-        }
-    }
-    Ok(MatchSet::new(members, &kp1, &kp2, &frames)?)
-}
+pub use posediff_pipeline::geometric::model_frame_matches;

@@ -5,6 +5,7 @@ use std::path::PathBuf;
 use serde::Serialize;
 
 use crate::estimate::geometric_report::GeometricReport;
+pub use posediff_pipeline::report::Warning;
 
 /// What was written, for the summary line and run.json.
 #[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
@@ -86,67 +87,6 @@ pub struct SampleSpread {
     pub rotation_deg_max: f64,
     /// Largest distance between two samples' centres.
     pub center_distance_max: f64,
-}
-
-/// Something a run did that the user should know of (written to run.json and the log as its
-/// message).
-#[derive(Debug, Clone, PartialEq, Eq)]
-#[non_exhaustive]
-pub enum Warning {
-    /// No pair has parallax: every camera centre is the same.
-    NoParallax,
-    /// Images outside the largest group of images that share matches.
-    NotEstimated {
-        /// How many.
-        count: usize,
-        /// Of how many images.
-        of: usize,
-    },
-    /// GGS did not run: no pair has verified matches.
-    GgsSkipped,
-    /// No verified matches at all (matching off or none found): no points.
-    NoVerifiedMatches,
-    /// An `--init` file and the images do not pair up completely (the mismatch, listed).
-    InitMismatch(String),
-    /// Images the initial estimate has no camera for (the diffusion starts them at the first
-    /// estimated camera).
-    NoInitialCamera(Vec<String>),
-}
-
-impl std::fmt::Display for Warning {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        match self {
-            Self::NoParallax => f.write_str(
-                "no pair has measurable parallax (pure rotation or identical images): all camera \
-                 centres coincide",
-            ),
-            Self::NotEstimated { count, of } => write!(
-                f,
-                "{count} of {of} images share no usable matches with the largest group and are \
-                 not estimated"
-            ),
-            Self::GgsSkipped => f.write_str("GGS skipped: no image pair has verified matches"),
-            Self::NoVerifiedMatches => f.write_str(
-                "no verified matches (none were found, or GGS was off, which skips matching): the \
-                 COLMAP model has no points",
-            ),
-            Self::InitMismatch(m) => write!(
-                f,
-                "{m} (images without an initial camera start uninitialised)"
-            ),
-            Self::NoInitialCamera(images) => write!(
-                f,
-                "no initial camera for {}: the diffusion starts them at the first estimated camera",
-                images.join(", ")
-            ),
-        }
-    }
-}
-
-impl Serialize for Warning {
-    fn serialize<S: serde::Serializer>(&self, s: S) -> std::result::Result<S::Ok, S::Error> {
-        s.collect_str(self)
-    }
 }
 
 /// Verified matches of one pair.

@@ -1,0 +1,1739 @@
+//! Cameras without a checkpoint: the wiring from images to the mapper of `posediff-sfm`.
+//!
+//! images → features (`posediff-matching`) → pair selection (exhaustive, sequential,
+//! retrieval) → verified matches with keypoint ids → [`posediff_sfm::GlobalMapper`] (two-view
+//! geometry through OpenCV behind its [`GeometrySolver`] trait, focal, rotation and translation
+//! averaging, Sampson refinement, tracks, bundle adjustment) → OpenCV cameras in original
+//! pixels. Principal points are the image centres (`((W−1)/2, (H−1)/2)`) unless given.
+
+use std::collections::{HashMap, HashSet};
+use std::path::PathBuf;
+use std::sync::Mutex;
+use std::time::Instant;
+
+use nalgebra::{Matrix3, Rotation3};
+use posediff_geometry::{
+    Camera, CenterCrop, ImageSize, Intrinsics, MODEL_INPUT_SIDE, Pose, PoseEncoding, QuaternionSign,
+};
+use posediff_guidance::{GgsConfig, GgsSolver};
+use posediff_matching::pairs::{BagOfWords, RetrievalOptions, select_pairs_with};
+use posediff_matching::two_view::{
+    fundamental_least_squares, homography_fit, relative_pose_with_homography,
+};
+use posediff_matching::{ImageFeatures, PairMatches, PairRule, PairSelection, TwoViewConfig};
+use posediff_sfm::bundle::{BundleOptions, Point, bundle_adjust};
+use posediff_sfm::mapper::{GeometrySolver, RelativePose};
+use posediff_sfm::resection::AbsolutePose;
+use posediff_sfm::sampson_refine::{SampsonRefineOptions, refine_sampson};
+use posediff_sfm::tracks::build_tracks;
+use posediff_sfm::view_graph::UnionFind;
+use posediff_sfm::{CameraPose, GlobalMapper, ImageIntrinsics, MapperOptions, SfmError};
+
+use crate::correspondences::{
+    Correspondences, NoCounter, SharedLearned, StepCounter, descriptor_support,
+};
+use crate::error::{PosediffError, Result};
+use crate::report::Warning;
+
+pub use posediff_sfm::intrinsics::{focal_scale, image_centre};
+
+use crate::options::{DensifyWhen, PipelineOptions};
+pub use crate::options::{
+    GEOMETRIC_CONTRAST_THRESHOLD, GEOMETRIC_MAX_KEYPOINTS, KnownIntrinsics, resolve_intrinsics,
+};
+
+/// How the cameras are refined after the initialisation.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Refinement {
+    /// None: the averaged cameras.
+    None,
+    /// The Sampson objective to convergence (Levenberg–Marquardt), then the bundle adjustment.
+    Converge(SampsonRefineOptions),
+    /// The official GGS schedule (five SGD phases, 7000 iterations by default) on the cameras
+    /// in their 224 crops, as the released code runs it inside the diffusion.
+    Official(GgsConfig),
+}
+
+/// Settings of the geometric estimate: the options tree and what the run knows.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GeometricConfig {
+    /// Every threshold of the pipeline ([`PipelineOptions`]).
+    pub options: PipelineOptions,
+    /// Known intrinsics.
+    pub intrinsics: KnownIntrinsics,
+    /// Refinement.
+    pub refinement: Refinement,
+    /// The learned matcher, when the run uses it instead of OpenCV's.
+    pub learned: Option<SharedLearned>,
+}
+
+/// The second matching pass as it runs ([`crate::options::DensifyOptions`] has
+/// the why): each estimated image matched with up to `per_image` unmatched images within
+/// `max_angle_deg` of its rotation. At most `per_image · n` more pairs.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Densify {
+    /// Largest rotation between the two estimated cameras, degrees.
+    pub max_angle_deg: f64,
+    /// New pairs per image at most.
+    pub per_image: usize,
+}
+
+impl Default for Densify {
+    fn default() -> Self {
+        let d = crate::options::DensifyOptions::default();
+        Self {
+            max_angle_deg: d.max_angle_deg,
+            per_image: d.per_image,
+        }
+    }
+}
+
+impl Default for GeometricConfig {
+    fn default() -> Self {
+        let options = PipelineOptions::default();
+        Self {
+            refinement: Refinement::Converge(options.mapper.sampson.unwrap_or_default()),
+            options,
+            intrinsics: KnownIntrinsics::Unknown,
+            learned: None,
+        }
+    }
+}
+
+/// The default of `pairs.learned_exhaustive_up_to` ([`crate::options::PairOptions`]).
+pub const LEARNED_EXHAUSTIVE_UP_TO: usize = 12;
+
+/// The default of `pairs.learned_first_pass` ([`crate::options::PairOptions`]).
+pub const LEARNED_FIRST_PASS: [PairRule; 2] = [PairRule::Sequential(3), PairRule::Retrieval(3)];
+
+impl GeometricConfig {
+    /// The pair selection (its rules resolved for `n` images) and the second pass used for
+    /// `n` images: `auto` is `pairs.auto` with OpenCV's matchers; with a learned matcher,
+    /// exhaustive up to `pairs.learned_exhaustive_up_to` images and above it
+    /// `pairs.learned_first_pass` plus the second pass. `densify.when` forces the second pass
+    /// on or off.
+    pub fn plan(&self, n: usize) -> (PairSelection, Option<Densify>) {
+        let o = &self.options;
+        let d = Densify {
+            max_angle_deg: o.densify.max_angle_deg,
+            per_image: o.densify.per_image,
+        };
+        let auto = o.pairs.selection == PairSelection::Auto;
+        let learned_auto = auto && self.learned.is_some() && n > o.pairs.learned_exhaustive_up_to;
+        let selection = if learned_auto {
+            PairSelection::Rules(o.pairs.learned_first_pass.rules(n))
+        } else if auto && self.learned.is_some() {
+            PairSelection::Rules(vec![PairRule::Exhaustive])
+        } else {
+            PairSelection::Rules(o.pairs.selection.rules_with(n, &o.pairs.auto))
+        };
+        let densify = match o.densify.when {
+            DensifyWhen::Auto => learned_auto.then_some(d),
+            DensifyWhen::Always => Some(d),
+            DensifyWhen::Never => None,
+        };
+        (selection, densify)
+    }
+
+    /// The matcher the options ask for ([`crate::correspondences::correspondences`]).
+    pub fn correspondences(&self) -> Box<dyn Correspondences + '_> {
+        crate::correspondences::correspondences(&self.options.matching, self.learned.as_ref())
+    }
+
+    /// The mapper's options for this refinement.
+    fn mapper_options(&self) -> MapperOptions {
+        let mut o = self.options.mapper.clone();
+        o.homography_fraction = self.options.two_view.homography_fraction;
+        // A learned matcher's wrong pairs must not decide the focal (MapperOptions' doc).
+        o.score_dropped_as_missing |= self.learned.is_some();
+        match self.refinement {
+            Refinement::Converge(r) => o.sampson = Some(r),
+            Refinement::None | Refinement::Official(_) => {
+                o.sampson = None;
+                o.bundle = None;
+            }
+        }
+        o
+    }
+}
+
+pub use crate::report::{
+    FocalOrigin, GeometricReport, GeometricTimes, NotEstimatedImage, ResectedSide, StageOutcome,
+    SupportOutcome,
+};
+
+/// The cameras of a geometric estimate: `None` for images that were not estimated.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GeometricEstimate {
+    /// One per image, in input order.
+    pub cameras: Vec<Option<Camera>>,
+    /// Image sizes.
+    pub sizes: Vec<ImageSize>,
+    /// Matches of every matched pair (original pixels, keypoint ids).
+    pub pairs: Vec<PairMatches>,
+    /// The bundle adjustment's points (empty without it).
+    pub points: Vec<Point>,
+    /// Statistics.
+    pub report: GeometricReport,
+    /// Things the user should know.
+    pub warnings: Vec<Warning>,
+}
+
+/// OpenCV two-view geometry for the mapper, with the results of earlier mapper runs of the same
+/// estimate when it has a cache.
+struct OpenCvTwoView<'a> {
+    config: &'a TwoViewConfig,
+    cache: Option<&'a TwoViewCache>,
+}
+
+#[cfg(test)]
+impl<'a> OpenCvTwoView<'a> {
+    fn new(config: &'a TwoViewConfig) -> Self {
+        Self {
+            config,
+            cache: None,
+        }
+    }
+}
+
+/// A pair within one estimate: its images and its match count (a pair's matches do not change
+/// within an estimate).
+type PairKey = (usize, usize, usize);
+
+/// One kind of two-view result per key.
+type Results<K, V> = Mutex<HashMap<K, Option<V>>>;
+
+/// The two-view results of one estimate, kept between its mapper runs: the second pass maps the
+/// first pass's pairs again, at the same fixed focal starts. The solvers are deterministic
+/// (OpenCV's RANSAC seeds its own generator), so a cached result is the one a new call would
+/// give; the cache only saves the time.
+#[derive(Default)]
+struct TwoViewCache {
+    homography: Results<PairKey, (Matrix3<f64>, f64)>,
+    fundamental: Results<PairKey, Matrix3<f64>>,
+    /// Also keyed by both calibrations' bits.
+    relative: Results<(PairKey, [u64; 18]), RelativePose>,
+}
+
+fn pair_key(p: &PairMatches) -> PairKey {
+    (p.first, p.second, p.len())
+}
+
+/// `map[key]`, computed by `make` (outside the lock) when missing.
+fn cached<K: std::hash::Hash + Eq, V: Copy>(
+    map: Option<&Mutex<HashMap<K, V>>>,
+    key: K,
+    make: impl FnOnce() -> posediff_sfm::Result<V>,
+) -> posediff_sfm::Result<V> {
+    let Some(map) = map else { return make() };
+    if let Some(v) = map.lock().ok().and_then(|m| m.get(&key).copied()) {
+        return Ok(v);
+    }
+    let v = make()?;
+    if let Ok(mut m) = map.lock() {
+        m.insert(key, v);
+    }
+    Ok(v)
+}
+
+fn two_view_error(p: &PairMatches, e: impl std::fmt::Display) -> SfmError {
+    SfmError::TwoView {
+        first: p.first,
+        second: p.second,
+        detail: e.to_string(),
+    }
+}
+
+impl GeometrySolver for OpenCvTwoView<'_> {
+    fn homography(&self, p: &PairMatches) -> posediff_sfm::Result<Option<(Matrix3<f64>, f64)>> {
+        cached(self.cache.map(|c| &c.homography), pair_key(p), || {
+            homography_fit(&p.kp1, &p.kp2, self.config).map_err(|e| two_view_error(p, e))
+        })
+    }
+
+    fn fundamental(&self, p: &PairMatches) -> posediff_sfm::Result<Option<Matrix3<f64>>> {
+        cached(self.cache.map(|c| &c.fundamental), pair_key(p), || {
+            fundamental_least_squares(&p.kp1, &p.kp2).map_err(|e| two_view_error(p, e))
+        })
+    }
+
+    fn relative_pose(
+        &self,
+        p: &PairMatches,
+        homography: Option<(Matrix3<f64>, f64)>,
+        k_a: &Matrix3<f64>,
+        k_b: &Matrix3<f64>,
+    ) -> posediff_sfm::Result<Option<RelativePose>> {
+        let mut bits = [0u64; 18];
+        for (b, v) in bits.iter_mut().zip(k_a.iter().chain(k_b.iter())) {
+            *b = v.to_bits();
+        }
+        cached(self.cache.map(|c| &c.relative), (pair_key(p), bits), || {
+            relative_pose_with_homography(&p.kp1, &p.kp2, homography, k_a, k_b, self.config)
+                .map_err(|e| two_view_error(p, e))
+        })
+    }
+
+    fn absolute_pose(
+        &self,
+        image: usize,
+        points: &[nalgebra::Vector3<f64>],
+        pixels: &[[f64; 2]],
+        k: &Matrix3<f64>,
+        threshold_px: f64,
+    ) -> posediff_sfm::Result<Option<AbsolutePose>> {
+        let pose = posediff_matching::resection::absolute_pose(points, pixels, k, threshold_px)
+            .map_err(|e| SfmError::Resection {
+                image,
+                detail: e.to_string(),
+            })?;
+        Ok(pose.map(|p| AbsolutePose {
+            rotation: p.rotation,
+            translation: p.translation,
+            inliers: p.inliers,
+        }))
+    }
+}
+
+impl From<SfmError> for PosediffError {
+    fn from(e: SfmError) -> Self {
+        match e {
+            SfmError::NoUsablePairs { images } => PosediffError::NoMatches { images },
+            other => PosediffError::Mapper(other),
+        }
+    }
+}
+
+/// Estimates cameras of `images` without a checkpoint.
+///
+/// # Errors
+/// Fewer than two images, unreadable images, matching errors, no pair with enough matches.
+pub fn estimate_geometric(
+    images: &[PathBuf],
+    config: &GeometricConfig,
+) -> Result<GeometricEstimate> {
+    estimate_geometric_counted(images, config, &NoCounter)
+}
+
+/// [`estimate_geometric`], reporting its stages on `counter`: "features" and "matching" (the
+/// learned matcher's images and pairs counted), "mapping", and with a second pass "second
+/// pass" and "mapping" again.
+///
+/// # Errors
+/// As [`estimate_geometric`].
+pub fn estimate_geometric_counted(
+    images: &[PathBuf],
+    config: &GeometricConfig,
+    counter: &dyn StepCounter,
+) -> Result<GeometricEstimate> {
+    let Matched {
+        mut features,
+        mut pairs,
+        mut support,
+        mut times,
+        selection,
+        words,
+    } = match_all(images, config, counter)?;
+    let matcher = config.correspondences();
+    let sizes: Vec<ImageSize> = features.iter().map(|f| f.image_size).collect();
+    let (_, densify) = config.plan(images.len());
+    // A learned matcher's orientation check and turned retry (not with the support check,
+    // whose screen saw the upright features).
+    let learned_checks = config.learned.is_some() && support.is_none();
+    let retry = learned_checks && config.options.retry.enabled;
+    let orient = learned_checks && config.options.orientation.enabled;
+    let mut turned_images = Vec::new();
+    if orient {
+        let clock = Instant::now();
+        if let Some((flipped, new_pairs)) = turn_components(
+            images,
+            &mut features,
+            &pairs,
+            words.as_ref(),
+            config,
+            counter,
+        )? {
+            pairs = new_pairs;
+            turned_images = flipped;
+        }
+        times[2] += clock.elapsed().as_secs_f64();
+    }
+    // The features are only needed again by the second pass and the turned retry (SIFT's of
+    // a thousand images are gigabytes): dropped before the mapper otherwise.
+    let mut features = (densify.is_some() || retry).then_some(features);
+    // The first pass's matches are kept for the second (a copy) only when it runs.
+    counter.stage("mapping", 0);
+    let cache = TwoViewCache::default();
+    let mut estimate = if features.is_some() {
+        map_supported_matches(&sizes, pairs.clone(), support.clone(), config, &cache)?
+    } else {
+        map_supported_matches(
+            &sizes,
+            std::mem::take(&mut pairs),
+            support.take(),
+            config,
+            &cache,
+        )?
+    };
+    let mut densified = 0;
+    if let (Some(d), Some(features)) = (densify, &features) {
+        let matched: HashSet<(usize, usize)> = pairs.iter().map(|p| (p.first, p.second)).collect();
+        let extra = densify_pairs(&estimate.cameras, &matched, &d);
+        if !extra.is_empty() {
+            let clock = Instant::now();
+            pairs.extend(matcher.match_pairs(features, &extra, (counter, "second pass"))?);
+            if let (Some(flags), Some(minimum)) =
+                (&mut support, config.options.support.min_verified)
+            {
+                flags.extend(
+                    descriptor_support(features, &extra, &config.options.matching)?
+                        .into_iter()
+                        .map(|count| count >= minimum),
+                );
+            }
+            times[2] += clock.elapsed().as_secs_f64();
+            densified = extra.len();
+            let first = estimate.report.times;
+            counter.stage("mapping", 0);
+            estimate = map_supported_matches(&sizes, pairs.clone(), support, config, &cache)?;
+            estimate.report.times.add_mapping(&first);
+        }
+    }
+    if let (true, Some(features)) = (retry, features.as_mut()) {
+        let clock = Instant::now();
+        if let Some((kept, turned_pairs)) =
+            turn_left_out(images, features, &pairs, &estimate.cameras, config, counter)?
+        {
+            times[2] += clock.elapsed().as_secs_f64();
+            let earlier = estimate.report.times;
+            counter.stage("mapping", 0);
+            // The turned images' features changed: the two-view results of their pairs are
+            // new, so a new cache.
+            estimate = map_supported_matches(
+                &sizes,
+                turned_pairs,
+                None,
+                config,
+                &TwoViewCache::default(),
+            )?;
+            estimate.report.times.add_mapping(&earlier);
+            turned_images.extend(kept);
+            turned_images.sort_unstable();
+        } else {
+            times[2] += clock.elapsed().as_secs_f64();
+        }
+    }
+    estimate.report.turned_images = turned_images;
+    estimate.report.pair_selection = selection;
+    estimate.report.pairs_matched = estimate.pairs.len();
+    estimate.report.pairs_densified = densified;
+    let t = &mut estimate.report.times;
+    (t.extraction, t.pair_selection, t.matching_pairs) = (times[0], times[1], times[2]);
+    t.matching = times.iter().sum();
+    Ok(estimate)
+}
+
+/// The default of `retry.partners` ([`crate::options::RetryOptions`]).
+pub const TURN_PARTNERS: usize = 8;
+
+/// A learned matcher's retry of the images its map left out. ALIKED and DISK are not
+/// invariant to in-plane rotation: an image upside down relative to the others (the
+/// Middlebury temple's last five, a phone turned over) matches them with few or wrong matches.
+/// Each left-out image is extracted again turned by 180° and matched with the estimated images
+/// among its [`TURN_PARTNERS`] most similar; it is kept turned when those pairs verify more
+/// matches than its upright pairs with estimated images. A kept image's earlier pairs are
+/// dropped (their keypoint indices are the upright features') and its pairs with other kept
+/// images matched again. Images already turned (by the orientation check) are not retried.
+/// Returns the turned images and the new set of pairs, or `None` when no image was left out, fewer than two were estimated, or none is kept
+/// turned; `features` hold the turned features of the kept images afterwards.
+///
+/// # Errors
+/// Unreadable images, network and matching errors.
+fn turn_left_out(
+    images: &[PathBuf],
+    features: &mut [ImageFeatures],
+    pairs: &[PairMatches],
+    cameras: &[Option<Camera>],
+    config: &GeometricConfig,
+    counter: &dyn StepCounter,
+) -> Result<Option<(Vec<usize>, Vec<PairMatches>)>> {
+    let matcher = config.correspondences();
+    if !matcher.depends_on_orientation() {
+        return Ok(None);
+    }
+    let estimated = |i: usize| cameras.get(i).is_some_and(Option::is_some);
+    let left: Vec<usize> = (0..features.len())
+        .filter(|&i| !estimated(i) && !features[i].half_turned)
+        .collect();
+    if left.is_empty() || (0..features.len()).filter(|&i| estimated(i)).count() < 2 {
+        return Ok(None);
+    }
+    log::info!(
+        "{}{} images left out: matching them turned by 180°",
+        crate::progress::WORK_STARTS,
+        left.len()
+    );
+    counter.stage("turned images", left.len() as u64);
+    let paths: Vec<&std::path::Path> = left.iter().map(|&j| images[j].as_path()).collect();
+    let turned = turned_features(matcher.as_ref(), &paths, counter)?;
+    let upright: Vec<(usize, ImageFeatures)> = left
+        .iter()
+        .zip(turned)
+        .map(|(&j, f)| (j, std::mem::replace(&mut features[j], f)))
+        .collect();
+    let is_left = |i: usize| left.binary_search(&i).is_ok();
+    let trial: Vec<(usize, usize)> = posediff_matching::pairs::retrieval_pairs(
+        features,
+        config.options.retry.partners,
+        &RetrievalOptions::default(),
+    )
+    .into_iter()
+    .filter(|&(a, b)| (is_left(a) && estimated(b)) || (is_left(b) && estimated(a)))
+    .collect();
+    let matched = matcher.match_pairs(features, &trial, (counter, "turned pairs"))?;
+    // Verified matches with estimated images: turned against upright.
+    let mut score: HashMap<usize, (usize, usize)> = HashMap::new();
+    for p in &matched {
+        let j = if is_left(p.first) { p.first } else { p.second };
+        score.entry(j).or_default().0 += p.len();
+    }
+    for p in pairs {
+        if is_left(p.first) && estimated(p.second) {
+            score.entry(p.first).or_default().1 += p.len();
+        } else if is_left(p.second) && estimated(p.first) {
+            score.entry(p.second).or_default().1 += p.len();
+        }
+    }
+    let kept: Vec<usize> = left
+        .iter()
+        .copied()
+        .filter(|j| score.get(j).is_some_and(|&(t, u)| t > u))
+        .collect();
+    for (j, f) in upright {
+        if kept.binary_search(&j).is_err() {
+            features[j] = f;
+        }
+    }
+    if kept.is_empty() {
+        return Ok(None);
+    }
+    let is_kept = |i: usize| kept.binary_search(&i).is_ok();
+    let both: Vec<(usize, usize)> = pairs
+        .iter()
+        .filter(|p| is_kept(p.first) && is_kept(p.second))
+        .map(|p| (p.first, p.second))
+        .collect();
+    let mut out: Vec<PairMatches> = pairs
+        .iter()
+        .filter(|p| !is_kept(p.first) && !is_kept(p.second))
+        .cloned()
+        .collect();
+    out.extend(
+        matched
+            .into_iter()
+            .filter(|p| is_kept(p.first) || is_kept(p.second)),
+    );
+    out.extend(matcher.match_pairs(features, &both, (counter, "turned pairs"))?);
+    out.sort_by_key(|p| (p.first, p.second));
+    Ok(Some((kept, out)))
+}
+
+/// `images` extracted turned by 180° by a matcher that depends on the orientation.
+fn turned_features(
+    matcher: &dyn Correspondences,
+    images: &[&std::path::Path],
+    counter: &dyn StepCounter,
+) -> Result<Vec<ImageFeatures>> {
+    matcher.extract_turned(images, counter)?.ok_or_else(|| {
+        PosediffError::InvalidArgument("this matcher does not extract turned images".into())
+    })
+}
+
+/// The default of `orientation.strong_pair` ([`crate::options::OrientationOptions`]).
+pub const STRONG_PAIR: usize = 80;
+
+/// The default of `orientation.tests` ([`crate::options::OrientationOptions`]).
+pub const TURN_TESTS: usize = 8;
+
+/// The groups of images joined by pairs of at least `minimum` verified matches, the largest
+/// first (ties: the one with the lowest image first); an image without such a pair is a group
+/// of its own.
+fn strong_groups(n: usize, pairs: &[PairMatches], minimum: usize) -> Vec<Vec<usize>> {
+    let mut sets = UnionFind::new(n);
+    for p in pairs.iter().filter(|p| p.len() >= minimum) {
+        if p.first < n && p.second < n {
+            sets.union(p.first, p.second);
+        }
+    }
+    let mut groups: HashMap<usize, Vec<usize>> = HashMap::new();
+    for i in 0..n {
+        groups.entry(sets.find(i)).or_default().push(i);
+    }
+    let mut out: Vec<Vec<usize>> = groups.into_values().collect();
+    out.sort_by(|a, b| b.len().cmp(&a.len()).then(a.first().cmp(&b.first())));
+    out
+}
+
+/// A learned matcher's orientation check before the map. ALIKED and DISK are not invariant to
+/// in-plane rotation: where some images are upside down relative to the others (the Middlebury
+/// temple's last five, a camera turned over), LightGlue matches each orientation well within
+/// itself and poorly or wrongly across, so the strong pairs ([`STRONG_PAIR`]) fall into groups
+/// by orientation. Each group besides the largest ([`TURN_TESTS`] at most) is tested by its
+/// best-matched image, extracted again turned by 180°: the descriptor screen
+/// ([`descriptor_support`], about 10 ms a pair) counts its verified matches, upright and
+/// turned, with the [`TURN_PARTNERS`] most similar images of other groups. Groups are then
+/// labelled from the largest along the clearest evidence
+/// ([`crate::options::OrientationOptions::evidence`]), and the
+/// images of the groups found turned relative to the largest are extracted turned, their pairs
+/// matched again, and the turned images matched with their [`TURN_PARTNERS`] most similar
+/// images. The turn is kept when the turned images' pairs with the others verify more matches
+/// than they did upright. Returns the turned images (`features` holding their turned features)
+/// and the new pairs, or `None` (nothing changed) when the
+/// strong pairs form one group, no group is found turned, or LightGlue does not confirm it.
+///
+/// # Errors
+/// Unreadable images, network and matching errors.
+fn turn_components(
+    images: &[PathBuf],
+    features: &mut [ImageFeatures],
+    pairs: &[PairMatches],
+    words: Option<&BagOfWords>,
+    config: &GeometricConfig,
+    counter: &dyn StepCounter,
+) -> Result<Option<(Vec<usize>, Vec<PairMatches>)>> {
+    let matcher = config.correspondences();
+    if !matcher.depends_on_orientation() {
+        return Ok(None);
+    }
+    let n = features.len();
+    let clock = Instant::now();
+    let orientation = &config.options.orientation;
+    let groups = strong_groups(n, pairs, orientation.strong_pair);
+    if groups.len() < 2 {
+        return Ok(None);
+    }
+    let mut group_of = vec![0usize; n];
+    for (g, members) in groups.iter().enumerate() {
+        for &i in members {
+            group_of[i] = g;
+        }
+    }
+    let mut strength = vec![0usize; n];
+    for p in pairs.iter().filter(|p| p.len() >= orientation.strong_pair) {
+        for i in [p.first, p.second] {
+            if let Some(s) = strength.get_mut(i) {
+                *s += p.len();
+            }
+        }
+    }
+    let reps: Vec<usize> = groups
+        .iter()
+        .skip(1)
+        .take(orientation.tests)
+        .filter_map(|g| {
+            g.iter()
+                .copied()
+                .max_by_key(|&i| (strength[i], std::cmp::Reverse(i)))
+        })
+        .collect();
+    log::info!(
+        "{}the strong pairs form {} groups: testing {} turned by 180°",
+        crate::progress::WORK_STARTS,
+        groups.len(),
+        reps.len()
+    );
+    let is_rep = |i: usize| reps.contains(&i);
+    counter.stage("orientation check", reps.len() as u64);
+    let paths: Vec<&std::path::Path> = reps.iter().map(|&r| images[r].as_path()).collect();
+    let rep_turned = turned_features(matcher.as_ref(), &paths, counter)?;
+    // Each representative with the most similar images of other groups, upright and turned
+    // (one vocabulary; not other representatives, which are turned during the screen), as
+    // (representative, partner).
+    let built;
+    let words = match words.filter(|w| w.len() == n) {
+        Some(w) => Some(w),
+        None => {
+            built = BagOfWords::build(features, &RetrievalOptions::default());
+            built.as_ref()
+        }
+    };
+    let mut trial: Vec<(usize, usize)> = Vec::new();
+    if let Some(words) = words {
+        for (&r, t) in reps.iter().zip(&rep_turned) {
+            let keep = |j: usize| group_of[j] != group_of[r] && !is_rep(j);
+            for h in [
+                words.histogram_of(r).unwrap_or_default(),
+                words.histogram(t),
+            ] {
+                trial.extend(
+                    words
+                        .most_similar(&h, orientation.partners, keep)
+                        .into_iter()
+                        .map(|p| (r, p)),
+                );
+            }
+        }
+    }
+    trial.sort_unstable();
+    trial.dedup();
+    let upright: Vec<ImageFeatures> = reps
+        .iter()
+        .zip(rep_turned)
+        .map(|(&r, f)| std::mem::replace(&mut features[r], f))
+        .collect();
+    let screened: Vec<(usize, usize)> = trial.iter().map(|&(r, p)| (r.min(p), r.max(p))).collect();
+    let opposite = descriptor_support(features, &screened, &config.options.matching);
+    let mut rep_turned: HashMap<usize, ImageFeatures> = reps
+        .iter()
+        .zip(upright)
+        .map(|(&r, f)| (r, std::mem::replace(&mut features[r], f)))
+        .collect();
+    let opposite = opposite?;
+    let same = descriptor_support(features, &screened, &config.options.matching)?;
+    // Evidence between groups, (smaller, larger) group index ↦ (same, opposite).
+    let mut evidence: HashMap<(usize, usize), (usize, usize)> = HashMap::new();
+    for (k, &(r, p)) in trial.iter().enumerate() {
+        let (a, b) = (group_of[r], group_of[p]);
+        let e = evidence.entry((a.min(b), a.max(b))).or_default();
+        e.0 += same[k];
+        e.1 += opposite[k];
+    }
+    let mut edges: Vec<((usize, usize), bool, usize)> = evidence
+        .iter()
+        .filter_map(|(&g, &(s, o))| orientation.evidence(s, o).map(|flip| (g, flip, s.max(o))))
+        .collect();
+    edges.sort_by(|x, y| y.2.cmp(&x.2).then(x.0.cmp(&y.0)));
+    // Labels from the largest group, strongest evidence first.
+    let mut label: Vec<Option<bool>> = vec![None; groups.len()];
+    label[0] = Some(false);
+    loop {
+        let next = edges
+            .iter()
+            .find_map(|&((a, b), flip, _)| match (label[a], label[b]) {
+                (Some(l), None) => Some((b, l != flip)),
+                (None, Some(l)) => Some((a, l != flip)),
+                _ => None,
+            });
+        let Some((g, l)) = next else { break };
+        label[g] = Some(l);
+    }
+    let mut flipped: Vec<usize> = groups
+        .iter()
+        .zip(&label)
+        .filter(|(_, l)| **l == Some(true))
+        .flat_map(|(g, _)| g.iter().copied())
+        .filter(|&i| !features[i].half_turned)
+        .collect();
+    flipped.sort_unstable();
+    log::info!(
+        "{}orientation check: {} images turned against the largest group ({:.1} s)",
+        crate::progress::WORK_STARTS,
+        flipped.len(),
+        clock.elapsed().as_secs_f64()
+    );
+    if flipped.is_empty() {
+        return Ok(None);
+    }
+    // The turned features: the representatives' from the screen, the others extracted.
+    let rest: Vec<usize> = flipped
+        .iter()
+        .copied()
+        .filter(|i| !rep_turned.contains_key(i))
+        .collect();
+    let paths: Vec<&std::path::Path> = rest.iter().map(|&i| images[i].as_path()).collect();
+    counter.stage("turned images", rest.len() as u64);
+    for (&i, f) in rest
+        .iter()
+        .zip(turned_features(matcher.as_ref(), &paths, counter)?)
+    {
+        rep_turned.insert(i, f);
+    }
+    let mut upright: Vec<(usize, ImageFeatures)> = Vec::new();
+    for &i in &flipped {
+        if let Some(f) = rep_turned.remove(&i) {
+            upright.push((i, std::mem::replace(&mut features[i], f)));
+        }
+    }
+    let is_flipped = |i: usize| flipped.binary_search(&i).is_ok();
+    let mut again: Vec<(usize, usize)> = pairs
+        .iter()
+        .filter(|p| is_flipped(p.first) || is_flipped(p.second))
+        .map(|p| (p.first, p.second))
+        .collect();
+    // Pairs the selection did not give (it saw the upright features): each turned image with
+    // its most similar images by its turned features.
+    let had: HashSet<(usize, usize)> = pairs.iter().map(|p| (p.first, p.second)).collect();
+    if let Some(words) = words {
+        for &i in &flipped {
+            let near =
+                words.most_similar(&words.histogram(&features[i]), orientation.partners, |j| {
+                    j != i
+                });
+            again.extend(
+                near.into_iter()
+                    .map(|j| (i.min(j), i.max(j)))
+                    .filter(|p| !had.contains(p)),
+            );
+        }
+    }
+    again.sort_unstable();
+    again.dedup();
+    let matched = matcher.match_pairs(features, &again, (counter, "turned pairs"))?;
+    // Kept only when the turned images verify more matches with the others turned than they
+    // did upright (LightGlue's word over the screen's, as the retry of left-out images asks;
+    // pairs within the turned images turn at both ends and are left out of the count).
+    let across = |p: &&PairMatches| is_flipped(p.first) != is_flipped(p.second);
+    let before: usize = pairs.iter().filter(across).map(PairMatches::len).sum();
+    let after: usize = matched.iter().filter(across).map(PairMatches::len).sum();
+    log::info!(
+        "{}orientation check: the turned images' pairs verify {after} matches against {before}",
+        crate::progress::WORK_STARTS
+    );
+    if after <= before {
+        for (i, f) in upright {
+            features[i] = f;
+        }
+        return Ok(None);
+    }
+    let mut out: Vec<PairMatches> = pairs
+        .iter()
+        .filter(|p| !is_flipped(p.first) && !is_flipped(p.second))
+        .cloned()
+        .collect();
+    out.extend(matched);
+    out.sort_by_key(|p| (p.first, p.second));
+    Ok(Some((flipped, out)))
+}
+
+/// The pairs of [`Densify`]'s second pass: for each estimated image, its nearest estimated
+/// images by the rotation between them, within `max_angle_deg`, that are not in `matched`,
+/// `per_image` at most; sorted `(i, j)` with `i < j`, without repeats. `O(n²)` rotation
+/// comparisons, which are nothing beside one LightGlue pair.
+pub fn densify_pairs(
+    cameras: &[Option<Camera>],
+    matched: &HashSet<(usize, usize)>,
+    densify: &Densify,
+) -> Vec<(usize, usize)> {
+    let mut out = Vec::new();
+    for (i, a) in cameras.iter().enumerate() {
+        let Some(a) = a else { continue };
+        let mut near: Vec<(f64, usize)> = cameras
+            .iter()
+            .enumerate()
+            .filter(|&(j, _)| j != i && !matched.contains(&(i.min(j), i.max(j))))
+            .filter_map(|(j, b)| {
+                let b = b.as_ref()?;
+                let angle = posediff_geometry::epipolar::rotation_angle_between_deg(
+                    &a.cam_from_world.rotation,
+                    &b.cam_from_world.rotation,
+                );
+                (angle.is_finite() && angle <= densify.max_angle_deg).then_some((angle, j))
+            })
+            .collect();
+        near.sort_by(|x, y| x.0.total_cmp(&y.0).then(x.1.cmp(&y.1)));
+        out.extend(
+            near.iter()
+                .take(densify.per_image)
+                .map(|&(_, j)| (i.min(j), i.max(j))),
+        );
+    }
+    out.sort_unstable();
+    out.dedup();
+    out
+}
+
+/// What [`match_all`] gives.
+struct Matched {
+    /// The features of every image.
+    features: Vec<ImageFeatures>,
+    /// The matches of the selected pairs.
+    pairs: Vec<PairMatches>,
+    /// Their support flags (learned matchers with the support check).
+    support: Option<Vec<bool>>,
+    /// The seconds of extraction, selection and matching.
+    times: [f64; 3],
+    /// The selection's rules.
+    selection: String,
+    /// The bag of words of the features, when a retrieval rule built it for a learned matcher
+    /// (the orientation check uses it again).
+    words: Option<BagOfWords>,
+}
+
+/// Extraction, pair selection, matching and (for a learned matcher) the support screen.
+fn match_all(
+    images: &[PathBuf],
+    config: &GeometricConfig,
+    counter: &dyn StepCounter,
+) -> Result<Matched> {
+    if images.len() < 2 {
+        return Err(PosediffError::TooFewImages {
+            needed: 2,
+            got: images.len(),
+        });
+    }
+    let clock = Instant::now();
+    let matcher = config.correspondences();
+    let features = matcher.extract(images, counter)?;
+    let extraction = clock.elapsed().as_secs_f64();
+    let clock = Instant::now();
+    let n = images.len();
+    let (selection, densify) = config.plan(n);
+    // The bag of words once, for a retrieval rule and the orientation check.
+    let words = (config.learned.is_some()
+        && config.options.support.min_verified.is_none()
+        && selection
+            .rules(n)
+            .iter()
+            .any(|r| matches!(r, PairRule::Retrieval(_))))
+    .then(|| BagOfWords::build(&features, &RetrievalOptions::default()))
+    .flatten();
+    let pair_list = select_pairs_with(n, &selection, Some(&features), words.as_ref())?;
+    let mut rules: Vec<String> = selection.rules(n).iter().map(ToString::to_string).collect();
+    if let Some(d) = densify {
+        rules.push(format!("densify:{}deg,{}", d.max_angle_deg, d.per_image));
+    }
+    let selection = clock.elapsed().as_secs_f64();
+    let clock = Instant::now();
+    let pairs = matcher.match_pairs(&features, &pair_list, (counter, "matching"))?;
+    let support = match (config.learned.as_ref(), config.options.support.min_verified) {
+        (Some(_), Some(minimum)) => Some(
+            descriptor_support(&features, &pair_list, &config.options.matching)?
+                .into_iter()
+                .map(|count| count >= minimum)
+                .collect(),
+        ),
+        _ => None,
+    };
+    Ok(Matched {
+        features,
+        pairs,
+        support,
+        times: [extraction, selection, clock.elapsed().as_secs_f64()],
+        selection: rules.join(","),
+        words,
+    })
+}
+
+/// Refines cameras from elsewhere (e.g. COLMAP's, converted to cameras.json) on the matches of
+/// `images` instead of initialising them; `None` entries stay not estimated. The focal is
+/// refined as one shared factor (started from the mean of the given focals) unless
+/// `config.intrinsics` fixes it. With [`Refinement::None`] the cameras come back unchanged.
+///
+/// # Errors
+/// As [`estimate_geometric`]; a count of cameras that does not match the images; fewer than
+/// one given camera.
+pub fn refine_given_cameras(
+    images: &[PathBuf],
+    init: &[Option<Camera>],
+    config: &GeometricConfig,
+) -> Result<GeometricEstimate> {
+    refine_given_cameras_counted(images, init, config, &NoCounter)
+}
+
+/// [`refine_given_cameras`], reporting its matching stages on `counter` as
+/// [`estimate_geometric_counted`] does.
+///
+/// # Errors
+/// As [`refine_given_cameras`].
+pub fn refine_given_cameras_counted(
+    images: &[PathBuf],
+    init: &[Option<Camera>],
+    config: &GeometricConfig,
+    counter: &dyn StepCounter,
+) -> Result<GeometricEstimate> {
+    if init.len() != images.len() {
+        return Err(PosediffError::InvalidArgument(format!(
+            "{} initial cameras for {} images",
+            init.len(),
+            images.len()
+        )));
+    }
+    let Some(reference) = init.iter().position(Option::is_some) else {
+        return Err(PosediffError::InvalidArgument(
+            "no initial camera is estimated".into(),
+        ));
+    };
+    let Matched {
+        features,
+        mut pairs,
+        mut times,
+        selection,
+        ..
+    } = match_all(images, config, counter)?;
+    let matcher = config.correspondences();
+    let sizes: Vec<ImageSize> = features.iter().map(|f| f.image_size).collect();
+    // The second pass needs no first map here: the given cameras say which images overlap.
+    let mut densified = 0;
+    if let (_, Some(d)) = config.plan(images.len()) {
+        let matched: HashSet<(usize, usize)> = pairs.iter().map(|p| (p.first, p.second)).collect();
+        let extra = densify_pairs(init, &matched, &d);
+        let clock = Instant::now();
+        pairs.extend(matcher.match_pairs(&features, &extra, (counter, "second pass"))?);
+        times[2] += clock.elapsed().as_secs_f64();
+        densified = extra.len();
+    }
+    counter.stage("refining", 0);
+    let (layout, known_phi) = intrinsics_layout(&sizes, &config.intrinsics)?;
+    let given: Vec<f64> = init
+        .iter()
+        .zip(&layout.scale)
+        .filter_map(|(c, s)| c.map(|c| 0.5 * (c.intrinsics.fx() + c.intrinsics.fy()) / s))
+        .collect();
+    let mut phi = known_phi.unwrap_or(given.iter().sum::<f64>() / given.len() as f64);
+    let mut cameras: Vec<Option<CameraPose>> = init
+        .iter()
+        .map(|c| {
+            c.map(|c| CameraPose {
+                rotation: Rotation3::from_matrix(&c.cam_from_world.rotation),
+                center: c.center().coords,
+            })
+        })
+        .collect();
+    let mut report = GeometricReport {
+        pair_selection: selection,
+        pairs_matched: pairs.len(),
+        pairs_densified: densified,
+        pairs_with_matches: pairs.iter().filter(|p| !p.is_empty()).count(),
+        focal_source: if known_phi.is_some() {
+            FocalOrigin::Given
+        } else {
+            FocalOrigin::InitialCameras
+        },
+        focal_factor_initial: phi,
+        ..GeometricReport::default()
+    };
+    (
+        report.times.extraction,
+        report.times.pair_selection,
+        report.times.matching_pairs,
+    ) = (times[0], times[1], times[2]);
+    report.times.matching = times.iter().sum();
+    let start = Instant::now();
+    let mut out: Vec<Option<Camera>> = init.to_vec();
+    if let Refinement::Converge(mut refine) = config.refinement {
+        refine.refine_focal &= known_phi.is_none();
+        let refs: Vec<&PairMatches> = pairs.iter().collect();
+        let r = refine_sampson(&refs, &layout, &mut cameras, &mut phi, reference, &refine)?;
+        report.record_refine(&r);
+        for (i, (o, c)) in out.iter_mut().zip(&cameras).enumerate() {
+            if let (Some(o), Some(c)) = (o.as_mut(), c) {
+                let r = *c.rotation.matrix();
+                o.cam_from_world = Pose::new(r, c.translation());
+                o.intrinsics = match &config.intrinsics {
+                    KnownIntrinsics::PerImage(k) => k[i],
+                    _ => layout.intrinsics(phi, i)?,
+                };
+            }
+        }
+    }
+    if let Refinement::Official(ggs) = config.refinement {
+        let mut ggs = ggs;
+        ggs.fix_focal |= known_phi.is_some();
+        official_ggs(&mut out, &pairs, &ggs)?;
+    }
+    report.focal_factor = phi;
+    report.estimated = (0..images.len()).filter(|&i| out[i].is_some()).collect();
+    report.times.refinement = start.elapsed().as_secs_f64();
+    Ok(GeometricEstimate {
+        cameras: out,
+        sizes,
+        pairs,
+        points: Vec::new(),
+        report,
+        warnings: Vec::new(),
+    })
+}
+
+/// The per-image principal points and focal scales, and `φ` when the focal is known.
+fn intrinsics_layout(
+    sizes: &[ImageSize],
+    known: &KnownIntrinsics,
+) -> Result<(ImageIntrinsics, Option<f64>)> {
+    Ok(match resolve_intrinsics(known, sizes)? {
+        None => (ImageIntrinsics::from_sizes(sizes), None),
+        Some(k) => (ImageIntrinsics::from_known(&k), Some(1.0)),
+    })
+}
+
+/// [`estimate_geometric`] from matches already made.
+///
+/// # Errors
+/// Fewer than two images, no pair with enough matches, invalid known intrinsics.
+pub fn estimate_from_matches(
+    sizes: &[ImageSize],
+    pairs: Vec<PairMatches>,
+    config: &GeometricConfig,
+) -> Result<GeometricEstimate> {
+    estimate_from_supported_matches(sizes, pairs, None, config)
+}
+
+/// [`estimate_from_matches`] with support flags, one per pair (`true`: evidence beyond the
+/// matcher's own; see [`crate::options::SupportOptions`]): the mapper keeps an
+/// unsupported pair only when a triangle of kept pairs confirms it.
+///
+/// # Errors
+/// As [`estimate_from_matches`]; support flags of another count than the pairs.
+pub fn estimate_from_supported_matches(
+    sizes: &[ImageSize],
+    pairs: Vec<PairMatches>,
+    support: Option<Vec<bool>>,
+    config: &GeometricConfig,
+) -> Result<GeometricEstimate> {
+    map_supported_matches(sizes, pairs, support, config, &TwoViewCache::default())
+}
+
+/// [`estimate_from_supported_matches`] with the two-view results of the estimate's earlier
+/// mapper runs.
+fn map_supported_matches(
+    sizes: &[ImageSize],
+    pairs: Vec<PairMatches>,
+    support: Option<Vec<bool>>,
+    config: &GeometricConfig,
+    cache: &TwoViewCache,
+) -> Result<GeometricEstimate> {
+    let n = sizes.len();
+    if n < 2 {
+        return Err(PosediffError::TooFewImages { needed: 2, got: n });
+    }
+    let (layout, known_phi) = intrinsics_layout(sizes, &config.intrinsics)?;
+    let mapper = GlobalMapper::new(config.mapper_options());
+    let solver = OpenCvTwoView {
+        config: &config.options.two_view,
+        cache: Some(cache),
+    };
+    let reconstruction = match &support {
+        Some(flags) => {
+            mapper.run_with_support(&pairs, flags, layout, known_phi.is_some(), &solver)?
+        }
+        None => mapper.run(&pairs, layout, known_phi.is_some(), &solver)?,
+    };
+    let mut report = GeometricReport::default();
+    report.record_mapper(&reconstruction.report);
+    let mut pairs = pairs;
+    if let Some(s) = &reconstruction.report.support {
+        // The rejected pairs keep their record without matches: nothing downstream (GGS,
+        // points, exports) may use them.
+        let rejected: std::collections::HashSet<[usize; 2]> =
+            s.rejected_pairs.iter().copied().collect();
+        for p in &mut pairs {
+            if rejected.contains(&[p.first, p.second]) {
+                *p = PairMatches {
+                    first: p.first,
+                    second: p.second,
+                    kp1: Vec::new(),
+                    kp2: Vec::new(),
+                    idx1: Vec::new(),
+                    idx2: Vec::new(),
+                };
+            }
+        }
+    }
+    let mut warnings = Vec::new();
+    if reconstruction.report.no_parallax {
+        warnings.push(Warning::NoParallax);
+    }
+    let not_estimated = reconstruction.report.not_estimated.len();
+    if not_estimated > 0 {
+        warnings.push(Warning::NotEstimated {
+            count: not_estimated,
+            of: n,
+        });
+    }
+    let mut cameras = reconstruction
+        .cameras
+        .iter()
+        .enumerate()
+        .map(|(i, c)| {
+            let Some(c) = c else { return Ok(None) };
+            let intrinsics = match &config.intrinsics {
+                KnownIntrinsics::PerImage(given) => given[i],
+                _ => reconstruction
+                    .intrinsics
+                    .intrinsics(reconstruction.phi, i)?,
+            };
+            Ok(Some(Camera::new(
+                intrinsics,
+                Pose::new(*c.rotation.matrix(), c.translation()),
+                sizes[i],
+            )))
+        })
+        .collect::<Result<Vec<_>>>()?;
+    if let Refinement::Official(ggs) = config.refinement {
+        let start = Instant::now();
+        let mut ggs = ggs;
+        ggs.fix_focal |= known_phi.is_some();
+        official_ggs(&mut cameras, &pairs, &ggs)?;
+        report.times.refinement += start.elapsed().as_secs_f64();
+    }
+    Ok(GeometricEstimate {
+        cameras,
+        sizes: sizes.to_vec(),
+        pairs,
+        points: reconstruction.points,
+        report,
+        warnings,
+    })
+}
+
+/// The official GGS schedule on the estimated cameras, in place: each camera into its 224 crop
+/// and encoded, the matches of the estimated images mapped into the crops, the five phases, and
+/// back to original pixels.
+///
+/// # Errors
+/// Cameras that cannot be encoded; invalid GGS settings.
+pub fn official_ggs(
+    cameras: &mut [Option<Camera>],
+    pairs: &[PairMatches],
+    config: &GgsConfig,
+) -> Result<()> {
+    let members: Vec<usize> = (0..cameras.len())
+        .filter(|&i| cameras[i].is_some())
+        .collect();
+    if members.len() < 2 {
+        return Ok(());
+    }
+    let crops: Vec<Option<CenterCrop>> = cameras
+        .iter()
+        .map(|c| c.map(|c| CenterCrop::official(c.image_size, MODEL_INPUT_SIDE)))
+        .collect();
+    let set = model_frame_matches(pairs, &crops)?;
+    let mut encodings = members
+        .iter()
+        .map(|&i| match (cameras[i], crops[i]) {
+            (Some(c), Some(crop)) => Ok(PoseEncoding::from_camera(
+                &crop.camera_to_model(&c)?,
+                QuaternionSign::default(),
+            )?),
+            _ => Err(PosediffError::InvalidArgument("missing camera".into())),
+        })
+        .collect::<Result<Vec<_>>>()?;
+    GgsSolver::new(&set, *config)?.run(&mut encodings, None)?;
+    let model = ImageSize::new(MODEL_INPUT_SIDE, MODEL_INPUT_SIDE)?;
+    for (&i, e) in members.iter().zip(&encodings) {
+        if let (Some(c), Some(crop)) = (cameras[i].as_mut(), crops[i]) {
+            let mut refined = crop.camera_from_model(&e.to_camera(model)?, c.image_size)?;
+            if config.fix_focal {
+                refined.intrinsics = c.intrinsics;
+            }
+            *c = refined;
+        }
+    }
+    Ok(())
+}
+
+pub use crate::report::BundleRefinement;
+
+/// The hybrid of the paper's future work: cameras from elsewhere (PoseDiffusion after GGS)
+/// refined by the mapper: the Sampson refinement to convergence, then the bundle adjustment
+/// with tracks built from `pairs`. Camera 0 is
+/// held fixed and the scene keeps its scale (mean distance of the centres from camera 0);
+/// unless `known_intrinsics`, one factor on every camera's focal is refined with them.
+///
+/// Non-square pixels are adjusted by their mean focal (the factor applies to both).
+///
+/// # Errors
+/// Fewer than two cameras, malformed pairs, a degenerate adjustment.
+pub fn bundle_refine_cameras(
+    cameras: &mut [Camera],
+    pairs: &[PairMatches],
+    known_intrinsics: bool,
+) -> Result<BundleRefinement> {
+    if cameras.len() < 2 {
+        return Err(PosediffError::TooFewImages {
+            needed: 2,
+            got: cameras.len(),
+        });
+    }
+    let layout =
+        ImageIntrinsics::from_known(&cameras.iter().map(|c| c.intrinsics).collect::<Vec<_>>());
+    let mut poses: Vec<Option<CameraPose>> = cameras
+        .iter()
+        .map(|c| {
+            Some(CameraPose {
+                rotation: Rotation3::from_matrix(&c.cam_from_world.rotation),
+                center: c.center().coords,
+            })
+        })
+        .collect();
+    let spread = |p: &[Option<CameraPose>]| -> f64 {
+        let origin = p[0].map_or(nalgebra::Vector3::zeros(), |c| c.center);
+        p.iter()
+            .flatten()
+            .map(|c| (c.center - origin).norm())
+            .sum::<f64>()
+            / p.len() as f64
+    };
+    let scale_before = spread(&poses);
+    // The Sampson refinement first (its basin is wide: a few degrees off is fine), then the
+    // bundle adjustment, whose points are triangulated from the refined cameras.
+    let mut phi = 1.0;
+    let refs: Vec<&PairMatches> = pairs.iter().filter(|p| !p.is_empty()).collect();
+    let sampson = SampsonRefineOptions {
+        refine_focal: !known_intrinsics,
+        ..SampsonRefineOptions::default()
+    };
+    let first = refine_sampson(&refs, &layout, &mut poses, &mut phi, 0, &sampson)?;
+    let (tracks, track_report) = build_tracks(cameras.len(), pairs)?;
+    let options = BundleOptions {
+        refine_focal: !known_intrinsics,
+        ..BundleOptions::default()
+    };
+    let (_, report) = bundle_adjust(&tracks, &layout, &mut poses, &mut phi, 0, &options)?;
+    let scale_after = spread(&poses);
+    let rescale = if scale_after > 0.0 && scale_before > 0.0 {
+        scale_before / scale_after
+    } else {
+        1.0
+    };
+    let origin = poses[0].map_or(nalgebra::Vector3::zeros(), |c| c.center);
+    for (c, p) in cameras.iter_mut().zip(&poses) {
+        let Some(p) = p else { continue };
+        let center = origin + (p.center - origin) * rescale;
+        let r = *p.rotation.matrix();
+        c.cam_from_world = Pose::from_rotation_centre(r, center);
+        if !known_intrinsics {
+            let k = c.intrinsics;
+            c.intrinsics = Intrinsics::new(k.fx() * phi, k.fy() * phi, k.cx(), k.cy())?;
+        }
+    }
+    Ok(BundleRefinement {
+        tracks: track_report.tracks,
+        points: report.points,
+        observations: report.observations,
+        rms_px: report.rms_px,
+        iterations: report.iterations,
+        termination: report.termination.as_str().into(),
+        sampson_iterations: first.iterations,
+        sampson_termination: first.termination.as_str().into(),
+        focal_factor: phi,
+    })
+}
+
+/// Matches in original pixels → the 224-crop frame of each image, as a GGS match set over the
+/// images that have a crop (`crops[i]`: image `i`'s crop, `None` to leave it out). The set's
+/// frame `k` is the `k`-th image with a crop; pairs touching an image without one are
+/// skipped.
+///
+/// # Errors
+/// Invalid pairs.
+pub fn model_frame_matches(
+    pairs: &[PairMatches],
+    crops: &[Option<CenterCrop>],
+) -> Result<posediff_guidance::MatchSet> {
+    let mut frame_of = vec![None; crops.len()];
+    let mut members = 0;
+    for (slot, crop) in frame_of.iter_mut().zip(crops) {
+        if crop.is_some() {
+            *slot = Some(members);
+            members += 1;
+        }
+    }
+    let (mut kp1, mut kp2, mut frames) = (Vec::new(), Vec::new(), Vec::new());
+    for p in pairs {
+        let (Some(Some(a)), Some(Some(b)), Some(Some(ca)), Some(Some(cb))) = (
+            frame_of.get(p.first),
+            frame_of.get(p.second),
+            crops.get(p.first),
+            crops.get(p.second),
+        ) else {
+            continue;
+        };
+        for (x, y) in p.kp1.iter().zip(&p.kp2) {
+            kp1.push(ca.to_model(*x));
+            kp2.push(cb.to_model(*y));
+            frames.push((*a, *b));
+        }
+    }
+    Ok(posediff_guidance::MatchSet::new(
+        members, &kp1, &kp2, &frames,
+    )?)
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used, clippy::expect_used)]
+    use super::*;
+    use nalgebra::Vector3;
+    use posediff_sfm::resection::{Evidence, ResectionOptions, resect_bridged_sides};
+    use posediff_sfm::tracks::build_tracks;
+
+    const N: usize = 6;
+
+    fn as_cameras(poses: &[Option<CameraPose>]) -> Vec<Option<Camera>> {
+        let k = posediff_geometry::Intrinsics::new(500.0, 500.0, 320.0, 240.0).unwrap();
+        let size = ImageSize::new(640, 480).unwrap();
+        poses
+            .iter()
+            .map(|p| {
+                p.map(|p| Camera::new(k, Pose::new(*p.rotation.matrix(), p.translation()), size))
+            })
+            .collect()
+    }
+
+    /// The second pass's pairs: within the angle, nearest first, at most `per_image` per
+    /// image, never a matched pair or an image without a camera.
+    #[test]
+    fn densify_pairs_are_the_nearest_unmatched_within_the_angle() {
+        let mut cams = as_cameras(&cameras());
+        cams[5] = None;
+        let angle = |i: usize, j: usize| {
+            let (a, b) = (cams[i].unwrap(), cams[j].unwrap());
+            posediff_geometry::epipolar::rotation_angle_between_deg(
+                &a.cam_from_world.rotation,
+                &b.cam_from_world.rotation,
+            )
+        };
+        let matched: HashSet<(usize, usize)> = [(0, 1), (1, 2)].into_iter().collect();
+        let d = Densify {
+            max_angle_deg: 45.0,
+            per_image: 1,
+        };
+        let pairs = densify_pairs(&cams, &matched, &d);
+        assert!(!pairs.is_empty());
+        for &(i, j) in &pairs {
+            assert!(i < j && j != 5 && !matched.contains(&(i, j)));
+            assert!(angle(i, j) <= 45.0);
+        }
+        // Each image contributed its nearest unmatched neighbour, so every pair is the
+        // nearest unmatched one of one of its images.
+        for &(i, j) in &pairs {
+            let nearest = |a: usize| {
+                (0..5)
+                    .filter(|&b| b != a && !matched.contains(&(a.min(b), a.max(b))))
+                    .min_by(|&x, &y| angle(a, x).total_cmp(&angle(a, y)))
+                    .unwrap()
+            };
+            assert!(nearest(i) == j || nearest(j) == i, "({i}, {j})");
+        }
+        assert!(pairs.len() <= 5);
+        // A wide angle and a large budget give every unmatched pair of estimated images.
+        let all = densify_pairs(
+            &cams,
+            &matched,
+            &Densify {
+                max_angle_deg: 180.0,
+                per_image: 10,
+            },
+        );
+        assert_eq!(all.len(), 5 * 4 / 2 - matched.len());
+        // A tight angle gives none.
+        let none = Densify {
+            max_angle_deg: 1.0,
+            per_image: 10,
+        };
+        assert!(densify_pairs(&cams, &matched, &none).is_empty());
+    }
+
+    /// Without a learned matcher `auto` is `pairs.auto` resolved for the set's size, and the
+    /// second pass only runs when configured.
+    #[test]
+    fn the_plan_without_a_learned_matcher_is_the_configuration() {
+        let mut config = GeometricConfig::default();
+        let rules = |r: &[PairRule]| PairSelection::Rules(r.to_vec());
+        let big = rules(&[PairRule::Sequential(10), PairRule::Retrieval(20)]);
+        assert_eq!(config.plan(200), (big, None));
+        assert_eq!(config.plan(60), (rules(&[PairRule::Exhaustive]), None));
+        config.options.pairs.auto.exhaustive_up_to = 4;
+        config.options.pairs.auto.sequential = 2;
+        assert_eq!(
+            config.plan(5).0,
+            rules(&[PairRule::Sequential(2), PairRule::Retrieval(20)])
+        );
+        config.options.densify.when = crate::options::DensifyWhen::Always;
+        assert_eq!(config.plan(5).1, Some(Densify::default()));
+    }
+
+    /// Six cameras on an arc 2.5 above a table (`z = 0`), looking at its centre.
+    fn cameras() -> Vec<Option<CameraPose>> {
+        (0..N)
+            .map(|i| {
+                let a = 0.35 * i as f64;
+                let center = Vector3::new(3.0 * a.cos(), 3.0 * a.sin(), 2.5);
+                let forward = (-center).normalize();
+                let right = forward.cross(&Vector3::z()).normalize();
+                let down = forward.cross(&right);
+                let rotation = Rotation3::from_matrix(&Matrix3::from_rows(&[
+                    right.transpose(),
+                    down.transpose(),
+                    forward.transpose(),
+                ]));
+                Some(CameraPose { rotation, center })
+            })
+            .collect()
+    }
+
+    fn intrinsics() -> ImageIntrinsics {
+        ImageIntrinsics {
+            principal: vec![[320.0, 240.0]; N],
+            scale: vec![640.0; N],
+        }
+    }
+
+    /// Table points (and `object` points above it), numbered from `first`.
+    fn points(first: usize, count: usize, object: bool) -> Vec<(u32, Vector3<f64>)> {
+        let mut s: u64 = 0x5eed + first as u64;
+        let mut rnd = || {
+            s = s
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1_442_695_040_888_963_407);
+            ((s >> 33) as f64) / f64::from(1u32 << 31) - 0.5
+        };
+        (0..count)
+            .map(|k| {
+                let z = if object && k % 3 == 0 {
+                    0.4 + 0.4 * rnd()
+                } else {
+                    0.0
+                };
+                (
+                    (first + k) as u32,
+                    Vector3::new(2.0 * rnd(), 2.0 * rnd(), z),
+                )
+            })
+            .collect()
+    }
+
+    /// The exact matches of `points` between cameras `a` and `b` (keypoint id = point id).
+    fn pair(a: usize, b: usize, pts: &[(u32, Vector3<f64>)]) -> PairMatches {
+        pair_seen_by(a, b, pts, cameras()[b].unwrap())
+    }
+
+    /// Matches of `points` whose pixels in `b` are where camera `seen_by` sees them.
+    fn pair_seen_by(
+        a: usize,
+        b: usize,
+        pts: &[(u32, Vector3<f64>)],
+        seen_by: CameraPose,
+    ) -> PairMatches {
+        let (cams, k) = (cameras(), intrinsics());
+        let project = |c: CameraPose, i: usize, x: &Vector3<f64>| {
+            let p = k.k(1.0, i) * (c.rotation * (x - c.center));
+            [p.x / p.z, p.y / p.z]
+        };
+        PairMatches {
+            first: a,
+            second: b,
+            kp1: pts
+                .iter()
+                .map(|(_, x)| project(cams[a].unwrap(), a, x))
+                .collect(),
+            kp2: pts.iter().map(|(_, x)| project(seen_by, b, x)).collect(),
+            idx1: pts.iter().map(|(id, _)| *id).collect(),
+            idx2: pts.iter().map(|(id, _)| *id).collect(),
+        }
+    }
+
+    /// Side {3, 4, 5} turned by 25° about camera 3 and scaled by `scale`: a wrong bridge pose.
+    fn misplaced(scale: f64) -> Vec<Option<CameraPose>> {
+        let truth = cameras();
+        let pivot = truth[3].unwrap();
+        let turn = Rotation3::from_axis_angle(&Vector3::y_axis(), 25f64.to_radians());
+        truth
+            .iter()
+            .enumerate()
+            .map(|(i, c)| {
+                let c = c.unwrap();
+                Some(if i < 3 {
+                    c
+                } else {
+                    CameraPose {
+                        rotation: c.rotation * turn.inverse(),
+                        center: pivot.center + scale * (turn * (c.center - pivot.center)),
+                    }
+                })
+            })
+            .collect()
+    }
+
+    fn worst_error(cameras: &[Option<CameraPose>]) -> (f64, f64) {
+        let truth = self::cameras();
+        cameras
+            .iter()
+            .zip(&truth)
+            .fold((0.0, 0.0), |(r, c), (a, b)| {
+                let (a, b) = (a.unwrap(), b.unwrap());
+                (
+                    r.max((a.rotation * b.rotation.inverse()).angle().to_degrees()),
+                    c.max((a.center - b.center).norm()),
+                )
+            })
+    }
+
+    fn run(
+        pairs: &[PairMatches],
+        cameras: &mut [Option<CameraPose>],
+    ) -> posediff_sfm::resection::ResectionReport {
+        let edges: Vec<(usize, usize)> = pairs.iter().map(|p| (p.first, p.second)).collect();
+        run_with(pairs, &edges, cameras, &ResectionOptions::default())
+    }
+
+    fn run_with(
+        pairs: &[PairMatches],
+        edges: &[(usize, usize)],
+        cameras: &mut [Option<CameraPose>],
+        options: &ResectionOptions,
+    ) -> posediff_sfm::resection::ResectionReport {
+        let (tracks, _) = build_tracks(N, pairs).unwrap();
+        let config = TwoViewConfig::default();
+        resect_bridged_sides(
+            &tracks,
+            pairs,
+            &intrinsics(),
+            1.0,
+            cameras,
+            edges,
+            &OpenCvTwoView::new(&config),
+            options,
+        )
+        .unwrap()
+    }
+
+    #[test]
+    fn a_side_on_a_wrong_bridge_is_resected_from_the_tracks_through_it() {
+        // Triangles {0, 1, 2} and {3, 4, 5} joined by the bridge 2–3; one set of points seen by
+        // all, so tracks run through the bridge.
+        let pts = points(0, 80, true);
+        let links = [(0, 1), (1, 2), (0, 2), (2, 3), (3, 4), (4, 5), (3, 5)];
+        let pairs: Vec<PairMatches> = links.iter().map(|&(a, b)| pair(a, b, &pts)).collect();
+        let mut cams = misplaced(1.7);
+        assert!(worst_error(&cams).0 > 20.0);
+        let report = run(&pairs, &mut cams);
+        assert_eq!(report.bridges, 1);
+        assert_eq!(report.moved.len(), 1, "{report:?}");
+        let moved = report.moved[0];
+        assert_eq!(
+            (moved.first, moved.second, moved.evidence),
+            (2, 3, Evidence::Tracks)
+        );
+        assert_eq!(moved.images, 3);
+        let scale = moved.scale.expect("the shared points observe the scale");
+        assert!((scale - 1.0 / 1.7).abs() < 1e-3, "{scale}");
+        let (rotation, centre) = worst_error(&cams);
+        assert!(rotation < 0.01 && centre < 1e-3, "{rotation}° {centre}");
+        // Where the cameras are right, nothing moves.
+        let report = run(&pairs, &mut cams);
+        assert!(report.moved.is_empty(), "{report:?}");
+    }
+
+    #[test]
+    fn a_planar_bridge_without_tracks_is_resected_on_the_anchor_s_plane() {
+        // The bridge 2–3 matches table points that no other pair of the anchor sees, so no
+        // track through it has two anchor observations: only the plane can place camera 3.
+        let anchor = points(0, 80, true);
+        let bridge = points(1000, 40, false);
+        let side = points(2000, 60, true);
+        let mut pairs: Vec<PairMatches> = [(0, 1), (1, 2), (0, 2)]
+            .iter()
+            .map(|&(a, b)| pair(a, b, &anchor))
+            .collect();
+        pairs.push(pair(2, 3, &bridge));
+        let with_bridge: Vec<(u32, Vector3<f64>)> = side.iter().chain(&bridge).copied().collect();
+        for (a, b) in [(3, 4), (4, 5), (3, 5)] {
+            pairs.push(pair(a, b, &with_bridge));
+        }
+        let mut cams = misplaced(0.6);
+        let report = run(&pairs, &mut cams);
+        assert_eq!(report.moved.len(), 1, "{report:?}");
+        let moved = report.moved[0];
+        assert_eq!((moved.image, moved.evidence), (3, Evidence::Plane));
+        assert!(moved.inliers_after >= 38, "{moved:?}");
+        let scale = moved.scale.expect("the side's points meet the plane");
+        assert!((scale - 1.0 / 0.6).abs() < 1e-3, "{scale}");
+        let (rotation, centre) = worst_error(&cams);
+        assert!(rotation < 0.01 && centre < 1e-3, "{rotation}° {centre}");
+        let report = run(&pairs, &mut cams);
+        assert!(report.moved.is_empty(), "{report:?}");
+    }
+
+    #[test]
+    fn tracks_of_wrong_matches_do_not_move_a_side_against_its_bridge() {
+        // As the first test with the cameras right, plus a pair 2–4 (left out of the pose graph,
+        // as the rotation check drops it, but in the tracks) whose pixels in 4 are where a
+        // camera turned by 40° would see the points: repeated structure matched wrongly, more
+        // of it than the right matches. A PnP of 4 on the anchor's points (0 and 2 see them
+        // right) fits that camera with 200 inliers against 80 for the right pose.
+        let pts = points(0, 80, true);
+        let links = [(0, 1), (1, 2), (0, 2), (2, 3), (3, 4), (4, 5), (3, 5)];
+        let mut pairs: Vec<PairMatches> = links.iter().map(|&(a, b)| pair(a, b, &pts)).collect();
+        let edges: Vec<(usize, usize)> = links.to_vec();
+        let truth = cameras()[4].unwrap();
+        let turn = Rotation3::from_axis_angle(&Vector3::z_axis(), 40f64.to_radians());
+        let wrong = CameraPose {
+            rotation: truth.rotation * turn.inverse(),
+            center: turn * truth.center,
+        };
+        let mirrored = points(5000, 200, true);
+        pairs.push(pair(0, 2, &mirrored));
+        pairs.push(pair_seen_by(2, 4, &mirrored, wrong));
+        let mut cams = cameras();
+        let report = run_with(&pairs, &edges, &mut cams, &ResectionOptions::default());
+        assert!(report.moved.is_empty(), "{report:?}");
+        assert_eq!(cams, cameras());
+        // Without the bridge's epipolar check the tracks would have moved the side.
+        let unchecked = ResectionOptions {
+            min_relative_inliers: 0.0,
+            ..ResectionOptions::default()
+        };
+        let report = run_with(&pairs, &edges, &mut cams, &unchecked);
+        assert_eq!(report.moved.len(), 1, "{report:?}");
+        assert_eq!(
+            (report.moved[0].image, report.moved[0].evidence),
+            (4, Evidence::Tracks)
+        );
+    }
+
+    /// Matches of `count` placeholder keypoints between `a` and `b`.
+    fn counted(a: usize, b: usize, count: usize) -> PairMatches {
+        PairMatches {
+            first: a,
+            second: b,
+            kp1: vec![[0.0; 2]; count],
+            kp2: vec![[0.0; 2]; count],
+            idx1: (0..count as u32).collect(),
+            idx2: (0..count as u32).collect(),
+        }
+    }
+
+    /// Strong pairs join, weak ones do not; groups come largest first, then by their first
+    /// image, and an image without a strong pair is a group of its own.
+    #[test]
+    fn strong_groups_follow_the_strong_pairs_only() {
+        let pairs = [
+            counted(0, 1, 200),
+            counted(1, 2, 80),
+            counted(2, 3, 79),
+            counted(3, 4, 500),
+            counted(5, 6, 100),
+            counted(4, 5, 20),
+        ];
+        let groups = strong_groups(8, &pairs, STRONG_PAIR);
+        assert_eq!(groups, vec![vec![0, 1, 2], vec![3, 4], vec![5, 6], vec![7]]);
+        assert_eq!(
+            strong_groups(3, &[], STRONG_PAIR),
+            vec![vec![0], vec![1], vec![2]]
+        );
+    }
+
+    /// Evidence decides only when one way has the screen's minimum and twice the other's.
+    #[test]
+    fn orientation_evidence_needs_a_clear_winner() {
+        let o = crate::options::OrientationOptions::default();
+        let min = o.min_matches;
+        assert_eq!(o.evidence(0, min), Some(true));
+        assert_eq!(o.evidence(min, 0), Some(false));
+        assert_eq!(o.evidence(0, min - 1), None);
+        assert_eq!(o.evidence(30, 59), None);
+        assert_eq!(o.evidence(30, 60), Some(true));
+        assert_eq!(o.evidence(60, 30), Some(false));
+        assert_eq!(o.evidence(0, 0), None);
+        // The thresholds are the options' own.
+        let strict = crate::options::OrientationOptions {
+            min_matches: 50,
+            ratio: 4.0,
+            ..o
+        };
+        assert_eq!(strict.evidence(0, 40), None);
+        assert_eq!(strict.evidence(20, 79), None);
+        assert_eq!(strict.evidence(20, 80), Some(true));
+    }
+}

@@ -1,0 +1,26 @@
+//! The checkpoint-free pipeline of posediff as a library, composed the way GLOMAP's global
+//! mapper controller and COLMAP's controllers compose their stages:
+//!
+//! - [`correspondences`]: the [`correspondences::Correspondences`] trait, features of images
+//!   and verified matches of requested pairs, implemented by OpenCV's SIFT/ORB
+//!   (`posediff-matching`) and by ALIKED/DISK + LightGlue (`posediff-learned`).
+//! - [`geometric`]: the controller: extraction, the pair plan, matching, the orientation check,
+//!   the mapper of `posediff-sfm` with OpenCV's two-view geometry behind its `GeometrySolver`,
+//!   the second pass, the turned retry; the refinement of given cameras.
+//! - [`options`]: [`options::PipelineOptions`], every threshold in one tree (run.json,
+//!   `--config`, `--set`, Python).
+//! - [`report`]: what the controller reports (run.json's method report, warnings).
+//! - [`progress`]: the step counter of the stages.
+//! - [`error`]: posediff's error type.
+//!
+//! The mapper crate never sees an image, OpenCV or candle: this crate hands it verified
+//! [`posediff_geometry::PairMatches`] and a solver.
+
+pub mod correspondences;
+pub mod error;
+pub mod geometric;
+pub mod options;
+pub mod progress;
+pub mod report;
+
+pub use error::{PosediffError, Result};

@@ -1,0 +1,437 @@
+//! The options of a run: [`PipelineOptions`], every threshold of the checkpoint-free pipeline
+//! in one tree, and what is known of the intrinsics and how the cameras are refined.
+
+use std::path::Path;
+
+use posediff_geometry::{ImageSize, Intrinsics};
+use posediff_matching::pairs::AutoPairs;
+use posediff_matching::{MatchConfig, PairRule, PairSelection, TwoViewConfig};
+use posediff_sfm::MapperOptions;
+use posediff_sfm::intrinsics::image_centre;
+use serde::{Deserialize, Serialize};
+
+use crate::error::{PosediffError, Result};
+
+/// How the cameras are refined (`--refine`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum RefineMode {
+    /// Levenberg–Marquardt on the Sampson distances until the cost stops falling, then the
+    /// bundle adjustment with tracks.
+    #[default]
+    Converge,
+    /// With a checkpoint: PoseDiffusion's cameras (after GGS) refined by the mapper's bundle
+    /// adjustment; without, as `Converge`.
+    Bundle,
+    /// The official five-phase GGS schedule (7000 SGD iterations) in the 224 crops.
+    Official,
+    /// The averaged cameras as they are.
+    None,
+}
+
+/// What is known of the intrinsics.
+#[derive(Debug, Clone, PartialEq)]
+pub enum KnownIntrinsics {
+    /// Nothing: a shared focal is estimated.
+    Unknown,
+    /// One focal length in pixels for every image (principal points at the centres).
+    FocalPx(f64),
+    /// Full intrinsics per image (fixed; the focal is not refined).
+    PerImage(Vec<Intrinsics>),
+}
+
+/// Per image, the known intrinsics in original pixels (`None` when unknown); a focal alone puts
+/// the principal point at the image centre.
+///
+/// # Errors
+/// A count that does not match the images, a non-positive focal.
+pub fn resolve_intrinsics(
+    known: &KnownIntrinsics,
+    sizes: &[ImageSize],
+) -> Result<Option<Vec<Intrinsics>>> {
+    match known {
+        KnownIntrinsics::Unknown => Ok(None),
+        KnownIntrinsics::FocalPx(f) => sizes
+            .iter()
+            .map(|s| {
+                let c = image_centre(*s);
+                Intrinsics::new(*f, *f, c[0], c[1]).map_err(|_| {
+                    PosediffError::InvalidArgument(format!(
+                        "focal length must be positive, got {f}"
+                    ))
+                })
+            })
+            .collect::<Result<Vec<_>>>()
+            .map(Some),
+        KnownIntrinsics::PerImage(k) if k.len() == sizes.len() => Ok(Some(k.clone())),
+        KnownIntrinsics::PerImage(k) => Err(PosediffError::InvalidArgument(format!(
+            "{} intrinsics for {} images",
+            k.len(),
+            sizes.len()
+        ))),
+    }
+}
+
+/// Every threshold of the checkpoint-free pipeline, one tree: each stage's options struct with
+/// its documented defaults and the measurements that chose them. run.json carries it whole
+/// (`options`), `posediff estimate --config FILE` (TOML or JSON, any subset of the tree) and
+/// `--set key.path=value` change it, and so do the Python module's `config=` and
+/// `options={"key.path": value}`. Unknown keys are errors that name the key and where it came
+/// from.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct PipelineOptions {
+    /// Which pairs are matched.
+    pub pairs: PairOptions,
+    /// Features and matching (OpenCV's; `features.detector` follows `--matcher`).
+    pub matching: MatchConfig,
+    /// Two-view geometry (its `homography_fraction` is also the mapper's).
+    pub two_view: TwoViewConfig,
+    /// A learned matcher's orientation check before the map.
+    pub orientation: OrientationOptions,
+    /// A learned matcher's turned retry of the images the map left out.
+    pub retry: RetryOptions,
+    /// The second matching pass after a first map.
+    pub densify: DensifyOptions,
+    /// The support check of learned pairs (off by default).
+    pub support: SupportOptions,
+    /// The mapper's stages (`posediff_sfm::MapperOptions`; its `sampson` is the refinement
+    /// `--refine converge|bundle` runs, and with a learned matcher `score_dropped_as_missing`
+    /// is on whatever it says here).
+    pub mapper: MapperOptions,
+}
+
+impl Default for PipelineOptions {
+    fn default() -> Self {
+        let mut matching = MatchConfig::default();
+        matching.features.contrast_threshold = GEOMETRIC_CONTRAST_THRESHOLD;
+        matching.features.max_keypoints = GEOMETRIC_MAX_KEYPOINTS;
+        Self {
+            pairs: PairOptions::default(),
+            matching,
+            two_view: TwoViewConfig::default(),
+            orientation: OrientationOptions::default(),
+            retry: RetryOptions::default(),
+            densify: DensifyOptions::default(),
+            support: SupportOptions::default(),
+            mapper: MapperOptions::default(),
+        }
+    }
+}
+
+/// SIFT contrast threshold of the checkpoint-free path: below OpenCV's 0.04, for the weakly
+/// textured objects of object-centric captures (measured on the shared sets; see
+/// docs/BENCHMARKS.md).
+pub const GEOMETRIC_CONTRAST_THRESHOLD: f64 = 0.03;
+
+/// Keypoints per image of the checkpoint-free path (COLMAP's default; the official GGS
+/// matching keeps hloc's 4096).
+pub const GEOMETRIC_MAX_KEYPOINTS: usize = 8192;
+
+/// Which pairs are matched.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct PairOptions {
+    /// The selection (`--pairs`): `auto`, `exhaustive`, `sequential:K`, `retrieval:K` or a
+    /// comma-separated union.
+    pub selection: PairSelection,
+    /// What `auto` means with OpenCV's matchers.
+    pub auto: AutoPairs,
+    /// With a learned matcher, `auto` matches sets of up to this many images exhaustively;
+    /// larger ones on `learned_first_pass` and then the second pass (`densify`). LightGlue
+    /// costs about 0.9 s a pair on two AVX-512 cores at 2048 keypoints (1.3–1.4 s on AVX2):
+    /// exhaustive pairs grow as n².
+    pub learned_exhaustive_up_to: usize,
+    /// The first pass of a learned matcher's `auto` above `learned_exhaustive_up_to`: each
+    /// image with the next 3 and its 3 most similar (measured against `retrieval:3..8`,
+    /// `sequential:3..5` and the descriptor screen as ranking on the shared sets).
+    pub learned_first_pass: PairSelection,
+}
+
+impl Default for PairOptions {
+    fn default() -> Self {
+        Self {
+            selection: PairSelection::Auto,
+            auto: AutoPairs::default(),
+            learned_exhaustive_up_to: 12,
+            learned_first_pass: PairSelection::Rules(vec![
+                PairRule::Sequential(3),
+                PairRule::Retrieval(3),
+            ]),
+        }
+    }
+}
+
+/// A learned matcher's orientation check before the map (`geometric::turn_components`).
+/// ALIKED and DISK are not invariant to in-plane rotation: images upside down relative to the
+/// others match within their orientation and poorly across, so the strong pairs fall into
+/// groups by orientation; each smaller group is tested by one image extracted turned by 180°.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct OrientationOptions {
+    /// Whether the check runs (learned matchers without the support check only).
+    pub enabled: bool,
+    /// Fewest verified matches of a pair that joins two images into one group. Every good
+    /// ALIKED + LightGlue pair of the shared sets has at least 96 and no unrelated pair more
+    /// than 74 (docs/BENCHMARKS.md, "Pairs").
+    pub strong_pair: usize,
+    /// Most groups besides the largest that are tested, each by one image extracted turned:
+    /// the check's cost is bounded however many frames a run has.
+    pub tests: usize,
+    /// Partners of a tested or turned image: its most similar images of other groups by the
+    /// bag of words.
+    pub partners: usize,
+    /// The evidence between two groups is decisive when one way (upright or turned) verifies
+    /// at least this many matches by the descriptor screen ...
+    pub min_matches: usize,
+    /// ... and at least this many times the other way's (temple: the turned group verifies
+    /// hundreds turned against a handful upright; docs/BENCHMARKS.md, "Groups turned").
+    pub ratio: f64,
+}
+
+impl Default for OrientationOptions {
+    fn default() -> Self {
+        Self {
+            enabled: true,
+            strong_pair: 80,
+            tests: 8,
+            partners: 8,
+            min_matches: 5,
+            ratio: 2.0,
+        }
+    }
+}
+
+impl OrientationOptions {
+    /// How two groups lie to each other by the verified matches of one group's representative
+    /// with the other group's images, upright (`same`) and turned by 180° (`opposite`):
+    /// `Some(true)` when turned wins clearly (at least [`Self::min_matches`] and
+    /// [`Self::ratio`] times the other way's), `Some(false)` when upright does, `None` when
+    /// neither.
+    pub fn evidence(&self, same: usize, opposite: usize) -> Option<bool> {
+        let (high, low) = (same.max(opposite), same.min(opposite));
+        (high >= self.min_matches && high as f64 >= self.ratio * low as f64)
+            .then_some(opposite > same)
+    }
+}
+
+/// A learned matcher's retry of the images its map left out (`geometric::turn_left_out`):
+/// each is extracted again turned by 180° and matched with the estimated images among its
+/// most similar; kept turned when those pairs verify more matches than upright.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct RetryOptions {
+    /// Whether the retry runs (learned matchers without the support check only).
+    pub enabled: bool,
+    /// Partners of a retried image: the estimated images among its this many most similar by
+    /// the bag of words (temple's turned five found their partners at 8; docs/BENCHMARKS.md).
+    pub partners: usize,
+}
+
+impl Default for RetryOptions {
+    fn default() -> Self {
+        Self {
+            enabled: true,
+            partners: 8,
+        }
+    }
+}
+
+/// When the second matching pass runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum DensifyWhen {
+    /// Where `auto` chooses it: a learned matcher with `pairs.selection = "auto"` on more than
+    /// `pairs.learned_exhaustive_up_to` images.
+    #[default]
+    Auto,
+    /// After every first map.
+    Always,
+    /// Never.
+    Never,
+}
+
+/// The second matching pass (`geometric::densify_pairs`): after mapping the first pairs, each
+/// estimated image is matched with up to `per_image` others that were not matched yet and
+/// whose estimated rotations are within `max_angle_deg` of its own (nearest first; COLMAP's
+/// spatial matcher on estimated poses), and the mapper runs again on all pairs. It recovers the
+/// wide bridges a sparse first selection misses (apple, 20 frames, ALIKED + LightGlue:
+/// `sequential:3,retrieval:3` alone 0.824 mAA(30), with this pass 0.888 on 80 pairs,
+/// exhaustive 0.883 on 190; docs/BENCHMARKS.md). 45°: the same accuracy as 60° (96 pairs) and
+/// 30° (68 pairs) on apple.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct DensifyOptions {
+    /// When it runs.
+    pub when: DensifyWhen,
+    /// Largest rotation between the two estimated cameras, degrees.
+    pub max_angle_deg: f64,
+    /// New pairs per image at most.
+    pub per_image: usize,
+}
+
+impl Default for DensifyOptions {
+    fn default() -> Self {
+        Self {
+            when: DensifyWhen::Auto,
+            max_angle_deg: 45.0,
+            per_image: 5,
+        }
+    }
+}
+
+/// The support check of learned pairs: a pair is supported when its extractor's descriptors
+/// alone verify at least `min_verified` matches (`correspondences::descriptor_support`), and
+/// the mapper keeps an unsupported pair only when a triangle of kept pairs confirms it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SupportOptions {
+    /// `None` (the default): every pair is kept as matched. Measured on the shared sets, as
+    /// many wrong pairs reach the averaging with the check as without, and small subsets lose
+    /// good pairs (docs/BENCHMARKS.md); 5 is the screen's measured bound where it is used:
+    /// every wrong ALIKED + LightGlue pair of apple (19) and temple (20) scores below it.
+    pub min_verified: Option<usize>,
+}
+
+fn unknown_key(
+    key: &str,
+    known: &serde_json::Map<String, serde_json::Value>,
+    from: &str,
+) -> String {
+    let names: Vec<&str> = known.keys().map(String::as_str).collect();
+    format!(
+        "unknown option `{key}` in {from}; the keys there are: {}",
+        names.join(", ")
+    )
+}
+
+/// Merges `patch` into `base` key by key; every key of `patch` must exist in `base`.
+fn merge(
+    base: &mut serde_json::Value,
+    patch: serde_json::Value,
+    prefix: &str,
+    from: &str,
+) -> std::result::Result<(), String> {
+    match (base, patch) {
+        (serde_json::Value::Object(b), serde_json::Value::Object(p)) => {
+            for (k, v) in p {
+                let key = if prefix.is_empty() {
+                    k.clone()
+                } else {
+                    format!("{prefix}.{k}")
+                };
+                let Some(slot) = b.get_mut(&k) else {
+                    return Err(unknown_key(&key, b, from));
+                };
+                // A table replaces a null (an optional stage turned on) whole.
+                if slot.is_null() || !v.is_object() {
+                    *slot = v;
+                } else {
+                    merge(slot, v, &key, from)?;
+                }
+            }
+            Ok(())
+        }
+        (b, p) => {
+            *b = p;
+            Ok(())
+        }
+    }
+}
+
+impl PipelineOptions {
+    /// This tree with `patch` (a JSON object with any subset of its keys, nested) applied.
+    ///
+    /// # Errors
+    /// An unknown key or a value of the wrong type, naming the key and `from`.
+    pub fn patched(&self, patch: serde_json::Value, from: &str) -> Result<Self> {
+        let mut tree = serde_json::to_value(self)?;
+        merge(&mut tree, patch, "", from).map_err(PosediffError::InvalidArgument)?;
+        serde_json::from_value(tree)
+            .map_err(|e| PosediffError::InvalidArgument(format!("{from}: {e}")))
+    }
+
+    /// This tree with the options of a TOML (`.toml`) or JSON file applied.
+    ///
+    /// # Errors
+    /// An unreadable or malformed file, unknown keys, wrong types: each naming the file.
+    pub fn with_file(&self, path: &Path) -> Result<Self> {
+        let text = crate::error::read_text(path)?;
+        let is_toml = path
+            .extension()
+            .is_some_and(|e| e.eq_ignore_ascii_case("toml"));
+        let patch: serde_json::Value = if is_toml {
+            toml::from_str(&text).map_err(|e| PosediffError::invalid(path, e.to_string()))?
+        } else {
+            serde_json::from_str(&text).map_err(|e| PosediffError::invalid(path, e.to_string()))?
+        };
+        if !patch.is_object() {
+            return Err(PosediffError::invalid(
+                path,
+                "the options file must hold a table of options",
+            ));
+        }
+        self.patched(patch, &path.display().to_string())
+            .map_err(|e| match e {
+                PosediffError::InvalidArgument(m) => PosediffError::invalid(path, m),
+                other => other,
+            })
+    }
+
+    /// This tree with one field set: `key` a dotted path (`orientation.strong_pair`), `value`
+    /// JSON (`100`, `true`, `null`, `"sequential:5"`) or, when it does not parse as JSON, a
+    /// string (`sequential:5`).
+    ///
+    /// # Errors
+    /// An unknown key or a value of the wrong type, naming the key.
+    pub fn with_field(&self, key: &str, value: &str) -> Result<Self> {
+        let value: serde_json::Value = serde_json::from_str(value)
+            .unwrap_or_else(|_| serde_json::Value::String(value.to_owned()));
+        let mut patch = value;
+        for part in key.rsplit('.') {
+            if part.is_empty() {
+                return Err(PosediffError::InvalidArgument(format!(
+                    "--set {key}: an empty key part"
+                )));
+            }
+            let mut map = serde_json::Map::new();
+            map.insert(part.to_owned(), patch);
+            patch = serde_json::Value::Object(map);
+        }
+        self.patched(patch, &format!("--set {key}"))
+    }
+
+    /// [`Self::with_field`] for `key=value`.
+    ///
+    /// # Errors
+    /// No `=`, and as [`Self::with_field`].
+    pub fn with_assignment(&self, assignment: &str) -> Result<Self> {
+        let (key, value) = assignment.split_once('=').ok_or_else(|| {
+            PosediffError::InvalidArgument(format!(
+                "--set {assignment}: expected key.path=value (e.g. orientation.strong_pair=100)"
+            ))
+        })?;
+        self.with_field(key.trim(), value.trim())
+    }
+
+    /// The checks that need no image: numbers in range.
+    ///
+    /// # Errors
+    /// An option out of range, naming it.
+    pub fn check(&self) -> Result<()> {
+        let bad = |what: &str| Err(PosediffError::InvalidArgument(what.to_owned()));
+        if self.orientation.ratio.is_nan() || self.orientation.ratio < 1.0 {
+            return bad("orientation.ratio must be at least 1");
+        }
+        if !(self.densify.max_angle_deg.is_finite() && self.densify.max_angle_deg > 0.0) {
+            return bad("densify.max_angle_deg must be a positive number of degrees");
+        }
+        if self.pairs.learned_first_pass == PairSelection::Auto {
+            return bad("pairs.learned_first_pass must name rules, not auto");
+        }
+        if !(0.0..=1.0).contains(&self.two_view.homography_fraction) {
+            return bad("two_view.homography_fraction must be within 0-1");
+        }
+        Ok(())
+    }
+}
