@@ -119,6 +119,42 @@ impl fmt::Display for PairSelection {
     }
 }
 
+/// The spatial pair plan on estimated poses (COLMAP's spatial matcher, by viewing
+/// direction): for each estimated camera (`rotations[i]`, world → camera; `None`: not
+/// estimated), its nearest estimated cameras by the rotation between them, within
+/// `max_angle_deg`, that are not in `matched` (`(min, max)` pairs), `per_image` at most; sorted
+/// `(i, j)` with `i < j`, without repeats. `O(n²)` rotation comparisons.
+pub fn spatial_pairs(
+    rotations: &[Option<nalgebra::Matrix3<f64>>],
+    matched: &std::collections::HashSet<(usize, usize)>,
+    max_angle_deg: f64,
+    per_image: usize,
+) -> Vec<(usize, usize)> {
+    let mut out = Vec::new();
+    for (i, a) in rotations.iter().enumerate() {
+        let Some(a) = a else { continue };
+        let mut near: Vec<(f64, usize)> = rotations
+            .iter()
+            .enumerate()
+            .filter(|&(j, _)| j != i && !matched.contains(&(i.min(j), i.max(j))))
+            .filter_map(|(j, b)| {
+                let b = b.as_ref()?;
+                let angle = posediff_geometry::epipolar::rotation_angle_between_deg(a, b);
+                (angle.is_finite() && angle <= max_angle_deg).then_some((angle, j))
+            })
+            .collect();
+        near.sort_by(|x, y| x.0.total_cmp(&y.0).then(x.1.cmp(&y.1)));
+        out.extend(
+            near.iter()
+                .take(per_image)
+                .map(|&(_, j)| (i.min(j), i.max(j))),
+        );
+    }
+    out.sort_unstable();
+    out.dedup();
+    out
+}
+
 /// As its text (`auto`, `sequential:10,retrieval:20`), the form `--pairs` takes.
 #[cfg(feature = "serde")]
 impl serde::Serialize for PairSelection {

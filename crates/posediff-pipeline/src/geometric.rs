@@ -2,38 +2,33 @@
 //!
 //! images → features (`posediff-matching`) → pair selection (exhaustive, sequential,
 //! retrieval) → verified matches with keypoint ids → [`posediff_sfm::GlobalMapper`] (two-view
-//! geometry through OpenCV behind its [`GeometrySolver`] trait, focal, rotation and translation
+//! geometry through OpenCV behind its [`posediff_sfm::mapper::GeometrySolver`] trait, focal, rotation and translation
 //! averaging, Sampson refinement, tracks, bundle adjustment) → OpenCV cameras in original
 //! pixels. Principal points are the image centres (`((W−1)/2, (H−1)/2)`) unless given.
 
-use std::collections::{HashMap, HashSet};
+use std::collections::HashSet;
 use std::path::PathBuf;
-use std::sync::Mutex;
 use std::time::Instant;
 
 use nalgebra::{Matrix3, Rotation3};
-use posediff_geometry::{
-    Camera, CenterCrop, ImageSize, Intrinsics, MODEL_INPUT_SIDE, Pose, PoseEncoding, QuaternionSign,
-};
-use posediff_guidance::{GgsConfig, GgsSolver};
+use posediff_geometry::{Camera, ImageSize, Pose};
+use posediff_guidance::GgsConfig;
 use posediff_matching::pairs::{BagOfWords, RetrievalOptions, select_pairs_with};
-use posediff_matching::two_view::{
-    fundamental_least_squares, homography_fit, relative_pose_with_homography,
-};
-use posediff_matching::{ImageFeatures, PairMatches, PairRule, PairSelection, TwoViewConfig};
-use posediff_sfm::bundle::{BundleOptions, Point, bundle_adjust};
-use posediff_sfm::mapper::{GeometrySolver, RelativePose};
-use posediff_sfm::resection::AbsolutePose;
+use posediff_matching::{ImageFeatures, PairMatches, PairRule, PairSelection};
+use posediff_sfm::bundle::Point;
 use posediff_sfm::sampson_refine::{SampsonRefineOptions, refine_sampson};
-use posediff_sfm::tracks::build_tracks;
-use posediff_sfm::view_graph::UnionFind;
 use posediff_sfm::{CameraPose, GlobalMapper, ImageIntrinsics, MapperOptions, SfmError};
 
+pub use crate::bundle_refine::{BundleRefinement, bundle_refine_cameras};
 use crate::correspondences::{
     Correspondences, NoCounter, SharedLearned, StepCounter, descriptor_support,
 };
 use crate::error::{PosediffError, Result};
+pub use crate::ggs::{model_frame_matches, official_ggs};
+pub use crate::orientation::{STRONG_PAIR, TURN_PARTNERS, TURN_TESTS};
+use crate::orientation::{turn_components, turn_left_out};
 use crate::report::Warning;
+use crate::two_view::{OpenCvTwoView, TwoViewCache};
 
 pub use posediff_sfm::intrinsics::{focal_scale, image_centre};
 
@@ -179,122 +174,6 @@ pub struct GeometricEstimate {
     pub warnings: Vec<Warning>,
 }
 
-/// OpenCV two-view geometry for the mapper, with the results of earlier mapper runs of the same
-/// estimate when it has a cache.
-struct OpenCvTwoView<'a> {
-    config: &'a TwoViewConfig,
-    cache: Option<&'a TwoViewCache>,
-}
-
-#[cfg(test)]
-impl<'a> OpenCvTwoView<'a> {
-    fn new(config: &'a TwoViewConfig) -> Self {
-        Self {
-            config,
-            cache: None,
-        }
-    }
-}
-
-/// A pair within one estimate: its images and its match count (a pair's matches do not change
-/// within an estimate).
-type PairKey = (usize, usize, usize);
-
-/// One kind of two-view result per key.
-type Results<K, V> = Mutex<HashMap<K, Option<V>>>;
-
-/// The two-view results of one estimate, kept between its mapper runs: the second pass maps the
-/// first pass's pairs again, at the same fixed focal starts. The solvers are deterministic
-/// (OpenCV's RANSAC seeds its own generator), so a cached result is the one a new call would
-/// give; the cache only saves the time.
-#[derive(Default)]
-struct TwoViewCache {
-    homography: Results<PairKey, (Matrix3<f64>, f64)>,
-    fundamental: Results<PairKey, Matrix3<f64>>,
-    /// Also keyed by both calibrations' bits.
-    relative: Results<(PairKey, [u64; 18]), RelativePose>,
-}
-
-fn pair_key(p: &PairMatches) -> PairKey {
-    (p.first, p.second, p.len())
-}
-
-/// `map[key]`, computed by `make` (outside the lock) when missing.
-fn cached<K: std::hash::Hash + Eq, V: Copy>(
-    map: Option<&Mutex<HashMap<K, V>>>,
-    key: K,
-    make: impl FnOnce() -> posediff_sfm::Result<V>,
-) -> posediff_sfm::Result<V> {
-    let Some(map) = map else { return make() };
-    if let Some(v) = map.lock().ok().and_then(|m| m.get(&key).copied()) {
-        return Ok(v);
-    }
-    let v = make()?;
-    if let Ok(mut m) = map.lock() {
-        m.insert(key, v);
-    }
-    Ok(v)
-}
-
-fn two_view_error(p: &PairMatches, e: impl std::fmt::Display) -> SfmError {
-    SfmError::TwoView {
-        first: p.first,
-        second: p.second,
-        detail: e.to_string(),
-    }
-}
-
-impl GeometrySolver for OpenCvTwoView<'_> {
-    fn homography(&self, p: &PairMatches) -> posediff_sfm::Result<Option<(Matrix3<f64>, f64)>> {
-        cached(self.cache.map(|c| &c.homography), pair_key(p), || {
-            homography_fit(&p.kp1, &p.kp2, self.config).map_err(|e| two_view_error(p, e))
-        })
-    }
-
-    fn fundamental(&self, p: &PairMatches) -> posediff_sfm::Result<Option<Matrix3<f64>>> {
-        cached(self.cache.map(|c| &c.fundamental), pair_key(p), || {
-            fundamental_least_squares(&p.kp1, &p.kp2).map_err(|e| two_view_error(p, e))
-        })
-    }
-
-    fn relative_pose(
-        &self,
-        p: &PairMatches,
-        homography: Option<(Matrix3<f64>, f64)>,
-        k_a: &Matrix3<f64>,
-        k_b: &Matrix3<f64>,
-    ) -> posediff_sfm::Result<Option<RelativePose>> {
-        let mut bits = [0u64; 18];
-        for (b, v) in bits.iter_mut().zip(k_a.iter().chain(k_b.iter())) {
-            *b = v.to_bits();
-        }
-        cached(self.cache.map(|c| &c.relative), (pair_key(p), bits), || {
-            relative_pose_with_homography(&p.kp1, &p.kp2, homography, k_a, k_b, self.config)
-                .map_err(|e| two_view_error(p, e))
-        })
-    }
-
-    fn absolute_pose(
-        &self,
-        image: usize,
-        points: &[nalgebra::Vector3<f64>],
-        pixels: &[[f64; 2]],
-        k: &Matrix3<f64>,
-        threshold_px: f64,
-    ) -> posediff_sfm::Result<Option<AbsolutePose>> {
-        let pose = posediff_matching::resection::absolute_pose(points, pixels, k, threshold_px)
-            .map_err(|e| SfmError::Resection {
-                image,
-                detail: e.to_string(),
-            })?;
-        Ok(pose.map(|p| AbsolutePose {
-            rotation: p.rotation,
-            translation: p.translation,
-            inliers: p.inliers,
-        }))
-    }
-}
-
 impl From<SfmError> for PosediffError {
     fn from(e: SfmError) -> Self {
         match e {
@@ -350,7 +229,11 @@ pub fn estimate_geometric_counted(
             &mut features,
             &pairs,
             words.as_ref(),
-            config,
+            (
+                matcher.as_ref(),
+                &config.options.orientation,
+                &config.options.matching,
+            ),
             counter,
         )? {
             pairs = new_pairs;
@@ -401,9 +284,15 @@ pub fn estimate_geometric_counted(
     }
     if let (true, Some(features)) = (retry, features.as_mut()) {
         let clock = Instant::now();
-        if let Some((kept, turned_pairs)) =
-            turn_left_out(images, features, &pairs, &estimate.cameras, config, counter)?
-        {
+        if let Some((kept, turned_pairs)) = turn_left_out(
+            images,
+            features,
+            &pairs,
+            &estimate.cameras,
+            matcher.as_ref(),
+            &config.options.retry,
+            counter,
+        )? {
             times[2] += clock.elapsed().as_secs_f64();
             let earlier = estimate.report.times;
             counter.stage("mapping", 0);
@@ -433,413 +322,26 @@ pub fn estimate_geometric_counted(
     Ok(estimate)
 }
 
-/// The default of `retry.partners` ([`crate::options::RetryOptions`]).
-pub const TURN_PARTNERS: usize = 8;
-
-/// A learned matcher's retry of the images its map left out. ALIKED and DISK are not
-/// invariant to in-plane rotation: an image upside down relative to the others (the
-/// Middlebury temple's last five, a phone turned over) matches them with few or wrong matches.
-/// Each left-out image is extracted again turned by 180° and matched with the estimated images
-/// among its [`TURN_PARTNERS`] most similar; it is kept turned when those pairs verify more
-/// matches than its upright pairs with estimated images. A kept image's earlier pairs are
-/// dropped (their keypoint indices are the upright features') and its pairs with other kept
-/// images matched again. Images already turned (by the orientation check) are not retried.
-/// Returns the turned images and the new set of pairs, or `None` when no image was left out, fewer than two were estimated, or none is kept
-/// turned; `features` hold the turned features of the kept images afterwards.
-///
-/// # Errors
-/// Unreadable images, network and matching errors.
-fn turn_left_out(
-    images: &[PathBuf],
-    features: &mut [ImageFeatures],
-    pairs: &[PairMatches],
-    cameras: &[Option<Camera>],
-    config: &GeometricConfig,
-    counter: &dyn StepCounter,
-) -> Result<Option<(Vec<usize>, Vec<PairMatches>)>> {
-    let matcher = config.correspondences();
-    if !matcher.depends_on_orientation() {
-        return Ok(None);
-    }
-    let estimated = |i: usize| cameras.get(i).is_some_and(Option::is_some);
-    let left: Vec<usize> = (0..features.len())
-        .filter(|&i| !estimated(i) && !features[i].half_turned)
-        .collect();
-    if left.is_empty() || (0..features.len()).filter(|&i| estimated(i)).count() < 2 {
-        return Ok(None);
-    }
-    log::info!(
-        "{}{} images left out: matching them turned by 180°",
-        crate::progress::WORK_STARTS,
-        left.len()
-    );
-    counter.stage("turned images", left.len() as u64);
-    let paths: Vec<&std::path::Path> = left.iter().map(|&j| images[j].as_path()).collect();
-    let turned = turned_features(matcher.as_ref(), &paths, counter)?;
-    let upright: Vec<(usize, ImageFeatures)> = left
-        .iter()
-        .zip(turned)
-        .map(|(&j, f)| (j, std::mem::replace(&mut features[j], f)))
-        .collect();
-    let is_left = |i: usize| left.binary_search(&i).is_ok();
-    let trial: Vec<(usize, usize)> = posediff_matching::pairs::retrieval_pairs(
-        features,
-        config.options.retry.partners,
-        &RetrievalOptions::default(),
-    )
-    .into_iter()
-    .filter(|&(a, b)| (is_left(a) && estimated(b)) || (is_left(b) && estimated(a)))
-    .collect();
-    let matched = matcher.match_pairs(features, &trial, (counter, "turned pairs"))?;
-    // Verified matches with estimated images: turned against upright.
-    let mut score: HashMap<usize, (usize, usize)> = HashMap::new();
-    for p in &matched {
-        let j = if is_left(p.first) { p.first } else { p.second };
-        score.entry(j).or_default().0 += p.len();
-    }
-    for p in pairs {
-        if is_left(p.first) && estimated(p.second) {
-            score.entry(p.first).or_default().1 += p.len();
-        } else if is_left(p.second) && estimated(p.first) {
-            score.entry(p.second).or_default().1 += p.len();
-        }
-    }
-    let kept: Vec<usize> = left
-        .iter()
-        .copied()
-        .filter(|j| score.get(j).is_some_and(|&(t, u)| t > u))
-        .collect();
-    for (j, f) in upright {
-        if kept.binary_search(&j).is_err() {
-            features[j] = f;
-        }
-    }
-    if kept.is_empty() {
-        return Ok(None);
-    }
-    let is_kept = |i: usize| kept.binary_search(&i).is_ok();
-    let both: Vec<(usize, usize)> = pairs
-        .iter()
-        .filter(|p| is_kept(p.first) && is_kept(p.second))
-        .map(|p| (p.first, p.second))
-        .collect();
-    let mut out: Vec<PairMatches> = pairs
-        .iter()
-        .filter(|p| !is_kept(p.first) && !is_kept(p.second))
-        .cloned()
-        .collect();
-    out.extend(
-        matched
-            .into_iter()
-            .filter(|p| is_kept(p.first) || is_kept(p.second)),
-    );
-    out.extend(matcher.match_pairs(features, &both, (counter, "turned pairs"))?);
-    out.sort_by_key(|p| (p.first, p.second));
-    Ok(Some((kept, out)))
-}
-
-/// `images` extracted turned by 180° by a matcher that depends on the orientation.
-fn turned_features(
-    matcher: &dyn Correspondences,
-    images: &[&std::path::Path],
-    counter: &dyn StepCounter,
-) -> Result<Vec<ImageFeatures>> {
-    matcher.extract_turned(images, counter)?.ok_or_else(|| {
-        PosediffError::InvalidArgument("this matcher does not extract turned images".into())
-    })
-}
-
-/// The default of `orientation.strong_pair` ([`crate::options::OrientationOptions`]).
-pub const STRONG_PAIR: usize = 80;
-
-/// The default of `orientation.tests` ([`crate::options::OrientationOptions`]).
-pub const TURN_TESTS: usize = 8;
-
-/// The groups of images joined by pairs of at least `minimum` verified matches, the largest
-/// first (ties: the one with the lowest image first); an image without such a pair is a group
-/// of its own.
-fn strong_groups(n: usize, pairs: &[PairMatches], minimum: usize) -> Vec<Vec<usize>> {
-    let mut sets = UnionFind::new(n);
-    for p in pairs.iter().filter(|p| p.len() >= minimum) {
-        if p.first < n && p.second < n {
-            sets.union(p.first, p.second);
-        }
-    }
-    let mut groups: HashMap<usize, Vec<usize>> = HashMap::new();
-    for i in 0..n {
-        groups.entry(sets.find(i)).or_default().push(i);
-    }
-    let mut out: Vec<Vec<usize>> = groups.into_values().collect();
-    out.sort_by(|a, b| b.len().cmp(&a.len()).then(a.first().cmp(&b.first())));
-    out
-}
-
-/// A learned matcher's orientation check before the map. ALIKED and DISK are not invariant to
-/// in-plane rotation: where some images are upside down relative to the others (the Middlebury
-/// temple's last five, a camera turned over), LightGlue matches each orientation well within
-/// itself and poorly or wrongly across, so the strong pairs ([`STRONG_PAIR`]) fall into groups
-/// by orientation. Each group besides the largest ([`TURN_TESTS`] at most) is tested by its
-/// best-matched image, extracted again turned by 180°: the descriptor screen
-/// ([`descriptor_support`], about 10 ms a pair) counts its verified matches, upright and
-/// turned, with the [`TURN_PARTNERS`] most similar images of other groups. Groups are then
-/// labelled from the largest along the clearest evidence
-/// ([`crate::options::OrientationOptions::evidence`]), and the
-/// images of the groups found turned relative to the largest are extracted turned, their pairs
-/// matched again, and the turned images matched with their [`TURN_PARTNERS`] most similar
-/// images. The turn is kept when the turned images' pairs with the others verify more matches
-/// than they did upright. Returns the turned images (`features` holding their turned features)
-/// and the new pairs, or `None` (nothing changed) when the
-/// strong pairs form one group, no group is found turned, or LightGlue does not confirm it.
-///
-/// # Errors
-/// Unreadable images, network and matching errors.
-fn turn_components(
-    images: &[PathBuf],
-    features: &mut [ImageFeatures],
-    pairs: &[PairMatches],
-    words: Option<&BagOfWords>,
-    config: &GeometricConfig,
-    counter: &dyn StepCounter,
-) -> Result<Option<(Vec<usize>, Vec<PairMatches>)>> {
-    let matcher = config.correspondences();
-    if !matcher.depends_on_orientation() {
-        return Ok(None);
-    }
-    let n = features.len();
-    let clock = Instant::now();
-    let orientation = &config.options.orientation;
-    let groups = strong_groups(n, pairs, orientation.strong_pair);
-    if groups.len() < 2 {
-        return Ok(None);
-    }
-    let mut group_of = vec![0usize; n];
-    for (g, members) in groups.iter().enumerate() {
-        for &i in members {
-            group_of[i] = g;
-        }
-    }
-    let mut strength = vec![0usize; n];
-    for p in pairs.iter().filter(|p| p.len() >= orientation.strong_pair) {
-        for i in [p.first, p.second] {
-            if let Some(s) = strength.get_mut(i) {
-                *s += p.len();
-            }
-        }
-    }
-    let reps: Vec<usize> = groups
-        .iter()
-        .skip(1)
-        .take(orientation.tests)
-        .filter_map(|g| {
-            g.iter()
-                .copied()
-                .max_by_key(|&i| (strength[i], std::cmp::Reverse(i)))
-        })
-        .collect();
-    log::info!(
-        "{}the strong pairs form {} groups: testing {} turned by 180°",
-        crate::progress::WORK_STARTS,
-        groups.len(),
-        reps.len()
-    );
-    let is_rep = |i: usize| reps.contains(&i);
-    counter.stage("orientation check", reps.len() as u64);
-    let paths: Vec<&std::path::Path> = reps.iter().map(|&r| images[r].as_path()).collect();
-    let rep_turned = turned_features(matcher.as_ref(), &paths, counter)?;
-    // Each representative with the most similar images of other groups, upright and turned
-    // (one vocabulary; not other representatives, which are turned during the screen), as
-    // (representative, partner).
-    let built;
-    let words = match words.filter(|w| w.len() == n) {
-        Some(w) => Some(w),
-        None => {
-            built = BagOfWords::build(features, &RetrievalOptions::default());
-            built.as_ref()
-        }
-    };
-    let mut trial: Vec<(usize, usize)> = Vec::new();
-    if let Some(words) = words {
-        for (&r, t) in reps.iter().zip(&rep_turned) {
-            let keep = |j: usize| group_of[j] != group_of[r] && !is_rep(j);
-            for h in [
-                words.histogram_of(r).unwrap_or_default(),
-                words.histogram(t),
-            ] {
-                trial.extend(
-                    words
-                        .most_similar(&h, orientation.partners, keep)
-                        .into_iter()
-                        .map(|p| (r, p)),
-                );
-            }
-        }
-    }
-    trial.sort_unstable();
-    trial.dedup();
-    let upright: Vec<ImageFeatures> = reps
-        .iter()
-        .zip(rep_turned)
-        .map(|(&r, f)| std::mem::replace(&mut features[r], f))
-        .collect();
-    let screened: Vec<(usize, usize)> = trial.iter().map(|&(r, p)| (r.min(p), r.max(p))).collect();
-    let opposite = descriptor_support(features, &screened, &config.options.matching);
-    let mut rep_turned: HashMap<usize, ImageFeatures> = reps
-        .iter()
-        .zip(upright)
-        .map(|(&r, f)| (r, std::mem::replace(&mut features[r], f)))
-        .collect();
-    let opposite = opposite?;
-    let same = descriptor_support(features, &screened, &config.options.matching)?;
-    // Evidence between groups, (smaller, larger) group index ↦ (same, opposite).
-    let mut evidence: HashMap<(usize, usize), (usize, usize)> = HashMap::new();
-    for (k, &(r, p)) in trial.iter().enumerate() {
-        let (a, b) = (group_of[r], group_of[p]);
-        let e = evidence.entry((a.min(b), a.max(b))).or_default();
-        e.0 += same[k];
-        e.1 += opposite[k];
-    }
-    let mut edges: Vec<((usize, usize), bool, usize)> = evidence
-        .iter()
-        .filter_map(|(&g, &(s, o))| orientation.evidence(s, o).map(|flip| (g, flip, s.max(o))))
-        .collect();
-    edges.sort_by(|x, y| y.2.cmp(&x.2).then(x.0.cmp(&y.0)));
-    // Labels from the largest group, strongest evidence first.
-    let mut label: Vec<Option<bool>> = vec![None; groups.len()];
-    label[0] = Some(false);
-    loop {
-        let next = edges
-            .iter()
-            .find_map(|&((a, b), flip, _)| match (label[a], label[b]) {
-                (Some(l), None) => Some((b, l != flip)),
-                (None, Some(l)) => Some((a, l != flip)),
-                _ => None,
-            });
-        let Some((g, l)) = next else { break };
-        label[g] = Some(l);
-    }
-    let mut flipped: Vec<usize> = groups
-        .iter()
-        .zip(&label)
-        .filter(|(_, l)| **l == Some(true))
-        .flat_map(|(g, _)| g.iter().copied())
-        .filter(|&i| !features[i].half_turned)
-        .collect();
-    flipped.sort_unstable();
-    log::info!(
-        "{}orientation check: {} images turned against the largest group ({:.1} s)",
-        crate::progress::WORK_STARTS,
-        flipped.len(),
-        clock.elapsed().as_secs_f64()
-    );
-    if flipped.is_empty() {
-        return Ok(None);
-    }
-    // The turned features: the representatives' from the screen, the others extracted.
-    let rest: Vec<usize> = flipped
-        .iter()
-        .copied()
-        .filter(|i| !rep_turned.contains_key(i))
-        .collect();
-    let paths: Vec<&std::path::Path> = rest.iter().map(|&i| images[i].as_path()).collect();
-    counter.stage("turned images", rest.len() as u64);
-    for (&i, f) in rest
-        .iter()
-        .zip(turned_features(matcher.as_ref(), &paths, counter)?)
-    {
-        rep_turned.insert(i, f);
-    }
-    let mut upright: Vec<(usize, ImageFeatures)> = Vec::new();
-    for &i in &flipped {
-        if let Some(f) = rep_turned.remove(&i) {
-            upright.push((i, std::mem::replace(&mut features[i], f)));
-        }
-    }
-    let is_flipped = |i: usize| flipped.binary_search(&i).is_ok();
-    let mut again: Vec<(usize, usize)> = pairs
-        .iter()
-        .filter(|p| is_flipped(p.first) || is_flipped(p.second))
-        .map(|p| (p.first, p.second))
-        .collect();
-    // Pairs the selection did not give (it saw the upright features): each turned image with
-    // its most similar images by its turned features.
-    let had: HashSet<(usize, usize)> = pairs.iter().map(|p| (p.first, p.second)).collect();
-    if let Some(words) = words {
-        for &i in &flipped {
-            let near =
-                words.most_similar(&words.histogram(&features[i]), orientation.partners, |j| {
-                    j != i
-                });
-            again.extend(
-                near.into_iter()
-                    .map(|j| (i.min(j), i.max(j)))
-                    .filter(|p| !had.contains(p)),
-            );
-        }
-    }
-    again.sort_unstable();
-    again.dedup();
-    let matched = matcher.match_pairs(features, &again, (counter, "turned pairs"))?;
-    // Kept only when the turned images verify more matches with the others turned than they
-    // did upright (LightGlue's word over the screen's, as the retry of left-out images asks;
-    // pairs within the turned images turn at both ends and are left out of the count).
-    let across = |p: &&PairMatches| is_flipped(p.first) != is_flipped(p.second);
-    let before: usize = pairs.iter().filter(across).map(PairMatches::len).sum();
-    let after: usize = matched.iter().filter(across).map(PairMatches::len).sum();
-    log::info!(
-        "{}orientation check: the turned images' pairs verify {after} matches against {before}",
-        crate::progress::WORK_STARTS
-    );
-    if after <= before {
-        for (i, f) in upright {
-            features[i] = f;
-        }
-        return Ok(None);
-    }
-    let mut out: Vec<PairMatches> = pairs
-        .iter()
-        .filter(|p| !is_flipped(p.first) && !is_flipped(p.second))
-        .cloned()
-        .collect();
-    out.extend(matched);
-    out.sort_by_key(|p| (p.first, p.second));
-    Ok(Some((flipped, out)))
-}
-
 /// The pairs of [`Densify`]'s second pass: for each estimated image, its nearest estimated
 /// images by the rotation between them, within `max_angle_deg`, that are not in `matched`,
 /// `per_image` at most; sorted `(i, j)` with `i < j`, without repeats. `O(n²)` rotation
-/// comparisons, which are nothing beside one LightGlue pair.
+/// comparisons, which are nothing beside one LightGlue pair
+/// ([`posediff_matching::pairs::spatial_pairs`], the spatial pair plan).
 pub fn densify_pairs(
     cameras: &[Option<Camera>],
     matched: &HashSet<(usize, usize)>,
     densify: &Densify,
 ) -> Vec<(usize, usize)> {
-    let mut out = Vec::new();
-    for (i, a) in cameras.iter().enumerate() {
-        let Some(a) = a else { continue };
-        let mut near: Vec<(f64, usize)> = cameras
-            .iter()
-            .enumerate()
-            .filter(|&(j, _)| j != i && !matched.contains(&(i.min(j), i.max(j))))
-            .filter_map(|(j, b)| {
-                let b = b.as_ref()?;
-                let angle = posediff_geometry::epipolar::rotation_angle_between_deg(
-                    &a.cam_from_world.rotation,
-                    &b.cam_from_world.rotation,
-                );
-                (angle.is_finite() && angle <= densify.max_angle_deg).then_some((angle, j))
-            })
-            .collect();
-        near.sort_by(|x, y| x.0.total_cmp(&y.0).then(x.1.cmp(&y.1)));
-        out.extend(
-            near.iter()
-                .take(densify.per_image)
-                .map(|&(_, j)| (i.min(j), i.max(j))),
-        );
-    }
-    out.sort_unstable();
-    out.dedup();
-    out
+    let rotations: Vec<Option<Matrix3<f64>>> = cameras
+        .iter()
+        .map(|c| c.as_ref().map(|c| c.cam_from_world.rotation))
+        .collect();
+    posediff_matching::pairs::spatial_pairs(
+        &rotations,
+        matched,
+        densify.max_angle_deg,
+        densify.per_image,
+    )
 }
 
 /// What [`match_all`] gives.
@@ -1175,180 +677,6 @@ fn map_supported_matches(
     })
 }
 
-/// The official GGS schedule on the estimated cameras, in place: each camera into its 224 crop
-/// and encoded, the matches of the estimated images mapped into the crops, the five phases, and
-/// back to original pixels.
-///
-/// # Errors
-/// Cameras that cannot be encoded; invalid GGS settings.
-pub fn official_ggs(
-    cameras: &mut [Option<Camera>],
-    pairs: &[PairMatches],
-    config: &GgsConfig,
-) -> Result<()> {
-    let members: Vec<usize> = (0..cameras.len())
-        .filter(|&i| cameras[i].is_some())
-        .collect();
-    if members.len() < 2 {
-        return Ok(());
-    }
-    let crops: Vec<Option<CenterCrop>> = cameras
-        .iter()
-        .map(|c| c.map(|c| CenterCrop::official(c.image_size, MODEL_INPUT_SIDE)))
-        .collect();
-    let set = model_frame_matches(pairs, &crops)?;
-    let mut encodings = members
-        .iter()
-        .map(|&i| match (cameras[i], crops[i]) {
-            (Some(c), Some(crop)) => Ok(PoseEncoding::from_camera(
-                &crop.camera_to_model(&c)?,
-                QuaternionSign::default(),
-            )?),
-            _ => Err(PosediffError::InvalidArgument("missing camera".into())),
-        })
-        .collect::<Result<Vec<_>>>()?;
-    GgsSolver::new(&set, *config)?.run(&mut encodings, None)?;
-    let model = ImageSize::new(MODEL_INPUT_SIDE, MODEL_INPUT_SIDE)?;
-    for (&i, e) in members.iter().zip(&encodings) {
-        if let (Some(c), Some(crop)) = (cameras[i].as_mut(), crops[i]) {
-            let mut refined = crop.camera_from_model(&e.to_camera(model)?, c.image_size)?;
-            if config.fix_focal {
-                refined.intrinsics = c.intrinsics;
-            }
-            *c = refined;
-        }
-    }
-    Ok(())
-}
-
-pub use crate::report::BundleRefinement;
-
-/// The hybrid of the paper's future work: cameras from elsewhere (PoseDiffusion after GGS)
-/// refined by the mapper: the Sampson refinement to convergence, then the bundle adjustment
-/// with tracks built from `pairs`. Camera 0 is
-/// held fixed and the scene keeps its scale (mean distance of the centres from camera 0);
-/// unless `known_intrinsics`, one factor on every camera's focal is refined with them.
-///
-/// Non-square pixels are adjusted by their mean focal (the factor applies to both).
-///
-/// # Errors
-/// Fewer than two cameras, malformed pairs, a degenerate adjustment.
-pub fn bundle_refine_cameras(
-    cameras: &mut [Camera],
-    pairs: &[PairMatches],
-    known_intrinsics: bool,
-) -> Result<BundleRefinement> {
-    if cameras.len() < 2 {
-        return Err(PosediffError::TooFewImages {
-            needed: 2,
-            got: cameras.len(),
-        });
-    }
-    let layout =
-        ImageIntrinsics::from_known(&cameras.iter().map(|c| c.intrinsics).collect::<Vec<_>>());
-    let mut poses: Vec<Option<CameraPose>> = cameras
-        .iter()
-        .map(|c| {
-            Some(CameraPose {
-                rotation: Rotation3::from_matrix(&c.cam_from_world.rotation),
-                center: c.center().coords,
-            })
-        })
-        .collect();
-    let spread = |p: &[Option<CameraPose>]| -> f64 {
-        let origin = p[0].map_or(nalgebra::Vector3::zeros(), |c| c.center);
-        p.iter()
-            .flatten()
-            .map(|c| (c.center - origin).norm())
-            .sum::<f64>()
-            / p.len() as f64
-    };
-    let scale_before = spread(&poses);
-    // The Sampson refinement first (its basin is wide: a few degrees off is fine), then the
-    // bundle adjustment, whose points are triangulated from the refined cameras.
-    let mut phi = 1.0;
-    let refs: Vec<&PairMatches> = pairs.iter().filter(|p| !p.is_empty()).collect();
-    let sampson = SampsonRefineOptions {
-        refine_focal: !known_intrinsics,
-        ..SampsonRefineOptions::default()
-    };
-    let first = refine_sampson(&refs, &layout, &mut poses, &mut phi, 0, &sampson)?;
-    let (tracks, track_report) = build_tracks(cameras.len(), pairs)?;
-    let options = BundleOptions {
-        refine_focal: !known_intrinsics,
-        ..BundleOptions::default()
-    };
-    let (_, report) = bundle_adjust(&tracks, &layout, &mut poses, &mut phi, 0, &options)?;
-    let scale_after = spread(&poses);
-    let rescale = if scale_after > 0.0 && scale_before > 0.0 {
-        scale_before / scale_after
-    } else {
-        1.0
-    };
-    let origin = poses[0].map_or(nalgebra::Vector3::zeros(), |c| c.center);
-    for (c, p) in cameras.iter_mut().zip(&poses) {
-        let Some(p) = p else { continue };
-        let center = origin + (p.center - origin) * rescale;
-        let r = *p.rotation.matrix();
-        c.cam_from_world = Pose::from_rotation_centre(r, center);
-        if !known_intrinsics {
-            let k = c.intrinsics;
-            c.intrinsics = Intrinsics::new(k.fx() * phi, k.fy() * phi, k.cx(), k.cy())?;
-        }
-    }
-    Ok(BundleRefinement {
-        tracks: track_report.tracks,
-        points: report.points,
-        observations: report.observations,
-        rms_px: report.rms_px,
-        iterations: report.iterations,
-        termination: report.termination.as_str().into(),
-        sampson_iterations: first.iterations,
-        sampson_termination: first.termination.as_str().into(),
-        focal_factor: phi,
-    })
-}
-
-/// Matches in original pixels → the 224-crop frame of each image, as a GGS match set over the
-/// images that have a crop (`crops[i]`: image `i`'s crop, `None` to leave it out). The set's
-/// frame `k` is the `k`-th image with a crop; pairs touching an image without one are
-/// skipped.
-///
-/// # Errors
-/// Invalid pairs.
-pub fn model_frame_matches(
-    pairs: &[PairMatches],
-    crops: &[Option<CenterCrop>],
-) -> Result<posediff_guidance::MatchSet> {
-    let mut frame_of = vec![None; crops.len()];
-    let mut members = 0;
-    for (slot, crop) in frame_of.iter_mut().zip(crops) {
-        if crop.is_some() {
-            *slot = Some(members);
-            members += 1;
-        }
-    }
-    let (mut kp1, mut kp2, mut frames) = (Vec::new(), Vec::new(), Vec::new());
-    for p in pairs {
-        let (Some(Some(a)), Some(Some(b)), Some(Some(ca)), Some(Some(cb))) = (
-            frame_of.get(p.first),
-            frame_of.get(p.second),
-            crops.get(p.first),
-            crops.get(p.second),
-        ) else {
-            continue;
-        };
-        for (x, y) in p.kp1.iter().zip(&p.kp2) {
-            kp1.push(ca.to_model(*x));
-            kp2.push(cb.to_model(*y));
-            frames.push((*a, *b));
-        }
-    }
-    Ok(posediff_guidance::MatchSet::new(
-        members, &kp1, &kp2, &frames,
-    )?)
-}
-
 #[cfg(test)]
 mod tests {
     #![allow(clippy::unwrap_used, clippy::expect_used)]
@@ -1574,7 +902,7 @@ mod tests {
         options: &ResectionOptions,
     ) -> posediff_sfm::resection::ResectionReport {
         let (tracks, _) = build_tracks(N, pairs).unwrap();
-        let config = TwoViewConfig::default();
+        let config = posediff_matching::TwoViewConfig::default();
         resect_bridged_sides(
             &tracks,
             pairs,
@@ -1680,60 +1008,5 @@ mod tests {
             (report.moved[0].image, report.moved[0].evidence),
             (4, Evidence::Tracks)
         );
-    }
-
-    /// Matches of `count` placeholder keypoints between `a` and `b`.
-    fn counted(a: usize, b: usize, count: usize) -> PairMatches {
-        PairMatches {
-            first: a,
-            second: b,
-            kp1: vec![[0.0; 2]; count],
-            kp2: vec![[0.0; 2]; count],
-            idx1: (0..count as u32).collect(),
-            idx2: (0..count as u32).collect(),
-        }
-    }
-
-    /// Strong pairs join, weak ones do not; groups come largest first, then by their first
-    /// image, and an image without a strong pair is a group of its own.
-    #[test]
-    fn strong_groups_follow_the_strong_pairs_only() {
-        let pairs = [
-            counted(0, 1, 200),
-            counted(1, 2, 80),
-            counted(2, 3, 79),
-            counted(3, 4, 500),
-            counted(5, 6, 100),
-            counted(4, 5, 20),
-        ];
-        let groups = strong_groups(8, &pairs, STRONG_PAIR);
-        assert_eq!(groups, vec![vec![0, 1, 2], vec![3, 4], vec![5, 6], vec![7]]);
-        assert_eq!(
-            strong_groups(3, &[], STRONG_PAIR),
-            vec![vec![0], vec![1], vec![2]]
-        );
-    }
-
-    /// Evidence decides only when one way has the screen's minimum and twice the other's.
-    #[test]
-    fn orientation_evidence_needs_a_clear_winner() {
-        let o = crate::options::OrientationOptions::default();
-        let min = o.min_matches;
-        assert_eq!(o.evidence(0, min), Some(true));
-        assert_eq!(o.evidence(min, 0), Some(false));
-        assert_eq!(o.evidence(0, min - 1), None);
-        assert_eq!(o.evidence(30, 59), None);
-        assert_eq!(o.evidence(30, 60), Some(true));
-        assert_eq!(o.evidence(60, 30), Some(false));
-        assert_eq!(o.evidence(0, 0), None);
-        // The thresholds are the options' own.
-        let strict = crate::options::OrientationOptions {
-            min_matches: 50,
-            ratio: 4.0,
-            ..o
-        };
-        assert_eq!(strict.evidence(0, 40), None);
-        assert_eq!(strict.evidence(20, 79), None);
-        assert_eq!(strict.evidence(20, 80), Some(true));
     }
 }

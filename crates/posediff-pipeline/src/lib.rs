@@ -7,6 +7,10 @@
 //! - [`geometric`]: the controller: extraction, the pair plan, matching, the orientation check,
 //!   the mapper of `posediff-sfm` with OpenCV's two-view geometry behind its `GeometrySolver`,
 //!   the second pass, the turned retry; the refinement of given cameras.
+//! - [`orientation`]: a learned matcher's orientation check before the map and turned retry
+//!   after it.
+//! - [`ggs`] (`--refine official`) and [`bundle_refine`] (`--refine bundle` after the
+//!   network): the refinements of cameras from elsewhere.
 //! - [`options`]: [`options::PipelineOptions`], every threshold in one tree (run.json,
 //!   `--config`, `--set`, Python).
 //! - [`report`]: what the controller reports (run.json's method report, warnings).
@@ -16,11 +20,15 @@
 //! The mapper crate never sees an image, OpenCV or candle: this crate hands it verified
 //! [`posediff_geometry::PairMatches`] and a solver.
 
+pub mod bundle_refine;
 pub mod correspondences;
 pub mod error;
 pub mod geometric;
+pub mod ggs;
 pub mod options;
+pub mod orientation;
 pub mod progress;
 pub mod report;
+mod two_view;
 
 pub use error::{PosediffError, Result};

@@ -435,3 +435,31 @@ impl PipelineOptions {
         Ok(())
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Evidence decides only when one way has the screen's minimum and twice the other's.
+    #[test]
+    fn orientation_evidence_needs_a_clear_winner() {
+        let o = OrientationOptions::default();
+        let min = o.min_matches;
+        assert_eq!(o.evidence(0, min), Some(true));
+        assert_eq!(o.evidence(min, 0), Some(false));
+        assert_eq!(o.evidence(0, min - 1), None);
+        assert_eq!(o.evidence(30, 59), None);
+        assert_eq!(o.evidence(30, 60), Some(true));
+        assert_eq!(o.evidence(60, 30), Some(false));
+        assert_eq!(o.evidence(0, 0), None);
+        // The thresholds are the options' own.
+        let strict = OrientationOptions {
+            min_matches: 50,
+            ratio: 4.0,
+            ..o
+        };
+        assert_eq!(strict.evidence(0, 40), None);
+        assert_eq!(strict.evidence(20, 79), None);
+        assert_eq!(strict.evidence(20, 80), Some(true));
+    }
+}
