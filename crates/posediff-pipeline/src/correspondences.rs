@@ -468,17 +468,22 @@ pub trait Correspondences: Sync {
     ) -> Result<Option<Vec<ImageFeatures>>>;
 }
 
+/// The log line an extraction starts with (the bad-input tests check that no such line precedes
+/// an error that needs no computation).
+fn log_extraction(images: usize) {
+    log::info!(
+        "{}extracting features of {images} images",
+        crate::progress::WORK_STARTS
+    );
+}
+
 /// OpenCV's SIFT or ORB, mutual nearest neighbours and MAGSAC (`posediff-matching`).
 #[derive(Debug, Clone, Copy)]
 pub struct OpenCvCorrespondences<'a>(pub &'a MatchConfig);
 
 impl Correspondences for OpenCvCorrespondences<'_> {
     fn extract(&self, images: &[PathBuf], counter: &dyn StepCounter) -> Result<Vec<ImageFeatures>> {
-        log::info!(
-            "{}extracting features of {} images",
-            crate::progress::WORK_STARTS,
-            images.len()
-        );
+        log_extraction(images.len());
         counter.stage("features", 0);
         Ok(posediff_matching::extract_all(images, self.0)?)
     }
@@ -520,11 +525,7 @@ pub struct LearnedCorrespondences<'a> {
 
 impl Correspondences for LearnedCorrespondences<'_> {
     fn extract(&self, images: &[PathBuf], counter: &dyn StepCounter) -> Result<Vec<ImageFeatures>> {
-        log::info!(
-            "{}extracting features of {} images",
-            crate::progress::WORK_STARTS,
-            images.len()
-        );
+        log_extraction(images.len());
         if images.len() < 2 {
             return Err(PosediffError::TooFewImages {
                 needed: 2,

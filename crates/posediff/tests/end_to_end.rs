@@ -134,6 +134,24 @@ fn estimate_on_the_apple_frames_writes_four_formats_that_read_back_alike() {
     let run: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("run.json")).unwrap()).unwrap();
     assert_eq!(run["matches_per_pair"].as_array().unwrap().len(), 190);
+    // GGS's matches are the checkpoint path's own (`EstimateConfig`: hloc's 4096 keypoints),
+    // not the checkpoint-free tree's (8192, contrast 0.03), which run.json also carries.
+    let frames =
+        posediff::io::loader::image_files(&shared_path("data/co3d_apple_posediffusion/images"))
+            .unwrap();
+    let (_, own) =
+        posediff_matching::match_images(&frames[..2], None, &EstimateConfig::default().matching)
+            .unwrap();
+    let first = &run["matches_per_pair"][0];
+    assert_eq!(
+        (first["first"].as_u64(), first["second"].as_u64()),
+        (Some(0), Some(1))
+    );
+    assert_eq!(first["matches"].as_u64(), Some(own[0].len() as u64));
+    assert_eq!(
+        run["options"]["matching"]["features"]["max_keypoints"],
+        8192
+    );
     // Two samples: a spread per camera, finite, and not all zero (the samples differ).
     let spread = run["sample_spread"].as_array().unwrap();
     assert_eq!(spread.len(), 20);

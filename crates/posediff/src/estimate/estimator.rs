@@ -623,13 +623,6 @@ pub fn normalised_encodings(cameras: &[Camera]) -> Result<Vec<f32>> {
         .collect())
 }
 
-/// A path relative to `root` when under it, else its file name.
-pub fn relative_name(path: &Path, root: Option<&Path>) -> String {
-    root.and_then(|r| path.strip_prefix(r).ok())
-        .or_else(|| path.file_name().map(Path::new))
-        .unwrap_or(path)
-        .to_string_lossy()
-        .into_owned()
-}
+pub use crate::io::loader::relative_name;
 
 pub use posediff_pipeline::geometric::model_frame_matches;

@@ -571,7 +571,9 @@ fn network_run(
         intrinsics: known.clone(),
         ..net.estimator.config().clone()
     };
-    config.matching = geometric.options.matching;
+    // GGS keeps the checkpoint path's own matching (`EstimateConfig`: hloc's 4096 keypoints);
+    // only the detector follows `--matcher`.
+    config.matching.features.detector = options.matcher.detector();
     config.learned = geometric.learned.clone();
     let estimator = net.estimator.with_config(config);
     let estimate = estimator.estimate(

@@ -173,8 +173,10 @@ pub struct RunReport {
     /// How the cameras were estimated.
     #[serde(flatten)]
     pub method: MethodReport,
-    /// The options tree that decided the cameras (the checkpoint-free path; `None` with a
-    /// checkpoint, whose matching options are in its method report's settings).
+    /// The options tree of the run: every threshold of the checkpoint-free path. With a
+    /// checkpoint its stages make the `--init geometric` cameras; GGS's matches keep the
+    /// checkpoint path's own matching settings (`posediff::EstimateConfig`, hloc's 4096
+    /// keypoints), of which only the detector follows `--matcher`.
     pub options: Option<crate::estimate::options::PipelineOptions>,
     /// Verified matches per pair.
     pub matches_per_pair: Vec<PairCount>,
