@@ -6,7 +6,7 @@
 //! `|x| < 3.8325`, ±1 beyond; a few float ulps), branch-free so the loop vectorises. F64 (the
 //! parity tests), other devices and tracked tensors keep candle's op.
 
-use candle_core::{CpuStorage, CustomOp1, DType, InplaceOp1, Layout, Shape, Tensor};
+use candle_core::{DType, Tensor};
 
 use crate::error::Result;
 
@@ -131,46 +131,11 @@ pub(crate) fn split_over_threads(
 /// Elements below which one thread does the whole tensor.
 const PARALLEL_MIN: usize = 1 << 16;
 
-/// The custom op: F32 on the CPU.
-struct GeluErfF32;
-
-impl CustomOp1 for GeluErfF32 {
-    fn name(&self) -> &'static str {
-        "gelu-erf-f32"
-    }
-
-    fn cpu_fwd(
-        &self,
-        storage: &CpuStorage,
-        layout: &Layout,
-    ) -> candle_core::Result<(CpuStorage, Shape)> {
-        let (CpuStorage::F32(data), Some((start, end))) = (storage, layout.contiguous_offsets())
-        else {
-            candle_core::bail!("gelu-erf-f32 takes a contiguous F32 tensor");
-        };
-        let mut out = data[start..end].to_vec();
-        gelu_parallel(&mut out);
-        Ok((CpuStorage::F32(out), layout.shape().clone()))
-    }
-}
-
-/// The in-place op: F32 on the CPU, contiguous storage of its own.
-struct GeluErfF32InPlace;
-
-impl InplaceOp1 for GeluErfF32InPlace {
-    fn name(&self) -> &'static str {
-        "gelu-erf-f32-in-place"
-    }
-
-    fn cpu_fwd(&self, storage: &mut CpuStorage, layout: &Layout) -> candle_core::Result<()> {
-        let (CpuStorage::F32(data), Some((start, end))) = (storage, layout.contiguous_offsets())
-        else {
-            candle_core::bail!("gelu-erf-f32-in-place takes a contiguous F32 tensor");
-        };
-        gelu_parallel(&mut data[start..end]);
-        Ok(())
-    }
-}
+/// The erf GELU as a candle op ([`crate::SliceOp`]), copying or in place.
+const GELU_ERF_F32: crate::SliceOp = crate::SliceOp {
+    name: "gelu-erf-f32",
+    kernel: |values, _| gelu_parallel(values),
+};
 
 /// The exact GELU of a freshly computed `x`, overwriting it where the fast path applies (F32,
 /// CPU, contiguous, untracked), so no output is allocated: for intermediate results nothing
@@ -180,7 +145,7 @@ impl InplaceOp1 for GeluErfF32InPlace {
 /// Tensor errors.
 pub fn gelu_erf_owned(x: Tensor) -> Result<Tensor> {
     if x.dtype() == DType::F32 && x.device().is_cpu() && !x.track_op() && x.is_contiguous() {
-        x.inplace_op1(&GeluErfF32InPlace)?;
+        x.inplace_op1(&GELU_ERF_F32)?;
         return Ok(x);
     }
     gelu_erf(&x)
@@ -192,7 +157,7 @@ pub fn gelu_erf_owned(x: Tensor) -> Result<Tensor> {
 /// Tensor errors.
 pub fn gelu_erf(x: &Tensor) -> Result<Tensor> {
     if x.dtype() == DType::F32 && x.device().is_cpu() && !x.track_op() {
-        return Ok(x.contiguous()?.apply_op1_no_bwd(&GeluErfF32)?);
+        return Ok(x.contiguous()?.apply_op1_no_bwd(&GELU_ERF_F32)?);
     }
     Ok(x.gelu_erf()?)
 }

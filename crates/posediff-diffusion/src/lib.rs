@@ -41,6 +41,60 @@ pub(crate) fn contiguous_f32<'a>(
     }
 }
 
+/// A kernel over the values of a contiguous F32 CPU tensor as a candle op, in both forms:
+/// copying (`CustomOp1`, `apply_op1_no_bwd`) and in place (`InplaceOp1`, for intermediate
+/// results nothing else holds). `kernel(values, row)` gets the values and the length of the
+/// last dimension (element-wise kernels ignore it). The one wrapper of the element- and
+/// row-wise kernels (the erf GELU, the softmax).
+pub(crate) struct SliceOp {
+    /// The op's name in candle's errors.
+    pub(crate) name: &'static str,
+    /// The kernel.
+    pub(crate) kernel: fn(&mut [f32], usize),
+}
+
+impl SliceOp {
+    fn row(layout: &candle_core::Layout) -> usize {
+        layout.shape().dims().last().copied().unwrap_or(1)
+    }
+}
+
+impl candle_core::CustomOp1 for SliceOp {
+    fn name(&self) -> &'static str {
+        self.name
+    }
+
+    fn cpu_fwd(
+        &self,
+        storage: &candle_core::CpuStorage,
+        layout: &candle_core::Layout,
+    ) -> candle_core::Result<(candle_core::CpuStorage, candle_core::Shape)> {
+        let mut out = contiguous_f32(storage, layout, self.name)?.to_vec();
+        (self.kernel)(&mut out, Self::row(layout));
+        Ok((candle_core::CpuStorage::F32(out), layout.shape().clone()))
+    }
+}
+
+impl candle_core::InplaceOp1 for SliceOp {
+    fn name(&self) -> &'static str {
+        self.name
+    }
+
+    fn cpu_fwd(
+        &self,
+        storage: &mut candle_core::CpuStorage,
+        layout: &candle_core::Layout,
+    ) -> candle_core::Result<()> {
+        let (candle_core::CpuStorage::F32(data), Some((start, end))) =
+            (storage, layout.contiguous_offsets())
+        else {
+            candle_core::bail!("{} must be a contiguous F32 tensor", self.name);
+        };
+        (self.kernel)(&mut data[start..end], Self::row(layout));
+        Ok(())
+    }
+}
+
 /// The threads the CPU kernels split over: candle's count (`RAYON_NUM_THREADS`, else the
 /// physical cores), read once. candle's `get_num_threads` reads the environment and
 /// `/proc/cpuinfo` on every call (about 3 % of a denoiser step in a profile).

@@ -8,7 +8,7 @@
 //! AVX-512 or AVX2+FMA where the CPU has it (pulp's safe runtime dispatch). Rows are split over candle's
 //! threads. Other dtypes, devices and tracked tensors keep candle's op.
 
-use candle_core::{CpuStorage, CustomOp1, DType, InplaceOp1, Layout, Shape, Tensor};
+use candle_core::{DType, Tensor};
 
 use crate::error::Result;
 
@@ -293,46 +293,12 @@ fn softmax_parallel(values: &mut [f32], row: usize) {
 /// Elements below which one thread does the whole tensor.
 const PARALLEL_MIN: usize = 1 << 15;
 
-struct SoftmaxF32;
-
-impl CustomOp1 for SoftmaxF32 {
-    fn name(&self) -> &'static str {
-        "softmax-last-dim-f32"
-    }
-
-    fn cpu_fwd(
-        &self,
-        storage: &CpuStorage,
-        layout: &Layout,
-    ) -> candle_core::Result<(CpuStorage, Shape)> {
-        let (CpuStorage::F32(data), Some((start, end))) = (storage, layout.contiguous_offsets())
-        else {
-            candle_core::bail!("softmax-last-dim-f32 takes a contiguous F32 tensor");
-        };
-        let row = layout.shape().dims().last().copied().unwrap_or(1);
-        let mut out = data[start..end].to_vec();
-        softmax_parallel(&mut out, row);
-        Ok((CpuStorage::F32(out), layout.shape().clone()))
-    }
-}
-
-struct SoftmaxF32InPlace;
-
-impl InplaceOp1 for SoftmaxF32InPlace {
-    fn name(&self) -> &'static str {
-        "softmax-last-dim-f32-in-place"
-    }
-
-    fn cpu_fwd(&self, storage: &mut CpuStorage, layout: &Layout) -> candle_core::Result<()> {
-        let (CpuStorage::F32(data), Some((start, end))) = (storage, layout.contiguous_offsets())
-        else {
-            candle_core::bail!("softmax-last-dim-f32-in-place takes a contiguous F32 tensor");
-        };
-        let row = layout.shape().dims().last().copied().unwrap_or(1);
-        softmax_parallel(&mut data[start..end], row);
-        Ok(())
-    }
-}
+/// The softmax over the last dimension as a candle op ([`crate::SliceOp`]), copying or in
+/// place.
+const SOFTMAX_F32: crate::SliceOp = crate::SliceOp {
+    name: "softmax-last-dim-f32",
+    kernel: softmax_parallel,
+};
 
 fn fast_path(x: &Tensor) -> bool {
     x.dtype() == DType::F32 && x.device().is_cpu() && !x.track_op() && x.rank() > 0
@@ -344,7 +310,7 @@ fn fast_path(x: &Tensor) -> bool {
 /// Tensor errors.
 pub fn softmax_last_dim(x: &Tensor) -> Result<Tensor> {
     if fast_path(x) {
-        return Ok(x.contiguous()?.apply_op1_no_bwd(&SoftmaxF32)?);
+        return Ok(x.contiguous()?.apply_op1_no_bwd(&SOFTMAX_F32)?);
     }
     softmax_last_dim_candle(x)
 }
@@ -369,7 +335,7 @@ pub fn softmax_last_dim_candle(x: &Tensor) -> Result<Tensor> {
 /// Tensor errors.
 pub fn softmax_last_dim_owned(x: Tensor) -> Result<Tensor> {
     if fast_path(&x) && x.is_contiguous() {
-        x.inplace_op1(&SoftmaxF32InPlace)?;
+        x.inplace_op1(&SOFTMAX_F32)?;
         return Ok(x);
     }
     softmax_last_dim(&x)
