@@ -25,7 +25,6 @@ use posediff_diffusion::checkpoint::Checkpoint;
 use posediff_diffusion::sampler::{SeededNoise, denoise_step, sample};
 use posediff_diffusion::train::{AdamW, Trainable, clip_grad_norm, denoising_loss};
 use rand::{Rng, SeedableRng};
-use serde_json::{Value, json};
 
 use super::DeviceArg;
 
@@ -155,13 +154,16 @@ impl Args {
             self.train_iterations,
         )?];
         if self.skip_official_training {
-            training.push(json!({"preset": "official", "skipped": "--skip-official-training"}));
+            training.push(TrainingRow::Skipped {
+                preset: "official".into(),
+                skipped: "--skip-official-training".into(),
+            });
         } else if device.is_cpu() {
             // 900 sequences of 50 frames with their backward pass: killed at 24 GB here.
-            training.push(json!({
-                "preset": "official",
-                "skipped": "a GPU's: on the CPU its backward pass needs more than 24 GB",
-            }));
+            training.push(TrainingRow::Skipped {
+                preset: "official".into(),
+                skipped: "a GPU's: on the CPU its backward pass needs more than 24 GB".into(),
+            });
         } else {
             // Its size is the device's limit (out of memory, say): reported, not fatal, so the
             // parity and network figures above still reach the report.
@@ -171,21 +173,24 @@ impl Args {
                 &device,
                 self.train_iterations,
             )
-            .unwrap_or_else(|e| json!({"preset": "official", "error": first_line(&e)}));
+            .unwrap_or_else(|e| TrainingRow::Failed {
+                preset: "official".into(),
+                error: first_line(&e),
+            });
             training.push(official);
         }
-        let report = json!({
-            "device": self.device.name(),
-            "device_name": device_name(&device),
-            "threads": candle_core::utils::get_num_threads(),
-            "timed_model": timed_model,
-            "model_load_s": load_s,
-            "parity": checks.iter().map(Check::json).collect::<Vec<_>>(),
-            "parity_passed": checks.iter().all(Check::pass),
-            "network": timings,
-            "half_precision": half,
-            "training": training,
-        });
+        let report = DeviceReport {
+            device: self.device.name(),
+            device_name: device_name(&device),
+            threads: candle_core::utils::get_num_threads(),
+            timed_model,
+            model_load_s: load_s,
+            parity: checks.iter().map(Check::record).collect(),
+            parity_passed: checks.iter().all(Check::pass),
+            network: timings,
+            half_precision: half,
+            training,
+        };
         let json_path = self.out.join("report.json");
         std::fs::write(&json_path, serde_json::to_string_pretty(&report)?)
             .with_context(|| format!("writing {}", json_path.display()))?;
@@ -272,8 +277,13 @@ impl Check {
         self.worst.is_finite() && self.worst <= self.bound
     }
 
-    fn json(&self) -> Value {
-        json!({"check": self.name, "worst_abs": self.worst, "bound": self.bound, "pass": self.pass()})
+    fn record(&self) -> CheckRecord {
+        CheckRecord {
+            check: self.name.clone(),
+            worst_abs: self.worst,
+            bound: self.bound,
+            pass: self.pass(),
+        }
     }
 }
 
@@ -406,7 +416,7 @@ fn network_timings(
     device: &Device,
     frames: &[usize],
     repeats: usize,
-) -> anyhow::Result<Vec<Value>> {
+) -> anyhow::Result<Vec<NetworkRow>> {
     let mut rows = Vec::new();
     for &n in frames {
         let images = Tensor::rand(0f32, 1f32, (1, n, 3, 224, 224), device)?;
@@ -429,13 +439,13 @@ fn network_timings(
         eprintln!(
             "{n} frames: features {features:.4} s, denoiser step {step:.5} s, 100 steps {sampling:.4} s"
         );
-        rows.push(json!({
-            "frames": n,
-            "features_s": features,
-            "denoiser_step_s": step,
-            "sampling_100_s": sampling,
-            "features_plus_sampling_s": features + sampling,
-        }));
+        rows.push(NetworkRow {
+            frames: n,
+            features_s: features,
+            denoiser_step_s: step,
+            sampling_100_s: sampling,
+            features_plus_sampling_s: features + sampling,
+        });
     }
     Ok(rows)
 }
@@ -449,7 +459,7 @@ fn half_precision(
     set: &FixtureSet,
     device: &Device,
     repeats: usize,
-) -> anyhow::Result<Vec<Value>> {
+) -> anyhow::Result<Vec<HalfRow>> {
     let io = candle_core::safetensors::load(&set.denoiser_io, device)
         .with_context(|| format!("reading {}", set.denoiser_io.display()))?;
     let get = |name: &str| {
@@ -465,7 +475,7 @@ fn half_precision(
         let ours = ours.to_dtype(DType::F32)?;
         Ok(worst(&ours, reference)? / scale(reference)?)
     };
-    let one = |dtype: DType| -> anyhow::Result<Value> {
+    let one = |dtype: DType| -> anyhow::Result<HalfRow> {
         let model = PoseDiffusionModel::from_checkpoint(checkpoint, dtype, device)?;
         let z = model.image_features(&images.to_dtype(dtype)?)?;
         let out = model
@@ -490,23 +500,24 @@ fn half_precision(
             )?;
             Ok(())
         })?;
-        Ok(json!({
-            "dtype": format!("{dtype:?}"),
-            "features_rel_diff": relative(&z, &z32)?,
-            "denoiser_rel_diff": relative(&out, &out32)?,
-            "features_20_s": features,
-            "sampling_100_20_s": sampling,
-        }))
+        Ok(HalfRow::Measured {
+            dtype: format!("{dtype:?}"),
+            features_rel_diff: relative(&z, &z32)?,
+            denoiser_rel_diff: relative(&out, &out32)?,
+            features_20_s: features,
+            sampling_100_20_s: sampling,
+        })
     };
     // Informational: a dtype the device cannot run (candle has no BF16 product on the CPU)
     // is reported as such, not fatal.
     let rows = [DType::BF16, DType::F16]
         .into_iter()
         .map(|dtype| {
-            let row = one(dtype).unwrap_or_else(
-                |e| json!({"dtype": format!("{dtype:?}"), "error": first_line(&e)}),
-            );
-            eprintln!("{row}");
+            let row = one(dtype).unwrap_or_else(|e| HalfRow::Failed {
+                dtype: format!("{dtype:?}"),
+                error: first_line(&e),
+            });
+            eprintln!("{row:?}");
             row
         })
         .collect();
@@ -528,7 +539,7 @@ fn train_rate(
     preset: &TrainConfig,
     device: &Device,
     iterations: usize,
-) -> anyhow::Result<Value> {
+) -> anyhow::Result<TrainingRow> {
     let trainable = Trainable::from_checkpoint(checkpoint, device)?;
     let trained: Vec<_> = trainable
         .named_variables()
@@ -570,106 +581,175 @@ fn train_rate(
         "training, {} preset: {mean:.3} s per iteration ({sets} sets × {n} frames × {r} repeats)",
         preset.preset
     );
-    Ok(json!({
-        "preset": preset.preset,
-        "depths": format!("{:?}", checkpoint.depths()),
-        "sets": sets,
-        "frames": n,
-        "batch_repeat": r,
-        "iterations_timed": seconds.len(),
-        "seconds_per_iteration": mean,
-        "iterations_per_s": 1.0 / mean,
-        "loss": last_loss,
-    }))
+    Ok(TrainingRow::Measured {
+        preset: preset.preset.to_string(),
+        depths: format!("{:?}", checkpoint.depths()),
+        sets,
+        frames: n,
+        batch_repeat: r,
+        iterations_timed: seconds.len(),
+        seconds_per_iteration: mean,
+        iterations_per_s: 1.0 / mean,
+        loss: last_loss,
+    })
+}
+
+/// report.json: one typed record.
+#[derive(Debug, serde::Serialize)]
+struct DeviceReport {
+    /// `cpu` or `cuda`.
+    device: &'static str,
+    /// The CPU's model name or the GPU.
+    device_name: String,
+    /// candle's threads.
+    threads: usize,
+    /// The checkpoint the timings ran.
+    timed_model: String,
+    /// Seconds to load it.
+    model_load_s: f64,
+    /// Each parity check.
+    parity: Vec<CheckRecord>,
+    /// All within their bounds.
+    parity_passed: bool,
+    /// Timings per frame count.
+    network: Vec<NetworkRow>,
+    /// BF16 and F16 against F32 (`--half`).
+    half_precision: Vec<HalfRow>,
+    /// Training iterations per preset.
+    training: Vec<TrainingRow>,
+}
+
+/// One parity check in report.json.
+#[derive(Debug, serde::Serialize)]
+struct CheckRecord {
+    check: String,
+    worst_abs: f64,
+    bound: f64,
+    pass: bool,
+}
+
+/// The network's timings at one frame count (best of the runs, seconds).
+#[derive(Debug, serde::Serialize)]
+struct NetworkRow {
+    frames: usize,
+    features_s: f64,
+    denoiser_step_s: f64,
+    sampling_100_s: f64,
+    features_plus_sampling_s: f64,
+}
+
+/// One half-precision dtype against F32, or why it did not run.
+#[derive(Debug, serde::Serialize)]
+#[serde(untagged)]
+enum HalfRow {
+    Measured {
+        dtype: String,
+        features_rel_diff: f64,
+        denoiser_rel_diff: f64,
+        features_20_s: f64,
+        sampling_100_20_s: f64,
+    },
+    Failed {
+        dtype: String,
+        error: String,
+    },
+}
+
+/// One training preset's iteration rate, or why it did not run.
+#[derive(Debug, serde::Serialize)]
+#[serde(untagged)]
+enum TrainingRow {
+    Measured {
+        preset: String,
+        depths: String,
+        sets: usize,
+        frames: usize,
+        batch_repeat: usize,
+        iterations_timed: usize,
+        seconds_per_iteration: f64,
+        iterations_per_s: f64,
+        loss: f64,
+    },
+    Skipped {
+        preset: String,
+        skipped: String,
+    },
+    Failed {
+        preset: String,
+        error: String,
+    },
 }
 
 /// The Markdown report.
-fn markdown(r: &Value) -> String {
+fn markdown(r: &DeviceReport) -> String {
     let mut md = format!(
         "# posediff device-check: {} ({})\n\nTimed model: {} (loaded in {:.2} s).\n\n## F32 parity against the official outputs\n\n| check | worst abs | bound | |\n|---|---:|---:|---|\n",
-        r["device"].as_str().unwrap_or("?"),
-        r["device_name"].as_str().unwrap_or("?"),
-        r["timed_model"].as_str().unwrap_or("?"),
-        r["model_load_s"].as_f64().unwrap_or(f64::NAN),
+        r.device, r.device_name, r.timed_model, r.model_load_s,
     );
-    for c in r["parity"].as_array().into_iter().flatten() {
+    for c in &r.parity {
         let _ = writeln!(
             md,
             "| {} | {:.2e} | {:.1e} | {} |",
-            c["check"].as_str().unwrap_or("?"),
-            c["worst_abs"].as_f64().unwrap_or(f64::NAN),
-            c["bound"].as_f64().unwrap_or(f64::NAN),
-            if c["pass"].as_bool() == Some(true) {
-                "ok"
-            } else {
-                "**failed**"
-            }
+            c.check,
+            c.worst_abs,
+            c.bound,
+            if c.pass { "ok" } else { "**failed**" }
         );
     }
     md.push_str("\n## Network (best of the runs, seconds)\n\n| frames | features, 3 scales | one denoiser step | 100-step sampling | features + sampling |\n|---:|---:|---:|---:|---:|\n");
-    for row in r["network"].as_array().into_iter().flatten() {
-        let f = |k: &str| row[k].as_f64().unwrap_or(f64::NAN);
+    for row in &r.network {
         let _ = writeln!(
             md,
             "| {} | {:.4} | {:.5} | {:.4} | {:.4} |",
-            row["frames"],
-            f("features_s"),
-            f("denoiser_step_s"),
-            f("sampling_100_s"),
-            f("features_plus_sampling_s")
+            row.frames,
+            row.features_s,
+            row.denoiser_step_s,
+            row.sampling_100_s,
+            row.features_plus_sampling_s
         );
     }
-    if let Some(rows) = r["half_precision"].as_array().filter(|a| !a.is_empty()) {
+    if !r.half_precision.is_empty() {
         md.push_str("\n## Half precision against F32 (the timed network; differences relative to the largest F32 value)\n\n| dtype | features | denoiser step | features, 20 frames (s) | 100-step sampling, 20 frames (s) |\n|---|---:|---:|---:|---:|\n");
-        for row in rows {
-            if let Some(e) = row["error"].as_str() {
-                let _ = writeln!(
+        for row in &r.half_precision {
+            let _ = match row {
+                HalfRow::Failed { dtype, error } => {
+                    writeln!(md, "| {dtype} | not run: {error} | | | |")
+                }
+                HalfRow::Measured {
+                    dtype,
+                    features_rel_diff,
+                    denoiser_rel_diff,
+                    features_20_s,
+                    sampling_100_20_s,
+                } => writeln!(
                     md,
-                    "| {} | not run: {e} | | | |",
-                    row["dtype"].as_str().unwrap_or("?")
-                );
-                continue;
-            }
-            let f = |k: &str| row[k].as_f64().unwrap_or(f64::NAN);
-            let _ = writeln!(
-                md,
-                "| {} | {:.2e} | {:.2e} | {:.4} | {:.4} |",
-                row["dtype"].as_str().unwrap_or("?"),
-                f("features_rel_diff"),
-                f("denoiser_rel_diff"),
-                f("features_20_s"),
-                f("sampling_100_20_s")
-            );
+                    "| {dtype} | {features_rel_diff:.2e} | {denoiser_rel_diff:.2e} | {features_20_s:.4} | {sampling_100_20_s:.4} |"
+                ),
+            };
         }
     }
     md.push_str("\n## Training iteration (frozen backbone)\n\n| preset | batch | s / iteration | iterations / s |\n|---|---|---:|---:|\n");
-    for row in r["training"].as_array().into_iter().flatten() {
-        if let Some(e) = row["error"].as_str() {
-            let _ = writeln!(
+    for row in &r.training {
+        let _ = match row {
+            TrainingRow::Failed { preset, error } => {
+                writeln!(md, "| {preset} | failed: {error} | – | – |")
+            }
+            TrainingRow::Skipped { preset, skipped } => {
+                writeln!(md, "| {preset} | skipped ({skipped}) | – | – |")
+            }
+            TrainingRow::Measured {
+                preset,
+                sets,
+                frames,
+                batch_repeat,
+                seconds_per_iteration,
+                iterations_per_s,
+                ..
+            } => writeln!(
                 md,
-                "| {} | failed: {e} | – | – |",
-                row["preset"].as_str().unwrap_or("?")
-            );
-            continue;
-        }
-        if let Some(why) = row["skipped"].as_str() {
-            let _ = writeln!(
-                md,
-                "| {} | skipped ({why}) | – | – |",
-                row["preset"].as_str().unwrap_or("?")
-            );
-            continue;
-        }
-        let _ = writeln!(
-            md,
-            "| {} | {} sets × {} frames × {} repeats | {:.3} | {:.2} |",
-            row["preset"].as_str().unwrap_or("?"),
-            row["sets"],
-            row["frames"],
-            row["batch_repeat"],
-            row["seconds_per_iteration"].as_f64().unwrap_or(f64::NAN),
-            row["iterations_per_s"].as_f64().unwrap_or(f64::NAN)
-        );
+                "| {preset} | {sets} sets × {frames} frames × {batch_repeat} repeats | {seconds_per_iteration:.3} | {iterations_per_s:.2} |"
+            ),
+        };
     }
     md
 }
