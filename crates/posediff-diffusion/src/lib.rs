@@ -41,6 +41,22 @@ pub(crate) fn contiguous_f32<'a>(
     }
 }
 
+/// The values of a contiguous F32 CPU tensor, writable, for the in-place ops' `cpu_fwd`;
+/// `what` names the op in the error.
+///
+/// # Errors
+/// Another dtype or a layout that is not contiguous.
+pub fn contiguous_f32_mut<'a>(
+    storage: &'a mut candle_core::CpuStorage,
+    layout: &candle_core::Layout,
+    what: &str,
+) -> candle_core::Result<&'a mut [f32]> {
+    match (storage, layout.contiguous_offsets()) {
+        (candle_core::CpuStorage::F32(data), Some((start, end))) => Ok(&mut data[start..end]),
+        _ => candle_core::bail!("{what} must be a contiguous F32 tensor"),
+    }
+}
+
 /// A kernel over the values of a contiguous F32 CPU tensor as a candle op, in both forms:
 /// copying (`CustomOp1`, `apply_op1_no_bwd`) and in place (`InplaceOp1`, for intermediate
 /// results nothing else holds). `kernel(values, row)` gets the values and the length of the
@@ -85,12 +101,8 @@ impl candle_core::InplaceOp1 for SliceOp {
         storage: &mut candle_core::CpuStorage,
         layout: &candle_core::Layout,
     ) -> candle_core::Result<()> {
-        let (candle_core::CpuStorage::F32(data), Some((start, end))) =
-            (storage, layout.contiguous_offsets())
-        else {
-            candle_core::bail!("{} must be a contiguous F32 tensor", self.name);
-        };
-        (self.kernel)(&mut data[start..end], Self::row(layout));
+        let row = Self::row(layout);
+        (self.kernel)(contiguous_f32_mut(storage, layout, self.name)?, row);
         Ok(())
     }
 }

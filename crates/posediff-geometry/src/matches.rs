@@ -23,6 +23,20 @@ pub struct PairMatches {
 }
 
 impl PairMatches {
+    /// `count` matches between `first` and `second` with every keypoint at the origin and
+    /// keypoint ids `0..count`: a pair whose count is all that matters (view-graph tests, pair
+    /// strengths).
+    pub fn placeholder(first: usize, second: usize, count: usize) -> Self {
+        Self {
+            first,
+            second,
+            kp1: vec![[0.0; 2]; count],
+            kp2: vec![[0.0; 2]; count],
+            idx1: (0..count as u32).collect(),
+            idx2: (0..count as u32).collect(),
+        }
+    }
+
     /// Number of matches.
     pub fn len(&self) -> usize {
         self.kp1.len()

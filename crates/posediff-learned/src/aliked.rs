@@ -290,12 +290,7 @@ impl candle_core::InplaceOp1 for BiasSelu {
         storage: &mut candle_core::CpuStorage,
         layout: &candle_core::Layout,
     ) -> candle_core::Result<()> {
-        let (candle_core::CpuStorage::F32(data), Some((start, end))) =
-            (storage, layout.contiguous_offsets())
-        else {
-            candle_core::bail!("aliked-bias-selu takes a contiguous F32 tensor");
-        };
-        let data = &mut data[start..end];
+        let data = posediff_diffusion::contiguous_f32_mut(storage, layout, "aliked-bias-selu")?;
         if data.len() != self.bias.len() * self.plane {
             candle_core::bail!(
                 "aliked-bias-selu: {} values for {} channels",

@@ -396,14 +396,7 @@ mod tests {
     use super::*;
 
     fn counted(first: usize, second: usize, count: usize) -> PairMatches {
-        PairMatches {
-            first,
-            second,
-            kp1: vec![[0.0, 0.0]; count],
-            kp2: vec![[0.0, 0.0]; count],
-            idx1: (0..count as u32).collect(),
-            idx2: (0..count as u32).collect(),
-        }
+        PairMatches::placeholder(first, second, count)
     }
 
     /// Strong pairs join, weak ones do not; groups come largest first, then by their first

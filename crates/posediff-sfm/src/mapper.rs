@@ -866,14 +866,7 @@ mod tests {
     use super::*;
 
     fn pair(first: usize, second: usize, n: usize) -> PairMatches {
-        PairMatches {
-            first,
-            second,
-            kp1: vec![[0.0; 2]; n],
-            kp2: vec![[0.0; 2]; n],
-            idx1: (0..n as u32).collect(),
-            idx2: (0..n as u32).collect(),
-        }
+        PairMatches::placeholder(first, second, n)
     }
 
     #[test]
