@@ -1,27 +1,19 @@
 //! The hybrid of the paper's future work (`--weights W --refine bundle`): cameras from
-//! elsewhere refined by the mapper's Sampson refinement and bundle adjustment.
+//! elsewhere refined by the mapper's Sampson refinement and bundle adjustment
+//! ([`posediff_sfm::bundle_refine`]), with posediff's errors.
 
-use nalgebra::Rotation3;
-use posediff_geometry::{Camera, Intrinsics, PairMatches, Pose};
-use posediff_sfm::bundle::{BundleOptions, bundle_adjust};
-use posediff_sfm::sampson_refine::{SampsonRefineOptions, refine_sampson};
-use posediff_sfm::tracks::build_tracks;
-use posediff_sfm::{CameraPose, ImageIntrinsics};
+use posediff_geometry::{Camera, PairMatches};
 
 use crate::error::{PosediffError, Result};
 
-pub use crate::report::BundleRefinement;
+pub use posediff_sfm::bundle_refine::BundleRefinement;
 
-/// The hybrid of the paper's future work: cameras from elsewhere (PoseDiffusion after GGS)
-/// refined by the mapper: the Sampson refinement to convergence, then the bundle adjustment
-/// with tracks built from `pairs`. Camera 0 is
-/// held fixed and the scene keeps its scale (mean distance of the centres from camera 0);
-/// unless `known_intrinsics`, one factor on every camera's focal is refined with them.
-///
-/// Non-square pixels are adjusted by their mean focal (the factor applies to both).
+/// [`posediff_sfm::bundle_refine::bundle_refine_cameras`]: camera 0 held, the scene's scale
+/// kept, one focal factor refined unless `known_intrinsics`.
 ///
 /// # Errors
-/// Fewer than two cameras, malformed pairs, a degenerate adjustment.
+/// Fewer than two cameras ([`PosediffError::TooFewImages`]), malformed pairs, a degenerate
+/// adjustment.
 pub fn bundle_refine_cameras(
     cameras: &mut [Camera],
     pairs: &[PairMatches],
@@ -33,67 +25,9 @@ pub fn bundle_refine_cameras(
             got: cameras.len(),
         });
     }
-    let layout =
-        ImageIntrinsics::from_known(&cameras.iter().map(|c| c.intrinsics).collect::<Vec<_>>());
-    let mut poses: Vec<Option<CameraPose>> = cameras
-        .iter()
-        .map(|c| {
-            Some(CameraPose {
-                rotation: Rotation3::from_matrix(&c.cam_from_world.rotation),
-                center: c.center().coords,
-            })
-        })
-        .collect();
-    let spread = |p: &[Option<CameraPose>]| -> f64 {
-        let origin = p[0].map_or(nalgebra::Vector3::zeros(), |c| c.center);
-        p.iter()
-            .flatten()
-            .map(|c| (c.center - origin).norm())
-            .sum::<f64>()
-            / p.len() as f64
-    };
-    let scale_before = spread(&poses);
-    // The Sampson refinement first (its basin is wide: a few degrees off is fine), then the
-    // bundle adjustment, whose points are triangulated from the refined cameras.
-    let mut phi = 1.0;
-    let refs: Vec<&PairMatches> = pairs.iter().filter(|p| !p.is_empty()).collect();
-    let sampson = SampsonRefineOptions {
-        refine_focal: !known_intrinsics,
-        ..SampsonRefineOptions::default()
-    };
-    let first = refine_sampson(&refs, &layout, &mut poses, &mut phi, 0, &sampson)?;
-    let (tracks, track_report) = build_tracks(cameras.len(), pairs)?;
-    let options = BundleOptions {
-        refine_focal: !known_intrinsics,
-        ..BundleOptions::default()
-    };
-    let (_, report) = bundle_adjust(&tracks, &layout, &mut poses, &mut phi, 0, &options)?;
-    let scale_after = spread(&poses);
-    let rescale = if scale_after > 0.0 && scale_before > 0.0 {
-        scale_before / scale_after
-    } else {
-        1.0
-    };
-    let origin = poses[0].map_or(nalgebra::Vector3::zeros(), |c| c.center);
-    for (c, p) in cameras.iter_mut().zip(&poses) {
-        let Some(p) = p else { continue };
-        let center = origin + (p.center - origin) * rescale;
-        let r = *p.rotation.matrix();
-        c.cam_from_world = Pose::from_rotation_centre(r, center);
-        if !known_intrinsics {
-            let k = c.intrinsics;
-            c.intrinsics = Intrinsics::new(k.fx() * phi, k.fy() * phi, k.cx(), k.cy())?;
-        }
-    }
-    Ok(BundleRefinement {
-        tracks: track_report.tracks,
-        points: report.points,
-        observations: report.observations,
-        rms_px: report.rms_px,
-        iterations: report.iterations,
-        termination: report.termination.as_str().into(),
-        sampson_iterations: first.iterations,
-        sampson_termination: first.termination.as_str().into(),
-        focal_factor: phi,
-    })
+    Ok(posediff_sfm::bundle_refine::bundle_refine_cameras(
+        cameras,
+        pairs,
+        known_intrinsics,
+    )?)
 }

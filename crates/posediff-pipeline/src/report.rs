@@ -299,28 +299,7 @@ impl From<posediff_sfm::report::FocalSource> for FocalOrigin {
     }
 }
 
-/// What [`bundle_refine_cameras`](crate::geometric::bundle_refine_cameras) did, for run.json.
-#[derive(Debug, Clone, PartialEq, serde::Serialize)]
-pub struct BundleRefinement {
-    /// Tracks built from the matches.
-    pub tracks: usize,
-    /// Points adjusted.
-    pub points: usize,
-    /// Their observations.
-    pub observations: usize,
-    /// RMS reprojection error at the end, px.
-    pub rms_px: f64,
-    /// Accepted steps.
-    pub iterations: usize,
-    /// Why it stopped.
-    pub termination: String,
-    /// Accepted steps of the Sampson refinement before.
-    pub sampson_iterations: usize,
-    /// Why it stopped.
-    pub sampson_termination: String,
-    /// The factor applied to every focal (1 when the intrinsics are known).
-    pub focal_factor: f64,
-}
+pub use posediff_sfm::bundle_refine::BundleRefinement;
 
 /// Something a run did that the user should know of (written to run.json and the log as its
 /// message).

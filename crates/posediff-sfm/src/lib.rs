@@ -14,6 +14,8 @@
 //! | bundle adjustment (Schur complement) | [`bundle`] |
 //! | sparse points for export (any cameras) | [`points`] |
 //! | all of it, with one options struct per stage | [`mapper`] |
+//! | the geometry the mapper asks of its caller (two-view, resection) | [`solver`] |
+//! | cameras from elsewhere refined (Sampson, then bundle adjustment) | [`bundle_refine`] |
 //!
 //! Every linear solve is faer's ([`linalg`]): sparse Cholesky with the symbolic factorisation
 //! computed once per problem for every system whose size grows with the images, dense faer for
@@ -27,6 +29,7 @@
 #![forbid(unsafe_code)]
 
 pub mod bundle;
+pub mod bundle_refine;
 pub mod camera;
 pub mod error;
 pub mod focal;
