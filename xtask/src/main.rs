@@ -35,6 +35,10 @@
 //!   --out R.json`: the accuracy benchmarks (`posediff bench-real | bench-co3d`); the method is
 //!   `geometric` (default without weights), `posediffusion` (default with) or `ground-truth`
 //!   (the ceiling check).
+//! - `bench-cameras --data ../shared/data --out DIR [--colmap-python target/client-venv/bin/python
+//!   --colmap-script ../shared/tools/pycolmap_run.py]`: real cameras (`posediff bench-cameras`):
+//!   each set and its zoomed copy with `--camera-mode single` and `auto`, COLMAP 4.2's mappers
+//!   in the same run (JSON + Markdown).
 //! - `train --co3d-dir D --annotation-dir A --categories C --out DIR --init W --freeze-backbone
 //!   [--config tiny|official] [--resume] [--iterations N]`: training (`posediff train`).
 //! - `weights [--dir D]`: the released ALIKED, DISK and LightGlue weights (`posediff-learned`): the
@@ -166,7 +170,7 @@ fn main() -> Result<()> {
             &["-p", "posediff", "--example", "bench_matching"],
             &caller_args()?,
         ),
-        "bench-co3d" | "bench-real" | "train" => {
+        "bench-co3d" | "bench-real" | "bench-cameras" | "train" => {
             let mut rest = vec![task.clone()];
             rest.extend(caller_args()?);
             cargo_run(&["-p", "posediff"], &rest)

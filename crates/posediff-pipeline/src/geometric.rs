@@ -32,7 +32,7 @@ use crate::two_view::{OpenCvTwoView, TwoViewCache};
 
 pub use posediff_sfm::intrinsics::{focal_scale, image_centre};
 
-use crate::options::{DensifyWhen, PipelineOptions};
+use crate::options::{CameraMode, DensifyWhen, PipelineOptions};
 pub use crate::options::{
     GEOMETRIC_CONTRAST_THRESHOLD, GEOMETRIC_MAX_KEYPOINTS, KnownIntrinsics, resolve_intrinsics,
 };
@@ -141,6 +141,7 @@ impl GeometricConfig {
         o.homography_fraction = self.options.two_view.homography_fraction;
         // A learned matcher's wrong pairs must not decide the focal (MapperOptions' doc).
         o.score_dropped_as_missing |= self.learned.is_some();
+        o.cameras_from_data = self.options.cameras.mode == CameraMode::Auto;
         match self.refinement {
             Refinement::Converge(r) => o.sampson = Some(r),
             Refinement::None | Refinement::Official(_) => {
@@ -475,7 +476,7 @@ pub fn refine_given_cameras_counted(
         densified = extra.len();
     }
     counter.stage("refining", 0);
-    let (layout, known_phi) = intrinsics_layout(&sizes, &config.intrinsics)?;
+    let (layout, known_phi) = intrinsics_layout(&sizes, &config.intrinsics, CameraMode::Single)?;
     let given: Vec<f64> = init
         .iter()
         .zip(&layout.scale)
@@ -546,13 +547,20 @@ pub fn refine_given_cameras_counted(
     })
 }
 
-/// The per-image principal points and focal scales, and `φ` when the focal is known.
+/// The per-image principal points, focal scales and cameras, and `φ` when the focal is known.
 fn intrinsics_layout(
     sizes: &[ImageSize],
     known: &KnownIntrinsics,
+    mode: CameraMode,
 ) -> Result<(ImageIntrinsics, Option<f64>)> {
     Ok(match resolve_intrinsics(known, sizes)? {
-        None => (ImageIntrinsics::from_sizes(sizes), None),
+        None => {
+            let mut layout = ImageIntrinsics::from_sizes(sizes);
+            if mode == CameraMode::PerImage {
+                layout.group = (0..sizes.len()).collect();
+            }
+            (layout, None)
+        }
         Some(k) => (ImageIntrinsics::from_known(&k), Some(1.0)),
     })
 }
@@ -597,7 +605,8 @@ fn map_supported_matches(
     if n < 2 {
         return Err(PosediffError::TooFewImages { needed: 2, got: n });
     }
-    let (layout, known_phi) = intrinsics_layout(sizes, &config.intrinsics)?;
+    let (layout, known_phi) =
+        intrinsics_layout(sizes, &config.intrinsics, config.options.cameras.mode)?;
     let mapper = GlobalMapper::new(config.mapper_options());
     let solver = OpenCvTwoView {
         config: &config.options.two_view,
@@ -611,6 +620,13 @@ fn map_supported_matches(
     };
     let mut report = GeometricReport::default();
     report.record_mapper(&reconstruction.report);
+    report.record_cameras(
+        config.options.cameras.mode,
+        known_phi.is_some(),
+        &reconstruction.intrinsics,
+        reconstruction.phi,
+        reconstruction.report.cameras.as_ref(),
+    );
     let mut pairs = pairs;
     if let Some(s) = &reconstruction.report.support {
         // The rejected pairs keep their record without matches: nothing downstream (GGS,
@@ -791,10 +807,7 @@ mod tests {
     }
 
     fn intrinsics() -> ImageIntrinsics {
-        ImageIntrinsics {
-            principal: vec![[320.0, 240.0]; N],
-            scale: vec![640.0; N],
-        }
+        ImageIntrinsics::new(vec![[320.0, 240.0]; N], vec![640.0; N])
     }
 
     /// Table points (and `object` points above it), numbered from `first`.

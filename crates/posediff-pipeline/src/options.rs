@@ -95,6 +95,8 @@ pub struct PipelineOptions {
     pub densify: DensifyOptions,
     /// The support check of learned pairs (off by default).
     pub support: SupportOptions,
+    /// Which photos share a camera.
+    pub cameras: CameraOptions,
     /// The mapper's stages (`posediff_sfm::MapperOptions`; its `sampson` is the refinement
     /// `--refine converge|bundle` runs, and with a learned matcher `score_dropped_as_missing`
     /// is on whatever it says here).
@@ -114,6 +116,7 @@ impl Default for PipelineOptions {
             retry: RetryOptions::default(),
             densify: DensifyOptions::default(),
             support: SupportOptions::default(),
+            cameras: CameraOptions::default(),
             mapper: MapperOptions::default(),
         }
     }
@@ -235,6 +238,56 @@ impl Default for RetryOptions {
             partners: 8,
         }
     }
+}
+
+/// Which photos share a camera (COLMAP's camera per image or per device).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum CameraMode {
+    /// Decided from the data: a focal calibrated per image from the view graph
+    /// (`mapper.calibration`), and the images whose focals agree within
+    /// `mapper.calibration.group_tolerance` share one camera; every other image is a camera of
+    /// its own. A set taken with one lens stays one camera.
+    #[default]
+    Auto,
+    /// One camera for all images (one focal factor for the set; the mapper before cameras).
+    Single,
+    /// A camera per image (COLMAP's default): a focal each, refined in the bundle adjustment.
+    PerImage,
+}
+
+impl CameraMode {
+    /// The name in options and run.json.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Auto => "auto",
+            Self::Single => "single",
+            Self::PerImage => "per-image",
+        }
+    }
+}
+
+impl std::str::FromStr for CameraMode {
+    type Err = PosediffError;
+
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "auto" => Ok(Self::Auto),
+            "single" => Ok(Self::Single),
+            "per-image" => Ok(Self::PerImage),
+            other => Err(PosediffError::InvalidArgument(format!(
+                "camera mode {other:?}: expected auto, single or per-image"
+            ))),
+        }
+    }
+}
+
+/// The cameras of an estimate without known intrinsics.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct CameraOptions {
+    /// Which photos share a camera (`--camera-mode`).
+    pub mode: CameraMode,
 }
 
 /// When the second matching pass runs.

@@ -98,6 +98,8 @@ pub struct GeometricReport {
     pub focal_factor_initial: f64,
     /// `φ` after refinement.
     pub focal_factor: f64,
+    /// The cameras: which images share one, each one's focal, and how that was decided.
+    pub cameras: CamerasOutcome,
     /// Rotation averaging.
     pub rotation_averaging: StageOutcome,
     /// Translation averaging.
@@ -181,6 +183,50 @@ impl GeometricReport {
     }
 
     /// Takes the mapper's report.
+    pub(crate) fn record_cameras(
+        &mut self,
+        mode: crate::options::CameraMode,
+        known: bool,
+        intrinsics: &posediff_sfm::ImageIntrinsics,
+        phi: f64,
+        calibration: Option<&posediff_sfm::report::CameraCalibrationReport>,
+    ) {
+        use crate::options::CameraMode;
+        let count = intrinsics.groups();
+        let mut focal_px = vec![0.0; count];
+        for (i, &g) in intrinsics.group.iter().enumerate().rev() {
+            focal_px[g] = intrinsics.focal(phi, i);
+        }
+        let decided_by = match (known, mode) {
+            (true, _) => "given",
+            (false, CameraMode::Auto) => "from the data",
+            (false, m) => m.as_str(),
+        };
+        // The calibration's shared φ was the first start; per image: ratio · φ_initial · s_i
+        // with s_i before folding (the longer side).
+        let image_focal_calibrated = calibration
+            .filter(|c| c.from_data)
+            .map(|c| {
+                c.image_ratio
+                    .iter()
+                    .zip(&c.image_determined)
+                    .enumerate()
+                    .map(|(i, (r, d))| {
+                        d.then(|| r * c.phi * c.image_scale.get(i).copied().unwrap_or(f64::NAN))
+                    })
+                    .collect()
+            })
+            .unwrap_or_default();
+        self.cameras = CamerasOutcome {
+            mode: mode.as_str().into(),
+            decided_by: decided_by.into(),
+            count,
+            image_camera: intrinsics.group.clone(),
+            focal_px,
+            image_focal_calibrated,
+        };
+    }
+
     pub(crate) fn record_mapper(&mut self, m: &MapperReport) {
         self.pairs_with_matches = m.pairs_with_matches;
         self.pairs_with_pose = m.pairs_with_pose;
@@ -270,6 +316,26 @@ impl GeometricReport {
         self.times.refinement = s.resection + s.bundle;
         self.times.resection = s.resection;
     }
+}
+
+/// The cameras of an estimate (run.json's `cameras`).
+#[derive(Debug, Clone, PartialEq, Default, Serialize)]
+pub struct CamerasOutcome {
+    /// The camera mode asked for (`cameras.mode`).
+    pub mode: String,
+    /// How the cameras were decided: `given` (known intrinsics), `single`, `per-image`, or
+    /// `from the data` (auto).
+    pub decided_by: String,
+    /// Number of cameras.
+    pub count: usize,
+    /// Each image's camera (index into `focal_px`).
+    pub image_camera: Vec<usize>,
+    /// Each camera's focal in pixels, at its first image's size (estimated cameras only have
+    /// meaning; images not estimated keep their camera's value).
+    pub focal_px: Vec<f64>,
+    /// Auto: each image's own focal from the view-graph calibration before grouping, pixels
+    /// (`null` where its pairs did not determine it: it joined the main camera).
+    pub image_focal_calibrated: Vec<Option<f64>>,
 }
 
 /// Where the focal of a geometric estimate came from (run.json's `focal_source`).

@@ -161,8 +161,12 @@ pub fn triangulate(
 #[derive(Debug, Clone, Copy)]
 struct ObservationLinearisation {
     image: usize,
-    /// `∂uv/∂[ω, δC, log φ]`.
-    jc: SMatrix<f64, 2, 7>,
+    /// Its index among the point's observations.
+    index: usize,
+    /// `∂uv/∂[ω, δC]`.
+    jc: SMatrix<f64, 2, 6>,
+    /// `∂uv/∂log φ_g` of the image's group.
+    jf: SVector<f64, 2>,
     /// `∂uv/∂X`.
     jp: SMatrix<f64, 2, 3>,
     r: SVector<f64, 2>,
@@ -177,7 +181,68 @@ struct PointLinearisation {
     obs: Vec<ObservationLinearisation>,
 }
 
-type State = (Vec<Option<CameraPose>>, f64, Vec<Vector3<f64>>);
+/// Cameras, each group's focal factor, points.
+type State = (Vec<Option<CameraPose>>, Vec<f64>, Vec<Vector3<f64>>);
+
+/// The blocks of the reduced system one point touches (its free cameras and the free focals
+/// of their groups), and where their products live; fixed per adjustment.
+#[derive(Debug, Clone, Default)]
+struct PointBlocks {
+    /// Per observation: its camera's and its group focal's entry in `entries` (`None`: fixed).
+    obs: Vec<(Option<usize>, Option<usize>)>,
+    /// The distinct blocks touched.
+    entries: Vec<usize>,
+    /// The slot of each entry pair `(u, v)`, `v ≤ u`, at `u (u + 1) / 2 + v`.
+    slots: Vec<usize>,
+}
+
+fn pair_index(u: usize, v: usize) -> usize {
+    let (u, v) = (u.max(v), u.min(v));
+    u * (u + 1) / 2 + v
+}
+
+impl PointBlocks {
+    fn new(obs: &[Observation], intrinsics: &ImageIntrinsics, layout: &ParameterLayout) -> Self {
+        let mut entries: Vec<usize> = Vec::new();
+        let mut entry = |block: Option<usize>| {
+            block.map(|b| match entries.iter().position(|&e| e == b) {
+                Some(u) => u,
+                None => {
+                    entries.push(b);
+                    entries.len() - 1
+                }
+            })
+        };
+        let obs = obs
+            .iter()
+            .map(|o| {
+                let camera = entry(layout.block[o.image]);
+                let focal = entry(layout.focal_block[intrinsics.group[o.image]]);
+                (camera, focal)
+            })
+            .collect();
+        Self {
+            obs,
+            entries,
+            slots: Vec::new(),
+        }
+    }
+
+    /// Every entry pair's block pair (for the pattern).
+    fn block_pairs(&self) -> impl Iterator<Item = (usize, usize)> + '_ {
+        self.entries
+            .iter()
+            .enumerate()
+            .flat_map(move |(u, &a)| self.entries[..=u].iter().map(move |&b| (a, b)))
+    }
+
+    fn find_slots(&mut self, system: &BlockSystem) {
+        self.slots = self
+            .block_pairs()
+            .map(|(a, b)| system.slot(a, b).unwrap_or(usize::MAX))
+            .collect();
+    }
+}
 
 struct Problem<'a> {
     intrinsics: &'a ImageIntrinsics,
@@ -190,56 +255,18 @@ struct Problem<'a> {
     linear: Vec<PointLinearisation>,
     /// Point steps of the last solve.
     point_steps: Vec<Vector3<f64>>,
-    /// Per point, for its observation pairs `(k, l)`, `l < k` in order: the slot of the two
-    /// cameras' block (unused where one is fixed).
-    pair_slots: Vec<Vec<usize>>,
-    /// Per block, the slot of its diagonal block.
-    diagonal_slot: Vec<usize>,
-    /// Per camera block, the slot of the focal × camera block (unused without a focal).
-    focal_slot: Vec<usize>,
-}
-
-/// The slots [`Problem::solve`] adds to, looked up once per adjustment.
-fn slots(
-    system: &BlockSystem,
-    layout: &ParameterLayout,
-    observations: &[&[Observation]],
-) -> (Vec<Vec<usize>>, Vec<usize>, Vec<usize>) {
-    let pair_slots = observations
-        .iter()
-        .map(|obs| {
-            let mut s = Vec::with_capacity(obs.len() * obs.len().saturating_sub(1) / 2);
-            for k in 0..obs.len() {
-                for l in 0..k {
-                    let slot = match (layout.block[obs[k].image], layout.block[obs[l].image]) {
-                        (Some(a), Some(b)) => system.slot(a, b).unwrap_or(usize::MAX),
-                        _ => usize::MAX,
-                    };
-                    s.push(slot);
-                }
-            }
-            s
-        })
-        .collect();
-    let blocks = layout.block_sizes.len();
-    let diagonal_slot = (0..blocks)
-        .map(|b| system.slot(b, b).unwrap_or(usize::MAX))
-        .collect();
-    let focal_slot = (0..blocks)
-        .map(|b| {
-            layout
-                .focal_block
-                .and_then(|f| system.slot(f, b))
-                .unwrap_or(usize::MAX)
-        })
-        .collect();
-    (pair_slots, diagonal_slot, focal_slot)
+    /// Per point, the blocks it touches.
+    blocks: Vec<PointBlocks>,
 }
 
 impl Problem<'_> {
     fn rho(&self, e2: f64) -> f64 {
         let c2 = self.cauchy * self.cauchy;
         0.5 * c2 * (1.0 + e2 / c2).ln()
+    }
+
+    fn focal(&self, factors: &[f64], image: usize) -> f64 {
+        factors[self.intrinsics.group[image]] * self.intrinsics.scale[image]
     }
 }
 
@@ -250,7 +277,7 @@ impl LeastSquares for Problem<'_> {
         self.layout.n_params
     }
 
-    fn cost(&self, (cams, phi, points): &State) -> f64 {
+    fn cost(&self, (cams, factors, points): &State) -> f64 {
         let per_point: Vec<f64> = self
             .observations
             .par_iter()
@@ -259,7 +286,7 @@ impl LeastSquares for Problem<'_> {
                 let mut total = 0.0;
                 for o in obs.iter() {
                     let Some(c) = cams[o.image] else { continue };
-                    let f = self.intrinsics.focal(*phi, o.image);
+                    let f = self.focal(factors, o.image);
                     total += match project(&c, f, self.intrinsics.principal[o.image], x) {
                         Some((uv, _)) => {
                             self.rho((uv[0] - o.xy[0]).powi(2) + (uv[1] - o.xy[1]).powi(2))
@@ -273,10 +300,10 @@ impl LeastSquares for Problem<'_> {
         per_point.iter().sum()
     }
 
-    fn linearize(&mut self, (cams, phi, points): &State) -> Result<()> {
+    fn linearize(&mut self, (cams, factors, points): &State) -> Result<()> {
         let c2 = self.cauchy * self.cauchy;
-        let intrinsics = self.intrinsics;
-        self.linear = self
+        let this = &*self;
+        let linear = this
             .observations
             .par_iter()
             .zip(points)
@@ -286,10 +313,10 @@ impl LeastSquares for Problem<'_> {
                     g: Vector3::zeros(),
                     obs: Vec::with_capacity(obs.len()),
                 };
-                for o in obs.iter() {
+                for (index, o) in obs.iter().enumerate() {
                     let Some(cam) = cams[o.image] else { continue };
-                    let f = intrinsics.focal(*phi, o.image);
-                    let pp = intrinsics.principal[o.image];
+                    let f = this.focal(factors, o.image);
+                    let pp = this.intrinsics.principal[o.image];
                     let Some((uv, xc)) = project(&cam, f, pp, x) else {
                         continue;
                     };
@@ -306,16 +333,17 @@ impl LeastSquares for Problem<'_> {
                     );
                     let jp = d * cam.rotation.matrix();
                     let skew = Matrix3::new(0.0, -xc.z, xc.y, xc.z, 0.0, -xc.x, -xc.y, xc.x, 0.0);
-                    let mut jc = SMatrix::<f64, 2, 7>::zeros();
+                    let mut jc = SMatrix::<f64, 2, 6>::zeros();
                     jc.fixed_view_mut::<2, 3>(0, 0).copy_from(&(d * (-skew)));
                     jc.fixed_view_mut::<2, 3>(0, 3).copy_from(&(-jp));
-                    jc[(0, 6)] = uv[0] - pp[0];
-                    jc[(1, 6)] = uv[1] - pp[1];
+                    let jf = SVector::<f64, 2>::new(uv[0] - pp[0], uv[1] - pp[1]);
                     lin.c += jp.transpose() * jp * w;
                     lin.g += jp.transpose() * r * w;
                     lin.obs.push(ObservationLinearisation {
                         image: o.image,
+                        index,
                         jc,
+                        jf,
                         jp,
                         r,
                         w,
@@ -324,20 +352,21 @@ impl LeastSquares for Problem<'_> {
                 lin
             })
             .collect();
+        self.linear = linear;
         Ok(())
     }
 
     fn solve(&mut self, lambda: f64) -> Result<Option<Vec<f64>>> {
         self.system.clear();
         let mut inverses = Vec::with_capacity(self.linear.len());
-        let focal = self.layout.focal_block;
-        let mut es: Vec<SMatrix<f64, 7, 3>> = Vec::new();
-        let mut ecs: Vec<SMatrix<f64, 7, 3>> = Vec::new();
-        let mut blocks: Vec<Option<usize>> = Vec::new();
-        let mut focal_rows: Vec<SVector<f64, 6>> = Vec::new();
-        // Per point: the camera terms minus the point's elimination, S = A − Σ E C⁻¹ Eᵀ and
-        // rhs = −g + Σ E C⁻¹ g_p, each block added once (lower triangle), slots precomputed.
-        for (p, lin) in self.linear.iter().enumerate() {
+        // Per entry of a point: E = Σ J_uᵀ W J_p (rows beyond the block's size unused), E C⁻¹
+        // and the gradient; buffers reused from point to point.
+        let mut es: Vec<SMatrix<f64, 6, 3>> = Vec::new();
+        let mut ecs: Vec<SMatrix<f64, 6, 3>> = Vec::new();
+        let mut gs: Vec<SVector<f64, 6>> = Vec::new();
+        // Per point: the direct terms J_uᵀ W J_v of each observation, then minus the point's
+        // elimination, S = A − Σ E C⁻¹ Eᵀ and rhs = −g + Σ E C⁻¹ g_p, each lower block once.
+        for (lin, blocks) in self.linear.iter().zip(&self.blocks) {
             let mut c = lin.c;
             for k in 0..3 {
                 c[(k, k)] = c[(k, k)] * (1.0 + lambda) + 1e-12;
@@ -346,67 +375,63 @@ impl LeastSquares for Problem<'_> {
                 // Not invertible at this damping: more damping makes it so.
                 return Ok(None);
             };
-            // Per observation: E = J_cᵀ W J_p, E C⁻¹, its camera block, and its focal row
-            // (focal × that camera's pose); buffers reused from point to point.
+            let entries = blocks.entries.len();
             es.clear();
-            es.extend(lin.obs.iter().map(|o| o.jc.transpose() * o.jp * o.w));
-            ecs.clear();
-            ecs.extend(es.iter().map(|e| e * c_inv));
-            blocks.clear();
-            blocks.extend(lin.obs.iter().map(|o| self.layout.block[o.image]));
-            focal_rows.clear();
-            focal_rows.resize(lin.obs.len(), SVector::zeros());
-            let cg = c_inv * lin.g;
-            let mut focal_diag = 0.0;
-            let mut pair = 0;
-            for (k, o) in lin.obs.iter().enumerate() {
-                let hcc = o.jc.transpose() * o.jc * o.w;
-                let gc = o.jc.transpose() * o.r * o.w;
-                let v = es[k] * cg;
-                let own = hcc - ecs[k] * es[k].transpose();
-                if let Some(b) = blocks[k] {
-                    self.system.add_rhs(b, |i| -gc[i] + v[i]);
+            es.resize(entries, SMatrix::zeros());
+            gs.clear();
+            gs.resize(entries, SVector::zeros());
+            for o in &lin.obs {
+                let (camera, focal) = blocks.obs[o.index];
+                if let Some(u) = camera {
+                    let e = o.jc.transpose() * o.jp * o.w;
+                    es[u] += e;
+                    let gc = o.jc.transpose() * o.r * o.w;
+                    gs[u] += gc;
+                    let h = o.jc.transpose() * o.jc * o.w;
+                    let b = blocks.entries[u];
                     self.system
-                        .add_block_at(self.diagonal_slot[b], b, b, |i, j| own[(i, j)]);
+                        .add_block_at(blocks.slots[pair_index(u, u)], b, b, |i, j| h[(i, j)]);
                 }
-                if let Some(f) = focal {
-                    self.system.add_rhs(f, |_| -gc[6] + v[6]);
-                    focal_diag += own[(6, 6)];
-                }
-                for i in 0..6 {
-                    focal_rows[k][i] += own[(6, i)];
-                }
-                for l in 0..k {
-                    let slot = self.pair_slots[p][pair];
-                    pair += 1;
-                    let m = ecs[k] * es[l].transpose();
-                    if let (Some(bk), Some(bl)) = (blocks[k], blocks[l]) {
-                        self.system.add_block_at(slot, bk, bl, |i, j| -m[(i, j)]);
+                if let Some(v) = focal {
+                    let e = o.jf.transpose() * o.jp * o.w;
+                    for j in 0..3 {
+                        es[v][(0, j)] += e[(0, j)];
                     }
-                    // m_lk = m_klᵀ: its focal row is m_kl's focal column.
-                    for i in 0..6 {
-                        focal_rows[l][i] -= m[(6, i)];
-                        focal_rows[k][i] -= m[(i, 6)];
+                    gs[v][0] += o.jf.dot(&o.r) * o.w;
+                    let h = o.jf.norm_squared() * o.w;
+                    let b = blocks.entries[v];
+                    self.system
+                        .add_block_at(blocks.slots[pair_index(v, v)], b, b, |_, _| h);
+                    if let Some(u) = camera {
+                        let h = o.jf.transpose() * o.jc * o.w;
+                        let bu = blocks.entries[u];
+                        self.system
+                            .add_block_at(blocks.slots[pair_index(u, v)], b, bu, |_, j| h[(0, j)]);
                     }
-                    focal_diag -= 2.0 * m[(6, 6)];
                 }
             }
-            if let Some(f) = focal {
-                for (k, row) in focal_rows.iter().enumerate() {
-                    if let Some(b) = blocks[k] {
-                        self.system
-                            .add_block_at(self.focal_slot[b], f, b, |_, j| row[j]);
-                    }
+            let cg = c_inv * lin.g;
+            ecs.clear();
+            ecs.extend(es.iter().map(|e| e * c_inv));
+            for u in 0..entries {
+                let bu = blocks.entries[u];
+                let v = es[u] * cg;
+                let g = gs[u];
+                self.system.add_rhs(bu, |i| -g[i] + v[i]);
+                for (w, (ew, &bw)) in es.iter().zip(&blocks.entries).enumerate().take(u + 1) {
+                    let m = ecs[u] * ew.transpose();
+                    self.system
+                        .add_block_at(blocks.slots[pair_index(u, w)], bu, bw, |i, j| -m[(i, j)]);
                 }
-                self.system
-                    .add_block_at(self.diagonal_slot[f], f, f, |_, _| focal_diag);
             }
             inverses.push(c_inv);
         }
         let Some(delta) = self.system.solve_regularised(lambda)? else {
             return Ok(None);
         };
-        // Back-substitution: δp = −C⁻¹ (g_p + Σ Eᵀ δc).
+        // Back-substitution: δp = −C⁻¹ (g_p + Σ J_pᵀ W (J_c δc + J_f δf)).
+        let layout = &self.layout;
+        let group = &self.intrinsics.group;
         self.point_steps = self
             .linear
             .iter()
@@ -414,16 +439,14 @@ impl LeastSquares for Problem<'_> {
             .map(|(lin, c_inv)| {
                 let mut v = lin.g;
                 for o in &lin.obs {
-                    let mut dc = SVector::<f64, 7>::zeros();
-                    if let Some(off) = self.layout.offset[o.image] {
-                        for i in 0..6 {
-                            dc[i] = delta[off + i];
-                        }
+                    let mut duv = SVector::<f64, 2>::zeros();
+                    if let Some(off) = layout.offset[o.image] {
+                        duv += o.jc * SVector::<f64, 6>::from_fn(|i, _| delta[off + i]);
                     }
-                    if let Some(fi) = self.layout.focal {
-                        dc[6] = delta[fi];
+                    if let Some(fi) = layout.focal[group[o.image]] {
+                        duv += o.jf * delta[fi];
                     }
-                    v += (o.jc.transpose() * o.jp * o.w).transpose() * dc;
+                    v += o.jp.transpose() * duv * o.w;
                 }
                 -(c_inv * v)
             })
@@ -431,8 +454,8 @@ impl LeastSquares for Problem<'_> {
         Ok(Some(delta))
     }
 
-    fn apply(&self, (cams, phi, points): &State, step: &[f64]) -> State {
-        let (mut moved, phi) = self.layout.apply(cams, *phi, step);
+    fn apply(&self, (cams, factors, points): &State, step: &[f64]) -> State {
+        let (mut moved, factors) = self.layout.apply(cams, factors, step);
         let mut points: Vec<Vector3<f64>> = points
             .iter()
             .zip(&self.point_steps)
@@ -446,7 +469,7 @@ impl LeastSquares for Problem<'_> {
                 *x = origin + (*x - origin) * s;
             }
         }
-        (moved, phi, points)
+        (moved, factors, points)
     }
 }
 
@@ -478,30 +501,33 @@ fn filter(
         .collect()
 }
 
-/// One adjustment of `points` (in place) with the cameras and `φ`.
+/// One adjustment of `points` (in place) with the cameras and each group's focal factor.
 fn adjust(
     points: &mut [Point],
     intrinsics: &ImageIntrinsics,
     cameras: &mut [Option<CameraPose>],
-    phi: &mut f64,
+    factors: &mut [f64],
     reference: usize,
     options: &BundleOptions,
 ) -> Result<(usize, Termination)> {
-    let layout = ParameterLayout::new(cameras, reference, options.refine_focal);
-    let mut block_pairs = Vec::new();
-    for p in points.iter() {
-        for (k, a) in p.observations.iter().enumerate() {
-            let ba = layout.block[a.image];
-            if let (Some(x), Some(f)) = (ba, layout.focal_block) {
-                block_pairs.push((x, f));
-            }
-            for b in &p.observations[k + 1..] {
-                if let (Some(x), Some(y)) = (ba, layout.block[b.image]) {
-                    block_pairs.push((x, y));
+    // A group's focal is refined when one of its images is observed by a camera.
+    let mut free = vec![false; factors.len()];
+    if options.refine_focal {
+        for p in points.iter() {
+            for o in &p.observations {
+                if cameras[o.image].is_some() {
+                    free[intrinsics.group[o.image]] = true;
                 }
             }
         }
     }
+    let layout = ParameterLayout::with_focals(cameras, reference, &free);
+    let mut blocks: Vec<PointBlocks> = points
+        .iter()
+        .map(|p| PointBlocks::new(&p.observations, intrinsics, &layout))
+        .collect();
+    let mut block_pairs: Vec<(usize, usize)> =
+        blocks.iter().flat_map(PointBlocks::block_pairs).collect();
     block_pairs.sort_unstable();
     block_pairs.dedup();
     let system = BlockSystem::new(
@@ -510,9 +536,11 @@ fn adjust(
         block_pairs,
         options.solver,
     )?;
+    for b in &mut blocks {
+        b.find_slots(&system);
+    }
     let observations: Vec<&[Observation]> =
         points.iter().map(|p| p.observations.as_slice()).collect();
-    let (pair_slots, diagonal_slot, focal_slot) = slots(&system, &layout, &observations);
     let mut problem = Problem {
         intrinsics,
         observations,
@@ -522,13 +550,11 @@ fn adjust(
         system,
         linear: Vec::new(),
         point_steps: Vec::new(),
-        pair_slots,
-        diagonal_slot,
-        focal_slot,
+        blocks,
     };
     let mut state: State = (
         cameras.to_vec(),
-        *phi,
+        factors.to_vec(),
         points.iter().map(|p| p.xyz).collect(),
     );
     let lm = LmOptions {
@@ -539,29 +565,50 @@ fn adjust(
     let report = minimize(&mut problem, &mut state, &lm)?;
     drop(problem);
     cameras.copy_from_slice(&state.0);
-    *phi = state.1;
+    factors.copy_from_slice(&state.1);
     for (p, x) in points.iter_mut().zip(state.2) {
         p.xyz = x;
     }
     Ok((report.iterations, report.termination))
 }
 
-/// Adjusts `cameras` (`None`: not estimated) and `phi` in place on `tracks`; the reference
-/// camera is held fixed. Returns the adjusted points with the observations they keep.
+/// Adjusts `cameras` (`None`: not estimated) and the focal factors in place on `tracks`:
+/// `factors[g]` is camera group `g`'s (`intrinsics.group`; image `i`'s focal is
+/// `factors[group[i]] · scale[i]`), each refined when [`BundleOptions::refine_focal`] and one
+/// of its images is estimated. The reference camera is held fixed. Returns the adjusted points
+/// with the observations they keep.
 ///
 /// # Errors
-/// Cameras or intrinsics of the wrong length, a reference without a camera, a non-positive
-/// focal factor, a reduced camera system that is not positive definite at any damping.
+/// Cameras, intrinsics or factors of the wrong length, a reference without a camera, a
+/// non-positive focal factor, a reduced camera system that is not positive definite at any
+/// damping.
 pub fn bundle_adjust(
     tracks: &[Track],
     intrinsics: &ImageIntrinsics,
     cameras: &mut [Option<CameraPose>],
-    phi: &mut f64,
+    factors: &mut [f64],
     reference: usize,
     options: &BundleOptions,
 ) -> Result<(Vec<Point>, BundleReport)> {
-    check_inputs(cameras.len(), intrinsics, cameras, *phi, reference)?;
+    let groups = intrinsics.groups();
+    if factors.len() != groups {
+        return Err(crate::error::SfmError::LengthMismatch {
+            what: "focal factors (one per camera group)",
+            left: groups,
+            right: factors.len(),
+        });
+    }
+    for &phi in factors.iter() {
+        check_inputs(cameras.len(), intrinsics, cameras, phi, reference)?;
+    }
+    // The stages that see one focal per image: the factors folded into the scales.
+    let folded = |factors: &[f64]| {
+        let mut folded = intrinsics.clone();
+        let phi = folded.fold_factors(factors);
+        (folded, phi)
+    };
     let min_angle = options.min_angle_deg.to_radians();
+    let (at_start, phi) = folded(factors);
     let points: Vec<Point> = tracks
         .par_iter()
         .filter_map(|t| {
@@ -572,13 +619,13 @@ pub fn bundle_adjust(
                     .collect(),
                 options.max_track_length,
             );
-            triangulate(&t, cameras, intrinsics, *phi, min_angle).map(|xyz| Point {
+            triangulate(&t, cameras, &at_start, phi, min_angle).map(|xyz| Point {
                 xyz,
                 observations: t,
             })
         })
         .collect();
-    let mut points = filter(points, cameras, intrinsics, *phi, options.max_error_px);
+    let mut points = filter(points, cameras, &at_start, phi, options.max_error_px);
     let mut report = BundleReport {
         tracks: tracks.len(),
         converged: true,
@@ -588,20 +635,36 @@ pub fn bundle_adjust(
     if points.is_empty() {
         return Ok((points, report));
     }
-    let (first, t1) = adjust(&mut points, intrinsics, cameras, phi, reference, options)?;
-    points = filter(points, cameras, intrinsics, *phi, options.max_error_px);
-    let (second, t2) = adjust(&mut points, intrinsics, cameras, phi, reference, options)?;
+    let (first, t1) = adjust(
+        &mut points,
+        intrinsics,
+        cameras,
+        factors,
+        reference,
+        options,
+    )?;
+    let (between, phi) = folded(factors);
+    points = filter(points, cameras, &between, phi, options.max_error_px);
+    let (second, t2) = adjust(
+        &mut points,
+        intrinsics,
+        cameras,
+        factors,
+        reference,
+        options,
+    )?;
     report.iterations = first + second;
     report.converged = t1.converged() && t2.converged();
     report.termination = t2;
+    let (at_end, phi) = folded(factors);
     let (mut sum, mut count) = (0.0, 0usize);
     for p in &points {
         for o in &p.observations {
             if let Some(c) = cameras[o.image]
                 && let Some((uv, _)) = project(
                     &c,
-                    intrinsics.focal(*phi, o.image),
-                    intrinsics.principal[o.image],
+                    at_end.focal(phi, o.image),
+                    at_end.principal[o.image],
                     &p.xyz,
                 )
             {
@@ -648,10 +711,7 @@ mod tests {
     /// The analytic reprojection Jacobian against central differences.
     #[test]
     fn reprojection_jacobian_matches_finite_differences() {
-        let intrinsics = ImageIntrinsics {
-            principal: vec![[320.0, 240.0]],
-            scale: vec![640.0],
-        };
+        let intrinsics = ImageIntrinsics::new(vec![[320.0, 240.0]], vec![640.0]);
         let cam = CameraPose {
             rotation: Rotation3::from_euler_angles(0.1, -0.2, 0.3),
             center: Vector3::new(0.2, -0.1, -3.0),
@@ -673,11 +733,11 @@ mod tests {
             system: BlockSystem::new("t", &[6, 1], [(0, 1)], Solver::Dense).unwrap(),
             linear: Vec::new(),
             point_steps: Vec::new(),
-            pair_slots: vec![Vec::new()],
-            diagonal_slot: vec![0, 0],
-            focal_slot: vec![0],
+            blocks: Vec::new(),
         };
-        problem.linearize(&(vec![Some(cam)], phi, vec![x])).unwrap();
+        problem
+            .linearize(&(vec![Some(cam)], vec![phi], vec![x]))
+            .unwrap();
         let lin = problem.linear[0].obs[0];
         let uv = |theta: &[f64; 10]| {
             let c = cam.moved(&theta[0..6]);
@@ -699,8 +759,10 @@ mod tests {
             let (a, b) = (uv(&plus), uv(&minus));
             for row in 0..2 {
                 let fd = (a[row] - b[row]) / (2.0 * h);
-                let analytic = if q < 7 {
+                let analytic = if q < 6 {
                     lin.jc[(row, q)]
+                } else if q == 6 {
+                    lin.jf[row]
                 } else {
                     lin.jp[(row, q - 7)]
                 };

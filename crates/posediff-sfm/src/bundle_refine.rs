@@ -90,7 +90,14 @@ pub fn bundle_refine_cameras(
         refine_focal: !known_intrinsics,
         ..BundleOptions::default()
     };
-    let (_, report) = bundle_adjust(&tracks, &layout, &mut poses, &mut phi, 0, &options)?;
+    let (_, report) = bundle_adjust(
+        &tracks,
+        &layout,
+        &mut poses,
+        std::slice::from_mut(&mut phi),
+        0,
+        &options,
+    )?;
     let scale_after = spread(&poses);
     let rescale = if scale_after > 0.0 && scale_before > 0.0 {
         scale_before / scale_after

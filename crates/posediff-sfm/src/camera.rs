@@ -32,26 +32,33 @@ impl CameraPose {
 }
 
 /// Where each camera's 6 parameters sit in the parameter vector (`None`: the reference or not
-/// estimated), the focal's index when refined, and the parameter count.
+/// estimated), the focal factors' indices when refined (one per camera group), and the
+/// parameter count.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ParameterLayout {
     /// Offset of each camera's 6 values.
     pub offset: Vec<Option<usize>>,
-    /// Index of `log φ` when refined.
-    pub focal: Option<usize>,
+    /// Index of each group's `log φ_g` (`None`: that factor is fixed).
+    pub focal: Vec<Option<usize>>,
     /// Parameters in all.
     pub n_params: usize,
-    /// Block index of each camera in a block system (cameras first, then the focal).
+    /// Block index of each camera in a block system (cameras first, then the focals).
     pub block: Vec<Option<usize>>,
-    /// Block index of the focal.
-    pub focal_block: Option<usize>,
-    /// Block sizes (6 per free camera, 1 for the focal).
+    /// Block index of each group's focal (`None` when fixed).
+    pub focal_block: Vec<Option<usize>>,
+    /// Block sizes (6 per free camera, 1 per free focal).
     pub block_sizes: Vec<usize>,
 }
 
 impl ParameterLayout {
-    /// The layout of `cameras` with `reference` fixed.
+    /// The layout of `cameras` with `reference` fixed and one shared focal when `refine_focal`.
     pub fn new(cameras: &[Option<CameraPose>], reference: usize, refine_focal: bool) -> Self {
+        Self::with_focals(cameras, reference, &[refine_focal])
+    }
+
+    /// The layout of `cameras` with `reference` fixed and the focal factor of each group `g`
+    /// with `free[g]` refined.
+    pub fn with_focals(cameras: &[Option<CameraPose>], reference: usize, free: &[bool]) -> Self {
         let mut next = 0;
         let mut blocks = 0;
         let mut block = Vec::with_capacity(cameras.len());
@@ -71,27 +78,34 @@ impl ParameterLayout {
             })
             .collect();
         let mut block_sizes = vec![6; blocks];
-        let focal_block = refine_focal.then(|| {
-            block_sizes.push(1);
-            blocks
-        });
+        let mut focal = Vec::with_capacity(free.len());
+        let mut focal_block = Vec::with_capacity(free.len());
+        for &f in free {
+            focal.push(f.then_some(next));
+            focal_block.push(f.then_some(block_sizes.len()));
+            if f {
+                next += 1;
+                block_sizes.push(1);
+            }
+        }
         Self {
             offset,
-            focal: refine_focal.then_some(next),
-            n_params: next + usize::from(refine_focal),
+            focal,
+            n_params: next,
             block,
             focal_block,
             block_sizes,
         }
     }
 
-    /// The cameras and `φ` moved by `step` (the first `n_params` values).
+    /// The cameras and the focal factors moved by `step` (the first `n_params` values); fixed
+    /// factors are returned as given.
     pub fn apply(
         &self,
         cameras: &[Option<CameraPose>],
-        phi: f64,
+        factors: &[f64],
         step: &[f64],
-    ) -> (Vec<Option<CameraPose>>, f64) {
+    ) -> (Vec<Option<CameraPose>>, Vec<f64>) {
         let moved = cameras
             .iter()
             .zip(&self.offset)
@@ -100,7 +114,15 @@ impl ParameterLayout {
                 (c, _) => *c,
             })
             .collect();
-        (moved, self.focal.map_or(phi, |i| phi * step[i].exp()))
+        let factors = factors
+            .iter()
+            .enumerate()
+            .map(|(g, phi)| match self.focal.get(g).copied().flatten() {
+                Some(i) => phi * step[i].exp(),
+                None => *phi,
+            })
+            .collect();
+        (moved, factors)
     }
 }
 

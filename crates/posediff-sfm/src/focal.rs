@@ -195,10 +195,7 @@ mod tests {
 
     #[test]
     fn homographies_of_rotations_give_the_focal() {
-        let layout = ImageIntrinsics {
-            principal: vec![[320.0, 240.0]; 3],
-            scale: vec![640.0; 3],
-        };
+        let layout = ImageIntrinsics::new(vec![[320.0, 240.0]; 3], vec![640.0; 3]);
         let phi_true = 0.9;
         let pairs: Vec<(usize, usize, Matrix3<f64>)> = (1..3)
             .map(|b| {

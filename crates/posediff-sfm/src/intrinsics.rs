@@ -1,6 +1,11 @@
 //! The one place the mapper builds intrinsics: per image a fixed principal point and a focal
 //! `f_i = φ · s_i`, with `φ` shared by all images (unknown or given) and `s_i` a per-image scale
 //! (the longer side when the focal is unknown, the known focal when it is given: then `φ = 1`).
+//!
+//! Images are grouped into cameras (`group`, COLMAP's camera id): the bundle adjustment refines
+//! one focal factor per group (`f_i = φ_g · s_i`), and the stages before it use the shared `φ`
+//! with each group's ratio to the first folded into `s_i`
+//! ([`crate::view_graph_calibration`] estimates those ratios).
 
 use nalgebra::Matrix3;
 use posediff_geometry::{ImageSize, Intrinsics};
@@ -47,23 +52,56 @@ pub struct ImageIntrinsics {
     pub principal: Vec<[f64; 2]>,
     /// `f_i = φ · scale_i` per image.
     pub scale: Vec<f64>,
+    /// The camera (group) of each image: `0..groups()`, every group used. Images of one group
+    /// share their focal factor in the bundle adjustment.
+    pub group: Vec<usize>,
 }
 
 impl ImageIntrinsics {
-    /// Unknown focal: principal points at the image centres, scales the longer sides.
-    pub fn from_sizes(sizes: &[ImageSize]) -> Self {
+    /// One camera for all images with these principal points and focal scales.
+    pub fn new(principal: Vec<[f64; 2]>, scale: Vec<f64>) -> Self {
+        let group = vec![0; scale.len()];
         Self {
-            principal: sizes.iter().map(|s| image_centre(*s)).collect(),
-            scale: sizes.iter().map(|s| focal_scale(*s)).collect(),
+            principal,
+            scale,
+            group,
         }
+    }
+
+    /// Unknown focal: principal points at the image centres, scales the longer sides; one
+    /// camera.
+    pub fn from_sizes(sizes: &[ImageSize]) -> Self {
+        Self::new(
+            sizes.iter().map(|s| image_centre(*s)).collect(),
+            sizes.iter().map(|s| focal_scale(*s)).collect(),
+        )
     }
 
     /// Known intrinsics (`φ = 1`); square pixels are assumed: the mean of `fx` and `fy`.
     pub fn from_known(known: &[Intrinsics]) -> Self {
-        Self {
-            principal: known.iter().map(|k| [k.cx(), k.cy()]).collect(),
-            scale: known.iter().map(|k| 0.5 * (k.fx() + k.fy())).collect(),
+        Self::new(
+            known.iter().map(|k| [k.cx(), k.cy()]).collect(),
+            known.iter().map(|k| 0.5 * (k.fx() + k.fy())).collect(),
+        )
+    }
+
+    /// The number of cameras (groups).
+    pub fn groups(&self) -> usize {
+        self.group.iter().max().map_or(0, |g| g + 1)
+    }
+
+    /// Folds per-group focal factors into the scales: `s_i ← s_i · φ_g / φ_0`; returns `φ_0`,
+    /// with which [`Self::focal`] gives each image its group's focal.
+    pub fn fold_factors(&mut self, factors: &[f64]) -> f64 {
+        let Some(&first) = factors.first() else {
+            return 1.0;
+        };
+        for (s, g) in self.scale.iter_mut().zip(&self.group) {
+            if let Some(f) = factors.get(*g) {
+                *s *= f / first;
+            }
         }
+        first
     }
 
     /// Number of images.
@@ -109,6 +147,7 @@ impl ImageIntrinsics {
         for (what, len) in [
             ("principal points", self.principal.len()),
             ("focal scales", self.scale.len()),
+            ("camera groups", self.group.len()),
         ] {
             if len != n {
                 return Err(SfmError::LengthMismatch {
@@ -122,6 +161,16 @@ impl ImageIntrinsics {
             return Err(SfmError::InvalidInput(
                 "focal scales must be positive and finite".into(),
             ));
+        }
+        let mut used = vec![false; self.groups()];
+        for g in &self.group {
+            used[*g] = true;
+        }
+        if let Some(g) = used.iter().position(|u| !u) {
+            return Err(SfmError::InvalidInput(format!(
+                "camera group {g} of {} has no image",
+                used.len()
+            )));
         }
         Ok(())
     }

@@ -6,6 +6,7 @@
 //! |---|---|
 //! | view graph: components, union-find | [`view_graph`] |
 //! | a shared focal: self-calibration, homographies | [`focal`], [`intrinsics`] |
+//! | a focal per camera, cameras from the data (ViewGraphCalibrator) | [`view_graph_calibration`] |
 //! | rotation averaging (MST + Cauchy IRLS) | [`rotation_averaging`] |
 //! | translation averaging (LUD, scales eliminated) | [`translation_averaging`] |
 //! | Sampson refinement (GGS's objective to convergence) | [`sampson_refine`] |
@@ -46,6 +47,7 @@ pub mod solver;
 pub mod tracks;
 pub mod translation_averaging;
 pub mod view_graph;
+pub mod view_graph_calibration;
 
 pub use camera::CameraPose;
 pub use error::{Result, SfmError};

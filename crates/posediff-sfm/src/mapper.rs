@@ -24,7 +24,9 @@ use crate::camera::CameraPose;
 use crate::error::{Result, SfmError};
 use crate::focal::{FocalSearch, PairFundamental, focal_from_homographies, self_calibrate};
 use crate::intrinsics::ImageIntrinsics;
-use crate::report::{FocalSource, FocalStart, MapperReport, NotEstimated, SupportReport};
+use crate::report::{
+    CameraCalibrationReport, FocalSource, FocalStart, MapperReport, NotEstimated, SupportReport,
+};
 use crate::resection::{ResectionOptions, resect_bridged_sides};
 use crate::rotation_averaging::{
     RelativeRotation, RotationAveragingOptions, RotationAveragingReport, average_rotations,
@@ -38,6 +40,9 @@ use crate::translation_averaging::{
     CenterDirection, TranslationAveragingOptions, TranslationAveragingReport, average_translations,
 };
 use crate::view_graph::largest_component;
+use crate::view_graph_calibration::{
+    ImagePair, ViewGraphCalibrationOptions, calibrate_groups, group_by_focal,
+};
 
 pub use crate::solver::{GeometrySolver, Homography, RelativePose};
 
@@ -98,6 +103,14 @@ pub struct MapperOptions {
     /// When starts are compared, a match whose pair is not estimated costs as much as one this
     /// far (px) from its epipolar line.
     pub missing_penalty_px: f64,
+    /// The view-graph calibration of each camera group's focal before the multi-start
+    /// ([`crate::view_graph_calibration`]; `None`: every group starts from the shared focal).
+    pub calibration: Option<ViewGraphCalibrationOptions>,
+    /// Decide the cameras from the data: given one group, calibrate a focal per image and
+    /// group the images whose focals agree ([`crate::view_graph_calibration::group_by_focal`]).
+    /// (Not in the serialised options: the umbrella sets it from its camera mode.)
+    #[cfg_attr(feature = "serde", serde(skip))]
+    pub cameras_from_data: bool,
     /// With more images than this, the focal starts are compared on a connected subset of this
     /// many images (grown breadth-first from the best-matched image along the strongest
     /// pairs), and the whole set is solved once, from the winner's refined focal. The
@@ -123,6 +136,8 @@ impl Default for MapperOptions {
             bundle: Some(BundleOptions::default()),
             missing_penalty_px: 10.0,
             focal_selection_images: 60,
+            calibration: Some(ViewGraphCalibrationOptions::default()),
+            cameras_from_data: false,
         }
     }
 }
@@ -163,6 +178,75 @@ pub struct Reconstruction {
     pub points: Vec<Point>,
     /// What happened.
     pub report: MapperReport,
+}
+
+/// The pairs with a fundamental matrix, with their images' intrinsics.
+fn image_pairs(
+    matched: &[&PairMatches],
+    fundamentals: &[Option<Matrix3<f64>>],
+    intrinsics: &ImageIntrinsics,
+) -> Vec<ImagePair> {
+    matched
+        .iter()
+        .zip(fundamentals)
+        .filter_map(|(p, f)| {
+            f.map(|f| ImagePair {
+                a: p.first,
+                b: p.second,
+                fundamental: PairFundamental {
+                    f,
+                    principal_a: intrinsics.principal[p.first],
+                    principal_b: intrinsics.principal[p.second],
+                    scale_a: intrinsics.scale[p.first],
+                    scale_b: intrinsics.scale[p.second],
+                    weight: (p.len() as f64).sqrt(),
+                },
+            })
+        })
+        .collect()
+}
+
+/// Calibrates each camera group's focal ratio to the shared `phi` (with `split`, first one
+/// group per image, then grouped where the focals agree) and folds the ratios to the first
+/// group's into the scales; the report's `start` is the first group's calibrated factor.
+fn calibrate_cameras(
+    intrinsics: &mut ImageIntrinsics,
+    pairs: &[ImagePair],
+    phi: f64,
+    split: bool,
+    options: &ViewGraphCalibrationOptions,
+) -> CameraCalibrationReport {
+    let n = intrinsics.len();
+    let image_scale = intrinsics.scale.clone();
+    let (group, ratio, base, per_image) = if split {
+        let each: Vec<usize> = (0..n).collect();
+        let c = calibrate_groups(pairs, &each, n, phi, options);
+        let (group, ratio, base) = group_by_focal(&c.ratio, &c.determined, options.group_tolerance);
+        (group, ratio, base, Some(c))
+    } else {
+        let c = calibrate_groups(pairs, &intrinsics.group, intrinsics.groups(), phi, options);
+        let base = c.ratio[0];
+        let ratio = c.ratio.iter().map(|r| r / base).collect();
+        (intrinsics.group.clone(), ratio, base, None)
+    };
+    for (s, g) in intrinsics.scale.iter_mut().zip(&group) {
+        *s *= ratio[*g];
+    }
+    intrinsics.group = group;
+    CameraCalibrationReport {
+        from_data: split,
+        cameras: ratio.len(),
+        ratio,
+        image_ratio: per_image
+            .as_ref()
+            .map(|c| c.ratio.clone())
+            .unwrap_or_default(),
+        image_determined: per_image.map(|c| c.determined).unwrap_or_default(),
+        phi,
+        start: phi * base,
+        kept: false,
+        image_scale,
+    }
 }
 
 /// `size` images connected through `matched`, grown breadth-first from the image with the most
@@ -316,25 +400,26 @@ impl GlobalMapper {
         report.times.pair_geometry = clock.elapsed().as_secs_f64();
 
         let clock = Instant::now();
+        let mut intrinsics = intrinsics;
+        let mut cameras: Option<(ImageIntrinsics, CameraCalibrationReport)> = None;
         let phi = if known_focal {
             report.focal_source = FocalSource::Given;
             1.0
         } else {
-            let pf: Vec<PairFundamental> = matched
-                .iter()
-                .zip(&fundamentals)
-                .filter_map(|(p, f)| {
-                    f.map(|f| PairFundamental {
-                        f,
-                        principal_a: intrinsics.principal[p.first],
-                        principal_b: intrinsics.principal[p.second],
-                        scale_a: intrinsics.scale[p.first],
-                        scale_b: intrinsics.scale[p.second],
-                        weight: (p.len() as f64).sqrt(),
-                    })
-                })
-                .collect();
-            if let Some(phi) = self_calibrate(&pf, &o.focal_search) {
+            let image_pairs = image_pairs(&matched, &fundamentals, &intrinsics);
+            let pf: Vec<PairFundamental> = image_pairs.iter().map(|p| p.fundamental).collect();
+            let calibrated = self_calibrate(&pf, &o.focal_search);
+            // Cameras of their own, calibrated from the view graph at the self-calibrated
+            // scale; tried after the multi-start of one shared focal.
+            let split = o.cameras_from_data && intrinsics.groups() == 1;
+            if let (Some(phi), Some(cal), true) =
+                (calibrated, &o.calibration, split || intrinsics.groups() > 1)
+            {
+                let mut grouped = intrinsics.clone();
+                let report = calibrate_cameras(&mut grouped, &image_pairs, phi, split, cal);
+                cameras = Some((grouped, report));
+            }
+            if let Some(phi) = calibrated {
                 report.focal_source = FocalSource::SelfCalibration;
                 phi
             } else {
@@ -395,6 +480,7 @@ impl GlobalMapper {
                        free: bool,
                        set: (&[&PairMatches], &[Homography]),
                        scored: &[&PairMatches],
+                       intrinsics: &ImageIntrinsics,
                        report: &mut MapperReport|
          -> Result<Option<Solution>> {
             let s = self.solve_at_focal(
@@ -402,7 +488,7 @@ impl GlobalMapper {
                 set,
                 scored,
                 unsupported,
-                &intrinsics,
+                intrinsics,
                 free,
                 solver,
                 report,
@@ -425,6 +511,7 @@ impl GlobalMapper {
                 free,
                 (&trial_matched, &trial_h),
                 &trial_all,
+                &intrinsics,
                 &mut report,
             )?;
             if let Some(s) = s
@@ -436,11 +523,48 @@ impl GlobalMapper {
         if let (Some(_), Some(chosen)) = (&subset, &best) {
             // The whole set once, from the subset winner's refined focal.
             let (start, free) = (chosen.phi, chosen.free_focal);
-            best = attempt(start, free, (&matched, &homography), &all_refs, &mut report)?;
+            best = attempt(
+                start,
+                free,
+                (&matched, &homography),
+                &all_refs,
+                &intrinsics,
+                &mut report,
+            )?;
         }
-        let Some(best) = best else {
+        let Some(mut best) = best else {
             return Err(SfmError::NoUsablePairs { images: n });
         };
+        // The cameras of their own: the whole set solved from their calibrated factor and
+        // from the shared winner's, with the groups' ratios; kept when that explains the
+        // matches better than one shared focal (the calibration's common scale can be off
+        // where self-calibration is).
+        if let Some((grouped, mut calibration)) = cameras.take() {
+            let changed = grouped != intrinsics;
+            if changed && any_parallax {
+                for start in [calibration.start, best.phi] {
+                    if let Some(s) = attempt(
+                        start,
+                        true,
+                        (&matched, &homography),
+                        &all_refs,
+                        &grouped,
+                        &mut report,
+                    )? && s.score < best.score
+                    {
+                        best = s;
+                        calibration.kept = true;
+                    }
+                }
+            }
+            if calibration.kept {
+                intrinsics = grouped;
+            } else {
+                // From the data: one camera. Given groups stay, each from the shared focal.
+                calibration.cameras = intrinsics.groups();
+            }
+            report.cameras = Some(calibration);
+        }
         report.focal_factor_initial = phi;
         report.pairs_with_pose = best.pairs_with_pose;
         report.rotation_only_pairs = best.rotation_only_pairs;
@@ -504,22 +628,25 @@ impl GlobalMapper {
             let mut options = options;
             options.refine_focal &= best.free_focal;
             let (before, phi_before) = (cameras.clone(), phi_refined);
+            // One focal factor per camera group, each starting from the shared one (the
+            // groups' ratios are folded into the scales).
+            let mut factors = vec![phi_refined; intrinsics.groups()];
             let (adjusted, r) = bundle_adjust(
                 &tracks,
                 &intrinsics,
                 &mut cameras,
-                &mut phi_refined,
+                &mut factors,
                 reference,
                 &options,
             )?;
-            if options.refine_focal
-                && !(o.focal_search.min..=o.focal_search.max).contains(&phi_refined)
-            {
-                // The points drove the focal out of range: keep the pairwise solution.
+            let range = o.focal_search.min..=o.focal_search.max;
+            if options.refine_focal && !factors.iter().all(|f| range.contains(f)) {
+                // The points drove a focal out of range: keep the pairwise solution.
                 cameras = before;
                 phi_refined = phi_before;
                 report.bundle_undone = true;
             } else {
+                phi_refined = intrinsics.fold_factors(&factors);
                 points = adjusted;
             }
             report.bundle = Some(r);

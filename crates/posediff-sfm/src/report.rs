@@ -51,6 +51,30 @@ impl NotEstimated {
     }
 }
 
+/// The cameras the view-graph calibration found ([`crate::view_graph_calibration`]).
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct CameraCalibrationReport {
+    /// Whether the cameras were decided from the data (otherwise given).
+    pub from_data: bool,
+    /// Cameras (groups) in the end.
+    pub cameras: usize,
+    /// Each camera's focal ratio to the first's at calibration (folded into the scales).
+    pub ratio: Vec<f64>,
+    /// From data: each image's own calibrated ratio to the shared focal (1 where undetermined).
+    pub image_ratio: Vec<f64>,
+    /// From data: whether each image's pairs determined its focal.
+    pub image_determined: Vec<bool>,
+    /// The shared focal factor the ratios are relative to.
+    pub phi: f64,
+    /// The first camera's calibrated focal factor (a start of the mapper with the cameras).
+    pub start: f64,
+    /// Whether the cameras were kept: the map with them explained the matches better than
+    /// the map with one shared focal (otherwise one camera, and the ratios are only reported).
+    pub kept: bool,
+    /// Each image's focal scale before the ratios were folded in (`f_i = ratio · phi · scale`).
+    pub image_scale: Vec<f64>,
+}
+
 /// One focal start of the multi-start.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct FocalStart {
@@ -132,6 +156,8 @@ pub struct MapperReport {
     pub focal_factor_initial: f64,
     /// `φ` at the end.
     pub focal_factor: f64,
+    /// The cameras' view-graph calibration (`None`: one camera, or known intrinsics).
+    pub cameras: Option<CameraCalibrationReport>,
     /// Every focal start tried.
     pub starts: Vec<FocalStart>,
     /// Rotation averaging of the chosen start.

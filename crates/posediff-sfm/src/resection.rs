@@ -908,10 +908,7 @@ mod tests {
                 })
             })
             .collect();
-        let intrinsics = ImageIntrinsics {
-            principal: vec![[320.0, 240.0]; 4],
-            scale: vec![500.0; 4],
-        };
+        let intrinsics = ImageIntrinsics::new(vec![[320.0, 240.0]; 4], vec![500.0; 4]);
         let points: Vec<Vector3<f64>> = (0..30)
             .map(|k| {
                 let k = f64::from(k);

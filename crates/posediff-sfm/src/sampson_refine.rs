@@ -307,7 +307,7 @@ impl LeastSquares for Problem<'_> {
             let parts = [
                 (layout.block[p.first], 0),
                 (layout.block[p.second], 6),
-                (layout.focal_block, 12),
+                (layout.focal_block[0], 12),
             ];
             for &(bi, oi) in &parts {
                 let Some(bi) = bi else { continue };
@@ -330,9 +330,9 @@ impl LeastSquares for Problem<'_> {
 
     fn apply(&self, (cams, phi): &State, step: &[f64]) -> State {
         // Block order equals parameter order (cameras by index, then the focal).
-        let (mut moved, phi) = self.layout.apply(cams, *phi, step);
+        let (mut moved, phi) = self.layout.apply(cams, &[*phi], step);
         normalize_scale(&mut moved, self.reference);
-        (moved, phi)
+        (moved, phi[0])
     }
 }
 
@@ -482,7 +482,7 @@ pub fn refine_sampson(
             let (a, b, f) = (
                 layout.block[p.first],
                 layout.block[p.second],
-                layout.focal_block,
+                layout.focal_block[0],
             );
             [(a, b), (a, f), (b, f)]
                 .into_iter()
@@ -596,10 +596,8 @@ mod tests {
     /// The analytic `∂F/∂θ` against central differences of the closed form.
     #[test]
     fn fundamental_jacobian_matches_finite_differences() {
-        let intrinsics = ImageIntrinsics {
-            principal: vec![[310.0, 245.0], [330.0, 236.0]],
-            scale: vec![640.0, 600.0],
-        };
+        let intrinsics =
+            ImageIntrinsics::new(vec![[310.0, 245.0], [330.0, 236.0]], vec![640.0, 600.0]);
         let a = CameraPose {
             rotation: Rotation3::from_euler_angles(0.1, -0.3, 0.2),
             center: Vector3::new(0.3, -0.2, 0.1),
@@ -634,10 +632,8 @@ mod tests {
     /// nothing, a wrong focal costs, and neither pays the missing-pair penalty.
     #[test]
     fn pairs_on_one_centre_are_scored_by_their_rotation() {
-        let intrinsics = ImageIntrinsics {
-            principal: vec![[320.0, 240.0], [320.0, 240.0]],
-            scale: vec![640.0, 640.0],
-        };
+        let intrinsics =
+            ImageIntrinsics::new(vec![[320.0, 240.0], [320.0, 240.0]], vec![640.0, 640.0]);
         let phi = 1.5;
         let a = CameraPose {
             rotation: Rotation3::identity(),

@@ -87,10 +87,7 @@ fn scene(n: usize, outliers_every: usize) -> Scene {
     }
     Scene {
         matches,
-        intrinsics: ImageIntrinsics {
-            principal: vec![[cx, cy]; n],
-            scale: vec![W; n],
-        },
+        intrinsics: ImageIntrinsics::new(vec![[cx, cy]; n], vec![W; n]),
         cameras,
         phi,
     }
@@ -285,8 +282,15 @@ fn bundle_adjustment_recovers_exact_cameras_and_focal() {
         max_error_px: 1e3,
         ..BundleOptions::default()
     };
-    let (points, report) =
-        bundle_adjust(&tracks, &s.intrinsics, &mut cams, &mut phi, 0, &config).unwrap();
+    let (points, report) = bundle_adjust(
+        &tracks,
+        &s.intrinsics,
+        &mut cams,
+        std::slice::from_mut(&mut phi),
+        0,
+        &config,
+    )
+    .unwrap();
     assert_eq!(points.len(), report.points);
     assert!(report.converged, "{report:?}");
     assert_eq!(report.points, tracks.len());
@@ -336,10 +340,7 @@ fn sparse_and_dense_bundle_adjustments_agree_at_200_cameras() {
             ))
         })
         .collect();
-    let intrinsics = ImageIntrinsics {
-        principal: vec![[cx, cy]; n],
-        scale: vec![W; n],
-    };
+    let intrinsics = ImageIntrinsics::new(vec![[cx, cy]; n], vec![W; n]);
     let mut seed: u64 = 99;
     let mut rnd = || {
         seed = seed
@@ -397,8 +398,15 @@ fn sparse_and_dense_bundle_adjustments_agree_at_200_cameras() {
             max_iterations: 20,
             ..BundleOptions::default()
         };
-        let (points, report) =
-            bundle_adjust(&tracks, &intrinsics, &mut cams, &mut f, 0, &options).unwrap();
+        let (points, report) = bundle_adjust(
+            &tracks,
+            &intrinsics,
+            &mut cams,
+            std::slice::from_mut(&mut f),
+            0,
+            &options,
+        )
+        .unwrap();
         (cams, f, points, report)
     };
     let (sparse, f_sparse, p_sparse, r_sparse) = run(Solver::Sparse);

@@ -74,6 +74,13 @@ pub struct Args {
     /// (Sets the options tree's `pairs.selection`; default `auto`.)
     #[arg(long)]
     pairs: Option<posediff_matching::PairSelection>,
+    /// Which photos share a camera (checkpoint-free path, unknown intrinsics): `auto` (a
+    /// focal per image calibrated from the view graph; images whose focals agree within
+    /// `mapper.calibration.group_tolerance` share one camera, each other image gets its own),
+    /// `single` (one focal for all) or `per-image` (COLMAP's default). (Sets the options
+    /// tree's `cameras.mode`; default `auto`.)
+    #[arg(long, value_name = "MODE")]
+    camera_mode: Option<posediff_pipeline::options::CameraMode>,
     /// The pipeline's options from a TOML (`.toml`) or JSON file: any subset of the tree
     /// run.json's `options` shows (e.g. `[orientation]` / `strong_pair = 100`). Applied before
     /// `--pairs` and `--set`.
@@ -219,6 +226,9 @@ impl Args {
         }
         if let Some(pairs) = &self.pairs {
             pipeline.pairs.selection = pairs.clone();
+        }
+        if let Some(mode) = self.camera_mode {
+            pipeline.cameras.mode = mode;
         }
         for assignment in &self.set {
             pipeline = pipeline.with_assignment(assignment)?;

@@ -3,12 +3,14 @@
 //! (progress bars, the device argument, the ground truth matched by name).
 
 pub mod bench;
+pub mod bench_cameras;
 pub mod device_check;
 pub mod estimate;
 pub mod import_colmap;
 pub mod plot;
 pub mod score;
 pub mod train;
+pub mod variant;
 pub mod view;
 
 use std::path::Path;
@@ -26,6 +28,9 @@ pub enum Command {
     Estimate(estimate::Args),
     /// Score a method on the real sets of `--data` over `--subsets` (JSON + Markdown report).
     BenchReal(bench::RealArgs),
+    /// The real-cameras benchmark: each set and its zoomed copy, camera modes single and auto,
+    /// and COLMAP 4.2's mappers side by side with `--colmap-python` (JSON + Markdown report).
+    BenchCameras(bench_cameras::Args),
     /// The official CO3Dv2 test protocol (JSON + Markdown report).
     BenchCo3d(bench::Co3dArgs),
     /// Train on CO3D-layout data (e.g. `cargo xtask synth` output): the official recipe with a
@@ -46,6 +51,9 @@ pub enum Command {
     /// Check the network on a device (`--device cuda`) against the official outputs of the
     /// parity fixtures and time it: backbone, denoiser step, sampling, training iteration.
     DeviceCheck(device_check::Args),
+    /// Write a harder copy of a set with its ground truth transformed (every N-th photo
+    /// zoomed: several cameras).
+    Variant(variant::Args),
 }
 
 impl Command {
@@ -54,6 +62,7 @@ impl Command {
         match self {
             Self::Estimate(a) => a.run(),
             Self::BenchReal(a) => a.run(),
+            Self::BenchCameras(a) => a.run(),
             Self::BenchCo3d(a) => a.run(),
             Self::Train(a) => a.run(),
             Self::ImportColmap(a) => a.run(),
@@ -61,6 +70,7 @@ impl Command {
             Self::View(a) => a.run(),
             Self::Plot(a) => a.run(),
             Self::DeviceCheck(a) => a.run(),
+            Self::Variant(a) => a.run(),
         }
     }
 }

@@ -8,6 +8,7 @@
 //! - [`co3d`]: CO3Dv2 annotations and the official test protocol's frame choice.
 //! - [`outputs`]: the output folder (COLMAP sparse/0, images, nerfstudio, PLY, viewer).
 //! - [`viewer`]: view.html, a self-contained three.js page.
+//! - [`variants`]: harder copies of a set (zoomed photos) with their ground truth transformed.
 
 pub mod co3d;
 pub mod colmap;
@@ -15,4 +16,5 @@ pub mod export;
 pub mod loader;
 pub mod outputs;
 pub mod records;
+pub mod variants;
 pub mod viewer;

@@ -1,0 +1,219 @@
+//! `posediff bench-cameras`: the real-cameras benchmark. Each set and its zoomed copy (every
+//! second photo zoomed 1.3–1.6×, `posediff variant`), estimated with `--camera-mode single`
+//! and `auto`, and, with `--colmap-python`, COLMAP 4.2's incremental and global mappers
+//! (pycolmap, default options: a camera per image) on the same images in the same run; every
+//! column scored against the (transformed) ground truth.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::Instant;
+
+use anyhow::{Context, bail};
+use posediff::io::variants::{ZoomVariant, zoom_copy};
+use posediff_geometry::camera_json::CameraRecord;
+use serde::Serialize;
+
+/// The real-cameras benchmark (JSON + Markdown).
+#[derive(clap::Args)]
+pub struct Args {
+    /// Folder of the sets (`<set>/images`, `<set>/cameras.json`).
+    #[arg(long)]
+    data: PathBuf,
+    /// Comma-separated set names.
+    #[arg(long, default_value = "strecha_fountainP11,middlebury_templeSR,co3d_apple_posediffusion")]
+    sets: String,
+    /// A Python with pycolmap 4.2.1 (e.g. target/client-venv/bin/python): adds COLMAP's columns.
+    #[arg(long)]
+    colmap_python: Option<PathBuf>,
+    /// The COLMAP runner (`../shared/tools/pycolmap_run.py`).
+    #[arg(long)]
+    colmap_script: Option<PathBuf>,
+    /// Output folder: variants, estimates, results.json, results.md.
+    #[arg(long)]
+    out: PathBuf,
+}
+
+/// One method on one set.
+#[derive(Debug, Clone, Serialize)]
+struct Cell {
+    set: String,
+    variant: &'static str,
+    method: String,
+    /// mAA(30), `None` when the method failed.
+    maa_30: Option<f64>,
+    /// Cameras estimated / images.
+    registered: Option<f64>,
+    /// Median relative focal error of the estimated cameras.
+    focal_error: Option<f64>,
+    seconds: f64,
+    /// Why it failed.
+    error: Option<String>,
+}
+
+fn records(path: &Path) -> anyhow::Result<Vec<serde_json::Value>> {
+    let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))
+}
+
+fn file_name(image: &str) -> &str {
+    image.rsplit('/').next().unwrap_or(image)
+}
+
+/// Scores an estimate against the ground truth matched by file name: images missing from the
+/// estimate, marked not estimated, or with invalid cameras (COLMAP can write a negative focal)
+/// count as failed in all their pairs.
+fn score(estimate: &Path, truth: &Path) -> anyhow::Result<(f64, f64, Option<f64>)> {
+    let gt: Vec<CameraRecord> = serde_json::from_value(serde_json::Value::Array(records(truth)?))?;
+    let est = records(estimate)?;
+    let mut pred = Vec::with_capacity(gt.len());
+    let mut focal_errors = Vec::new();
+    let mut gt_cams = Vec::with_capacity(gt.len());
+    for g in &gt {
+        let gc = g.to_camera()?;
+        let found = est.iter().find(|e| {
+            e.get("image")
+                .and_then(|v| v.as_str())
+                .is_some_and(|n| file_name(n) == file_name(&g.image))
+        });
+        let camera = found
+            .filter(|e| e.get("estimated") != Some(&serde_json::Value::Bool(false)))
+            .and_then(|e| serde_json::from_value::<CameraRecord>(e.clone()).ok())
+            .and_then(|r| r.to_camera().ok());
+        if let Some(c) = &camera {
+            focal_errors.push((c.intrinsics.fx() / gc.intrinsics.fx() - 1.0).abs());
+        }
+        pred.push(camera.map(|c| c.cam_from_world));
+        gt_cams.push(gc);
+    }
+    let (s, _) = posediff::bench::score_set(&gt_cams, &pred)?;
+    focal_errors.sort_by(f64::total_cmp);
+    let median = (!focal_errors.is_empty()).then(|| focal_errors[focal_errors.len() / 2]);
+    Ok((s.maa_30, s.registered, median))
+}
+
+impl Args {
+    /// Runs the command.
+    pub fn run(self) -> anyhow::Result<()> {
+        std::fs::create_dir_all(&self.out)?;
+        let exe = std::env::current_exe()?;
+        let mut cells = Vec::new();
+        for set in self.sets.split(',').filter(|s| !s.is_empty()) {
+            let original = self.data.join(set);
+            if !original.join("cameras.json").is_file() {
+                bail!("{}: no cameras.json (is --data right?)", original.display());
+            }
+            let zoomed = self.out.join("variants").join(format!("{set}-zoom"));
+            zoom_copy(&original, &zoomed, &ZoomVariant::default())?;
+            for (variant, dir) in [("original", original.clone()), ("zoomed", zoomed)] {
+                let truth = dir.join("cameras.json");
+                for mode in ["single", "auto"] {
+                    let out = self.out.join("runs").join(format!("{set}-{variant}-{mode}"));
+                    let start = Instant::now();
+                    let status = Command::new(&exe)
+                        .arg("estimate")
+                        .arg(dir.join("images"))
+                        .args(["--camera-mode", mode, "--no-view", "--quiet", "--out"])
+                        .arg(&out)
+                        .status()?;
+                    let seconds = start.elapsed().as_secs_f64();
+                    cells.push(cell(set, variant, format!("posediff {mode}"), seconds, || {
+                        if !status.success() {
+                            bail!("posediff estimate failed ({status})");
+                        }
+                        score(&out.join("cameras.json"), &truth)
+                    }));
+                }
+                if let (Some(python), Some(script)) = (&self.colmap_python, &self.colmap_script) {
+                    let out = self.out.join("colmap").join(format!("{set}-{variant}"));
+                    let start = Instant::now();
+                    let output = Command::new(python)
+                        .arg(script)
+                        .arg(dir.join("images"))
+                        .arg(&out)
+                        .output()?;
+                    let text = String::from_utf8_lossy(&output.stdout);
+                    for mapper in ["incremental", "global"] {
+                        let seconds = seconds_of(&text, mapper)
+                            .unwrap_or_else(|| start.elapsed().as_secs_f64());
+                        cells.push(cell(set, variant, format!("COLMAP 4.2 {mapper}"), seconds, || {
+                            if !output.status.success() {
+                                bail!(
+                                    "pycolmap_run.py failed: {}",
+                                    String::from_utf8_lossy(&output.stderr)
+                                        .lines()
+                                        .last()
+                                        .unwrap_or("")
+                                );
+                            }
+                            score(&out.join(mapper).join("cameras.json"), &truth)
+                        }));
+                    }
+                }
+            }
+        }
+        let json = self.out.join("results.json");
+        std::fs::write(&json, serde_json::to_string_pretty(&cells)?)?;
+        let md = markdown(&cells);
+        std::fs::write(self.out.join("results.md"), &md)?;
+        println!("{md}");
+        Ok(())
+    }
+}
+
+/// The seconds pycolmap_run.py printed for `what` (a mapper's include the features).
+fn seconds_of(text: &str, what: &str) -> Option<f64> {
+    text.lines()
+        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+        .find(|v| {
+            v.get("mapper").and_then(|m| m.as_str()) == Some(what)
+                || v.get("stage").and_then(|m| m.as_str()) == Some(what)
+        })
+        .and_then(|v| v.get("seconds")?.as_f64())
+}
+
+fn cell(
+    set: &str,
+    variant: &'static str,
+    method: String,
+    seconds: f64,
+    scored: impl FnOnce() -> anyhow::Result<(f64, f64, Option<f64>)>,
+) -> Cell {
+    let (maa_30, registered, focal_error, error) = match scored() {
+        Ok((m, r, f)) => (Some(m), Some(r), f, None),
+        Err(e) => (None, None, None, Some(format!("{e:#}"))),
+    };
+    Cell {
+        set: set.to_owned(),
+        variant,
+        method,
+        maa_30,
+        registered,
+        focal_error,
+        seconds,
+        error,
+    }
+}
+
+fn markdown(cells: &[Cell]) -> String {
+    let mut s = String::from(
+        "| set | variant | method | mAA(30) | registered | median focal error | seconds |\n|---|---|---|---|---|---|---|\n",
+    );
+    let f = |v: Option<f64>, pct: bool| match v {
+        Some(v) if pct => format!("{:.1} %", 100.0 * v),
+        Some(v) => format!("{v:.3}"),
+        None => "failed".into(),
+    };
+    for c in cells {
+        s.push_str(&format!(
+            "| {} | {} | {} | {} | {} | {} | {:.1} |\n",
+            c.set,
+            c.variant,
+            c.method,
+            f(c.maa_30, false),
+            f(c.registered, false),
+            f(c.focal_error, true),
+            c.seconds
+        ));
+    }
+    s
+}

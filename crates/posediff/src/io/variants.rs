@@ -1,0 +1,184 @@
+//! Harder copies of a set with ground truth (`images/` + `cameras.json`), with their ground
+//! truth transformed exactly: the "several cameras" variant zooms every `every`-th photo by a
+//! factor drawn from a range (a centred crop resized back to the full size, so that photo's
+//! focal is `z` times the original's). The copies are what the real-camera benchmarks and
+//! tests run on; the shared sets are only read.
+
+use std::path::{Path, PathBuf};
+
+use opencv::core::{Mat, Rect, Size};
+use opencv::prelude::*;
+use posediff_geometry::camera_json::CameraRecord;
+
+use crate::error::{PosediffError, Result};
+
+/// How a zoomed copy is made.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ZoomVariant {
+    /// Every `every`-th photo (the 2nd, 4th, … for 2) is zoomed.
+    pub every: usize,
+    /// Zoom factors are drawn uniformly from this range.
+    pub range: (f64, f64),
+    /// Seed of the draw.
+    pub seed: u64,
+}
+
+impl Default for ZoomVariant {
+    /// Issue 40's "several cameras": every second photo zoomed by 1.3–1.6×.
+    fn default() -> Self {
+        Self {
+            every: 2,
+            range: (1.3, 1.6),
+            seed: 0,
+        }
+    }
+}
+
+/// A 64-bit LCG's next uniform in `[0, 1)` (Knuth's MMIX constants; reproducible everywhere).
+fn uniform(state: &mut u64) -> f64 {
+    *state = state
+        .wrapping_mul(6_364_136_223_846_793_005)
+        .wrapping_add(1_442_695_040_888_963_407);
+    (*state >> 11) as f64 / (1u64 << 53) as f64
+}
+
+fn read_records(set: &Path) -> Result<Vec<CameraRecord>> {
+    let path = set.join("cameras.json");
+    let text = std::fs::read_to_string(&path).map_err(|e| PosediffError::Read {
+        path: path.clone(),
+        source: e,
+    })?;
+    serde_json::from_str(&text).map_err(|e| PosediffError::invalid(&path, e))
+}
+
+fn write_image(path: &Path, image: &Mat) -> Result<()> {
+    if let Some(dir) = path.parent() {
+        std::fs::create_dir_all(dir).map_err(|e| PosediffError::Write {
+            path: dir.to_owned(),
+            source: e,
+        })?;
+    }
+    let ok = opencv::imgcodecs::imwrite(
+        path,
+        image,
+        &opencv::core::Vector::from_slice(&[opencv::imgcodecs::IMWRITE_JPEG_QUALITY, 95]),
+    )?;
+    if ok {
+        Ok(())
+    } else {
+        Err(PosediffError::InvalidFile {
+            path: path.to_owned(),
+            reason: "OpenCV could not write the image".into(),
+        })
+    }
+}
+
+/// The intrinsics after a crop of `(x0, y0, w, h)` resized to `(width, height)`, OpenCV
+/// pixel centres: `u' = (u − x0 + ½) · width / w − ½`.
+fn cropped_k(k: &[[f64; 3]; 3], crop: (i32, i32, i32, i32), size: (u32, u32)) -> [[f64; 3]; 3] {
+    let (x0, y0, w, h) = crop;
+    let sx = f64::from(size.0) / f64::from(w);
+    let sy = f64::from(size.1) / f64::from(h);
+    let mut out = *k;
+    out[0][0] = k[0][0] * sx;
+    out[0][1] = k[0][1] * sx;
+    out[0][2] = (k[0][2] - f64::from(x0) + 0.5) * sx - 0.5;
+    out[1][1] = k[1][1] * sy;
+    out[1][2] = (k[1][2] - f64::from(y0) + 0.5) * sy - 0.5;
+    out
+}
+
+/// Writes the zoomed copy of `set` to `out` (`images/` and `cameras.json`); returns each
+/// photo's zoom factor (1 where not zoomed).
+///
+/// # Errors
+/// A set without cameras.json or with unreadable images, an invalid range, writing failures.
+pub fn zoom_copy(set: &Path, out: &Path, variant: &ZoomVariant) -> Result<Vec<f64>> {
+    let (lo, hi) = variant.range;
+    if !(lo >= 1.0 && hi >= lo && hi.is_finite()) || variant.every == 0 {
+        return Err(PosediffError::InvalidArgument(format!(
+            "zoom range {lo}-{hi} every {}: factors must be at least 1",
+            variant.every
+        )));
+    }
+    let records = read_records(set)?;
+    let mut state = variant.seed ^ 0x9e37_79b9_7f4a_7c15;
+    let mut factors = Vec::with_capacity(records.len());
+    let mut written = Vec::with_capacity(records.len());
+    for (i, record) in records.iter().enumerate() {
+        let source: PathBuf = set.join(&record.image);
+        let image =
+            posediff_matching::image_check::decode(&source, opencv::imgcodecs::IMREAD_COLOR)?;
+        let (w, h) = (image.cols(), image.rows());
+        if (w as u32, h as u32) != (record.width, record.height) {
+            return Err(PosediffError::InvalidFile {
+                path: source,
+                reason: format!(
+                    "the image is {w}×{h} but cameras.json says {}×{}",
+                    record.width, record.height
+                ),
+            });
+        }
+        let zoom = if (i + 1) % variant.every == 0 {
+            lo + (hi - lo) * uniform(&mut state)
+        } else {
+            1.0
+        };
+        let mut record = record.clone();
+        if zoom > 1.0 {
+            let cw = ((f64::from(w) / zoom).round() as i32).clamp(1, w);
+            let ch = ((f64::from(h) / zoom).round() as i32).clamp(1, h);
+            let crop = ((w - cw) / 2, (h - ch) / 2, cw, ch);
+            let roi = Mat::roi(&image, Rect::new(crop.0, crop.1, crop.2, crop.3))?;
+            let mut resized = Mat::default();
+            opencv::imgproc::resize(
+                &roi,
+                &mut resized,
+                Size::new(w, h),
+                0.0,
+                0.0,
+                opencv::imgproc::INTER_AREA,
+            )?;
+            write_image(&out.join(&record.image), &resized)?;
+            record.k = cropped_k(&record.k, crop, (record.width, record.height));
+            // The zoom actually applied (the crop is rounded to whole pixels).
+            factors.push(f64::from(w) / f64::from(cw));
+        } else {
+            write_image(&out.join(&record.image), &image)?;
+            factors.push(1.0);
+        }
+        written.push(record);
+    }
+    let path = out.join("cameras.json");
+    let text =
+        serde_json::to_string_pretty(&written).map_err(|e| PosediffError::invalid(&path, e))?;
+    std::fs::write(&path, text).map_err(|e| PosediffError::Write { path, source: e })?;
+    Ok(factors)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A crop's intrinsics map a world point to the same image content: the centre of the crop
+    /// goes to the centre of the new image, and the focal scales by the zoom.
+    #[test]
+    fn cropped_intrinsics_follow_the_pixels() {
+        let k = [[500.0, 0.0, 319.5], [0.0, 500.0, 239.5], [0.0, 0.0, 1.0]];
+        let z = cropped_k(&k, (80, 60, 480, 360), (640, 480));
+        let s = 640.0 / 480.0;
+        assert!((z[0][0] - 500.0 * s).abs() < 1e-12);
+        // The old principal point (the old centre) is the crop's centre: the new centre.
+        assert!((z[0][2] - 319.5).abs() < 1e-9, "{}", z[0][2]);
+        assert!((z[1][2] - 239.5).abs() < 1e-9, "{}", z[1][2]);
+        // Pixel 80 (the crop's first column centre) maps to u' = (0.5) s − 0.5.
+        let u = 80.0;
+        let x = (u - k[0][2]) / k[0][0];
+        let u_new = z[0][0] * x + z[0][2];
+        assert!((u_new - (0.5 * s - 0.5)).abs() < 1e-9, "{u_new}");
+        let mut state = 1;
+        let draws: Vec<f64> = (0..100).map(|_| uniform(&mut state)).collect();
+        assert!(draws.iter().all(|d| (0.0..1.0).contains(d)));
+        assert!(draws.iter().any(|d| *d > 0.9) && draws.iter().any(|d| *d < 0.1));
+    }
+}
