@@ -226,7 +226,11 @@ fn inputs_of_the_wrong_length_are_errors() {
 
 /// Points seen by every camera (tracks across all views), projected exactly.
 fn multi_view_tracks(s: &Scene) -> Vec<Track> {
-    let f = s.phi * W;
+    multi_view_tracks_with(s, &|_| s.phi * W)
+}
+
+/// [`multi_view_tracks`] with image `i` projected at focal `focal(i)`.
+fn multi_view_tracks_with(s: &Scene, focal: &dyn Fn(usize) -> f64) -> Vec<Track> {
     let pp = s.intrinsics.principal[0];
     let mut seed: u64 = 5;
     let mut rnd = || {
@@ -244,6 +248,7 @@ fn multi_view_tracks(s: &Scene) -> Vec<Track> {
                 .enumerate()
                 .map(|(i, c)| {
                     let p = c.rotation * (x - c.center);
+                    let f = focal(i);
                     (p.z > 0.1).then(|| Observation {
                         image: i,
                         keypoint: id as u32,
@@ -297,6 +302,36 @@ fn bundle_adjustment_recovers_exact_cameras_and_focal() {
     assert!(report.rms_px < 1e-6, "{report:?}");
     assert!((phi / s.phi - 1.0).abs() < 1e-7, "phi {phi}");
     assert!(worst_rotation(&cams, &s.cameras) < 1e-5);
+}
+
+/// Two cameras (every second image through a 1.4× zoom): each group's focal comes back,
+/// shared by its images, from starts 2 % and 3 % off.
+#[test]
+fn bundle_adjustment_recovers_each_cameras_focal() {
+    let mut s = scene(6, 0);
+    let zoom = 1.4;
+    let focal = |i: usize| s.phi * W * if i % 2 == 1 { zoom } else { 1.0 };
+    let tracks = multi_view_tracks_with(&s, &focal);
+    assert!(tracks.len() > 100);
+    s.intrinsics.group = (0..6).map(|i| i % 2).collect();
+    let mut cams: Vec<Option<RefineCamera>> = s.cameras.iter().copied().map(Some).collect();
+    let mut factors = vec![s.phi * 1.02, s.phi * zoom * 0.97];
+    let config = BundleOptions {
+        max_error_px: 1e3,
+        ..BundleOptions::default()
+    };
+    let (_, report) =
+        bundle_adjust(&tracks, &s.intrinsics, &mut cams, &mut factors, 0, &config).unwrap();
+    assert!(report.rms_px < 1e-6, "{report:?}");
+    assert!((factors[0] / s.phi - 1.0).abs() < 1e-7, "{factors:?}");
+    assert!(
+        (factors[1] / (s.phi * zoom) - 1.0).abs() < 1e-7,
+        "{factors:?}"
+    );
+    assert!(worst_rotation(&cams, &s.cameras) < 1e-5);
+    // One factor per group, or an error naming them.
+    let mut one = vec![s.phi];
+    assert!(bundle_adjust(&tracks, &s.intrinsics, &mut cams, &mut one, 0, &config).is_err());
 }
 
 #[test]

@@ -86,6 +86,43 @@ fn fountain_cameras_and_focal_match_the_ground_truth() {
     assert!(e.report.refine_inlier_rms_px < 1.0);
 }
 
+/// Every second photo of fountain zoomed 1.3–1.6× (a copy with its ground truth transformed):
+/// the default camera mode gives the zoomed photos cameras of their own, each focal within
+/// 1 % of the truth and the poses as good as on the original set.
+#[test]
+fn zoomed_photos_get_cameras_of_their_own() {
+    let dir = posediff_fixtures::temp_dir("geometric-zoomed");
+    let zooms = posediff::io::variants::zoom_copy(
+        &shared_path("data/strecha_fountainP11"),
+        &dir,
+        &posediff::io::variants::ZoomVariant::default(),
+    )
+    .unwrap();
+    assert_eq!(zooms.iter().filter(|z| **z > 1.29).count(), 5, "{zooms:?}");
+    let gt = read_cameras_json(&dir.join("cameras.json")).unwrap();
+    let images: Vec<PathBuf> = gt.iter().map(|c| dir.join(&c.image)).collect();
+    let gt: Vec<Camera> = gt.iter().map(|c| c.camera).collect();
+    let e = estimate_geometric(&images, &GeometricConfig::default()).unwrap();
+    let cameras = &e.report.cameras;
+    assert_eq!(cameras.decided_by, "from the data");
+    assert!(cameras.count >= 2, "{cameras:?}");
+    for (i, z) in zooms.iter().enumerate() {
+        // A zoomed photo never shares the unzoomed photos' camera.
+        assert_eq!(*z > 1.0, cameras.image_camera[i] != 0, "{cameras:?}");
+    }
+    let est: Vec<Camera> = e.cameras.iter().map(|c| c.unwrap()).collect();
+    for (i, (c, g)) in est.iter().zip(&gt).enumerate() {
+        let error = c.intrinsics.fx() / g.intrinsics.fx() - 1.0;
+        assert!(
+            error.abs() < 0.01,
+            "image {i}: focal off by {:.2} %",
+            100.0 * error
+        );
+    }
+    let (rot, trans) = worst_pair_errors(&est, &gt);
+    assert!(rot < 1.0 && trans < 2.0, "worst pair: {rot}° / {trans}°");
+}
+
 #[test]
 fn a_known_focal_is_kept_and_used() {
     let (images, gt) = set("strecha_fountainP11");

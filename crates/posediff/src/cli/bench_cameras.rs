@@ -20,7 +20,10 @@ pub struct Args {
     #[arg(long)]
     data: PathBuf,
     /// Comma-separated set names.
-    #[arg(long, default_value = "strecha_fountainP11,middlebury_templeSR,co3d_apple_posediffusion")]
+    #[arg(
+        long,
+        default_value = "strecha_fountainP11,middlebury_templeSR,co3d_apple_posediffusion"
+    )]
     sets: String,
     /// A Python with pycolmap 4.2.1 (e.g. target/client-venv/bin/python): adds COLMAP's columns.
     #[arg(long)]
@@ -51,7 +54,8 @@ struct Cell {
 }
 
 fn records(path: &Path) -> anyhow::Result<Vec<serde_json::Value>> {
-    let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
     serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))
 }
 
@@ -107,7 +111,10 @@ impl Args {
             for (variant, dir) in [("original", original.clone()), ("zoomed", zoomed)] {
                 let truth = dir.join("cameras.json");
                 for mode in ["single", "auto"] {
-                    let out = self.out.join("runs").join(format!("{set}-{variant}-{mode}"));
+                    let out = self
+                        .out
+                        .join("runs")
+                        .join(format!("{set}-{variant}-{mode}"));
                     let start = Instant::now();
                     let status = Command::new(&exe)
                         .arg("estimate")
@@ -116,12 +123,18 @@ impl Args {
                         .arg(&out)
                         .status()?;
                     let seconds = start.elapsed().as_secs_f64();
-                    cells.push(cell(set, variant, format!("posediff {mode}"), seconds, || {
-                        if !status.success() {
-                            bail!("posediff estimate failed ({status})");
-                        }
-                        score(&out.join("cameras.json"), &truth)
-                    }));
+                    cells.push(cell(
+                        set,
+                        variant,
+                        format!("posediff {mode}"),
+                        seconds,
+                        || {
+                            if !status.success() {
+                                bail!("posediff estimate failed ({status})");
+                            }
+                            score(&out.join("cameras.json"), &truth)
+                        },
+                    ));
                 }
                 if let (Some(python), Some(script)) = (&self.colmap_python, &self.colmap_script) {
                     let out = self.out.join("colmap").join(format!("{set}-{variant}"));
@@ -135,18 +148,24 @@ impl Args {
                     for mapper in ["incremental", "global"] {
                         let seconds = seconds_of(&text, mapper)
                             .unwrap_or_else(|| start.elapsed().as_secs_f64());
-                        cells.push(cell(set, variant, format!("COLMAP 4.2 {mapper}"), seconds, || {
-                            if !output.status.success() {
-                                bail!(
-                                    "pycolmap_run.py failed: {}",
-                                    String::from_utf8_lossy(&output.stderr)
-                                        .lines()
-                                        .last()
-                                        .unwrap_or("")
-                                );
-                            }
-                            score(&out.join(mapper).join("cameras.json"), &truth)
-                        }));
+                        cells.push(cell(
+                            set,
+                            variant,
+                            format!("COLMAP 4.2 {mapper}"),
+                            seconds,
+                            || {
+                                if !output.status.success() {
+                                    bail!(
+                                        "pycolmap_run.py failed: {}",
+                                        String::from_utf8_lossy(&output.stderr)
+                                            .lines()
+                                            .last()
+                                            .unwrap_or("")
+                                    );
+                                }
+                                score(&out.join(mapper).join("cameras.json"), &truth)
+                            },
+                        ));
                     }
                 }
             }

@@ -144,7 +144,18 @@ pub fn zoom_copy(set: &Path, out: &Path, variant: &ZoomVariant) -> Result<Vec<f6
             // The zoom actually applied (the crop is rounded to whole pixels).
             factors.push(f64::from(w) / f64::from(cw));
         } else {
-            write_image(&out.join(&record.image), &image)?;
+            // The photo itself, byte for byte (re-encoding would change its features).
+            let target = out.join(&record.image);
+            if let Some(dir) = target.parent() {
+                std::fs::create_dir_all(dir).map_err(|e| PosediffError::Write {
+                    path: dir.to_owned(),
+                    source: e,
+                })?;
+            }
+            std::fs::copy(&source, &target).map_err(|e| PosediffError::Write {
+                path: target.clone(),
+                source: e,
+            })?;
             factors.push(1.0);
         }
         written.push(record);
