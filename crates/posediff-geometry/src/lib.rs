@@ -3,6 +3,7 @@
 //!
 //! - [`Camera`]: the public camera type, OpenCV convention (`x_cam = R x_world + t`, pixels).
 //! - [`pytorch3d`]: the only place PyTorch3D's row-vector / NDC cameras are converted.
+//! - [`lens`]: the only place lens models live (COLMAP's models and parameter orders).
 //! - [`Quaternion`] (w first) and the official 9-D [`PoseEncoding`].
 //! - [`normalize`]: the official canonicalisation of ground-truth cameras.
 //! - [`epipolar`]: relative pose, essential and fundamental matrices, Sampson error.
@@ -35,6 +36,7 @@ pub mod crop;
 pub mod encoding;
 pub mod epipolar;
 pub mod error;
+pub mod lens;
 pub mod matches;
 pub mod normalize;
 pub mod pytorch3d;
@@ -52,6 +54,7 @@ pub use epipolar::{
     symmetric_epipolar_distance_sq,
 };
 pub use error::{GeometryError, Result};
+pub use lens::{CameraModel, LensCamera};
 pub use matches::{PairMatches, TwoViewPose};
 pub use normalize::{Canonicalized, canonicalize, canonicalize_without_optical_axis};
 pub use pytorch3d::{NdcIntrinsics, Pytorch3dCamera};
