@@ -6,7 +6,7 @@
 //! averaging, Sampson refinement, tracks, bundle adjustment) → OpenCV cameras in original
 //! pixels. Principal points are the image centres (`((W−1)/2, (H−1)/2)`) unless given.
 
-use std::collections::HashSet;
+use std::collections::{HashMap, HashSet};
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -32,7 +32,7 @@ use crate::two_view::{OpenCvTwoView, TwoViewCache};
 
 pub use posediff_sfm::intrinsics::{focal_scale, image_centre};
 
-use crate::options::{CameraMode, DensifyWhen, PipelineOptions};
+use crate::options::{CameraHint, CameraMode, DensifyWhen, PipelineOptions};
 pub use crate::options::{
     GEOMETRIC_CONTRAST_THRESHOLD, GEOMETRIC_MAX_KEYPOINTS, KnownIntrinsics, resolve_intrinsics,
 };
@@ -60,6 +60,9 @@ pub struct GeometricConfig {
     pub refinement: Refinement,
     /// The learned matcher, when the run uses it instead of OpenCV's.
     pub learned: Option<SharedLearned>,
+    /// What the files say of each image's camera (EXIF, folder), one per image; empty when
+    /// nothing is known. They decide the camera groups and focal priors of `cameras.mode`.
+    pub hints: Vec<CameraHint>,
 }
 
 /// The second matching pass as it runs ([`crate::options::DensifyOptions`] has
@@ -91,6 +94,7 @@ impl Default for GeometricConfig {
             options,
             intrinsics: KnownIntrinsics::Unknown,
             learned: None,
+            hints: Vec::new(),
         }
     }
 }
@@ -141,7 +145,9 @@ impl GeometricConfig {
         o.homography_fraction = self.options.two_view.homography_fraction;
         // A learned matcher's wrong pairs must not decide the focal (MapperOptions' doc).
         o.score_dropped_as_missing |= self.learned.is_some();
-        o.cameras_from_data = self.options.cameras.mode == CameraMode::Auto;
+        // EXIF, where any image has it, decides auto's groups instead of the data.
+        o.cameras_from_data = self.options.cameras.mode == CameraMode::Auto
+            && !self.hints.iter().any(|h| h.device.is_some());
         match self.refinement {
             Refinement::Converge(r) => o.sampson = Some(r),
             Refinement::None | Refinement::Official(_) => {
@@ -476,7 +482,17 @@ pub fn refine_given_cameras_counted(
         densified = extra.len();
     }
     counter.stage("refining", 0);
-    let (layout, known_phi) = intrinsics_layout(&sizes, &config.intrinsics, CameraMode::Single)?;
+    let CameraLayout {
+        intrinsics: layout,
+        known_phi,
+        ..
+    } = camera_layout(
+        &sizes,
+        &config.intrinsics,
+        CameraMode::Single,
+        &[],
+        config.options.mapper.focal_prior,
+    )?;
     let given: Vec<f64> = init
         .iter()
         .zip(&layout.scale)
@@ -547,21 +563,95 @@ pub fn refine_given_cameras_counted(
     })
 }
 
-/// The per-image principal points, focal scales and cameras, and `φ` when the focal is known.
-fn intrinsics_layout(
+/// The cameras of an estimate as laid out before the mapper: each image's principal point,
+/// focal scale and camera group, `φ` when the focal is known, and each image's focal prior.
+struct CameraLayout {
+    intrinsics: ImageIntrinsics,
+    known_phi: Option<f64>,
+    decided_by: &'static str,
+    /// Per image: how its prior was read (`None`: no prior, the focal self-calibrated).
+    prior: Vec<Option<String>>,
+}
+
+/// The camera layout of `mode` with the files' `hints` (none, or one per image).
+///
+/// Groups: `single` one; `per-image` one each; `per-folder` one per folder; `auto` one per
+/// EXIF camera and image size (the images without EXIF one more), or one split later by the
+/// mapper from the data when no image has EXIF. A group whose images all have an EXIF focal
+/// starts from it: `s_i = f_exif / focal_prior`, so that `φ = mapper.focal_prior` (the
+/// mapper's fixed start) is the EXIF focal and self-calibration still moves it.
+fn camera_layout(
     sizes: &[ImageSize],
     known: &KnownIntrinsics,
     mode: CameraMode,
-) -> Result<(ImageIntrinsics, Option<f64>)> {
-    Ok(match resolve_intrinsics(known, sizes)? {
-        None => {
-            let mut layout = ImageIntrinsics::from_sizes(sizes);
-            if mode == CameraMode::PerImage {
-                layout.group = (0..sizes.len()).collect();
-            }
-            (layout, None)
+    hints: &[CameraHint],
+    focal_prior: f64,
+) -> Result<CameraLayout> {
+    let n = sizes.len();
+    if !hints.is_empty() && hints.len() != n {
+        return Err(PosediffError::InvalidArgument(format!(
+            "{} camera hints for {n} images",
+            hints.len()
+        )));
+    }
+    if let Some(k) = resolve_intrinsics(known, sizes)? {
+        return Ok(CameraLayout {
+            intrinsics: ImageIntrinsics::from_known(&k),
+            known_phi: Some(1.0),
+            decided_by: "given",
+            prior: vec![Some("given".into()); n],
+        });
+    }
+    let hint = |i: usize| hints.get(i);
+    let exif = hints.iter().any(|h| h.device.is_some());
+    let keys: Option<Vec<String>> = match mode {
+        CameraMode::Single => None,
+        CameraMode::PerImage => Some((0..n).map(|i| i.to_string()).collect()),
+        CameraMode::PerFolder => Some(
+            (0..n)
+                .map(|i| hint(i).map(|h| h.folder.clone()).unwrap_or_default())
+                .collect(),
+        ),
+        CameraMode::Auto if exif => Some(
+            (0..n)
+                .map(|i| match hint(i).and_then(|h| h.device.as_deref()) {
+                    Some(d) => format!("{d} {}x{}", sizes[i].width(), sizes[i].height()),
+                    None => String::new(),
+                })
+                .collect(),
+        ),
+        CameraMode::Auto => None,
+    };
+    let mut intrinsics = ImageIntrinsics::from_sizes(sizes);
+    if let Some(keys) = keys {
+        let mut index: HashMap<&str, usize> = HashMap::new();
+        for (i, key) in keys.iter().enumerate() {
+            let next = index.len();
+            intrinsics.group[i] = *index.entry(key.as_str()).or_insert(next);
         }
-        Some(k) => (ImageIntrinsics::from_known(&k), Some(1.0)),
+    }
+    let focal = |i: usize| hint(i).and_then(|h| h.focal.prior(sizes[i].width(), sizes[i].height()));
+    let mut whole = vec![true; intrinsics.groups()];
+    for (i, &g) in intrinsics.group.iter().enumerate() {
+        whole[g] &= focal(i).is_some_and(|(f, _)| f.is_finite() && f > 0.0);
+    }
+    let mut prior = vec![None; n];
+    for i in 0..n {
+        if let (true, Some((f, how))) = (whole[intrinsics.group[i]], focal(i)) {
+            intrinsics.scale[i] = f / focal_prior;
+            prior[i] = Some(how.to_owned());
+        }
+    }
+    let decided_by = match mode {
+        CameraMode::Auto if exif => "exif",
+        CameraMode::Auto => "from the data",
+        m => m.as_str(),
+    };
+    Ok(CameraLayout {
+        intrinsics,
+        known_phi: None,
+        decided_by,
+        prior,
     })
 }
 
@@ -605,8 +695,14 @@ fn map_supported_matches(
     if n < 2 {
         return Err(PosediffError::TooFewImages { needed: 2, got: n });
     }
-    let (layout, known_phi) =
-        intrinsics_layout(sizes, &config.intrinsics, config.options.cameras.mode)?;
+    let cameras = camera_layout(
+        sizes,
+        &config.intrinsics,
+        config.options.cameras.mode,
+        &config.hints,
+        config.options.mapper.focal_prior,
+    )?;
+    let (layout, known_phi) = (cameras.intrinsics.clone(), cameras.known_phi);
     let mapper = GlobalMapper::new(config.mapper_options());
     let solver = OpenCvTwoView {
         config: &config.options.two_view,
@@ -622,7 +718,8 @@ fn map_supported_matches(
     report.record_mapper(&reconstruction.report);
     report.record_cameras(
         config.options.cameras.mode,
-        known_phi.is_some(),
+        cameras.decided_by,
+        &cameras.prior,
         &reconstruction.intrinsics,
         reconstruction.phi,
         reconstruction.report.cameras.as_ref(),
@@ -702,6 +799,85 @@ mod tests {
     use posediff_sfm::tracks::build_tracks;
 
     const N: usize = 6;
+
+    fn hint(folder: &str, device: Option<&str>, f35: Option<f64>) -> CameraHint {
+        CameraHint {
+            folder: folder.into(),
+            device: device.map(Into::into),
+            focal: crate::options::ExifFocal {
+                focal_35mm: f35,
+                ..Default::default()
+            },
+        }
+    }
+
+    /// Groups per mode, EXIF priors only where a whole group has one, each at its image's
+    /// size, and a count of hints that is not the images' an error.
+    #[test]
+    fn camera_layouts_follow_the_mode_and_the_exif() {
+        let big = ImageSize::new(700, 350).unwrap();
+        let small = ImageSize::new(350, 175).unwrap();
+        let sizes = [big, big, small, big, big];
+        let hints = [
+            hint("a", Some("Acme 4.00 mm"), Some(35.0)),
+            hint("a", Some("Acme 6.00 mm"), Some(52.5)),
+            hint("b", Some("Acme 4.00 mm"), Some(35.0)),
+            hint("b", None, None),
+            hint("b", Some("Acme 4.00 mm"), Some(35.0)),
+        ];
+        let layout = |mode, hints: &[CameraHint]| {
+            camera_layout(&sizes, &KnownIntrinsics::Unknown, mode, hints, 1.2).unwrap()
+        };
+        // Auto with EXIF: device and size; the image without EXIF in a group of its own.
+        let auto = layout(CameraMode::Auto, &hints);
+        assert_eq!(auto.decided_by, "exif");
+        assert_eq!(auto.intrinsics.group, vec![0, 1, 2, 3, 0]);
+        // f_35 = 35 mm: the focal is the longer side; the scale puts it at φ = 1.2.
+        assert!((auto.intrinsics.focal(1.2, 0) - 700.0).abs() < 1e-9);
+        assert!((auto.intrinsics.focal(1.2, 1) - 1050.0).abs() < 1e-9);
+        assert!((auto.intrinsics.focal(1.2, 2) - 350.0).abs() < 1e-9);
+        assert_eq!(auto.prior[3], None);
+        assert_eq!(auto.prior[0].as_deref(), Some("exif 35 mm equivalent"));
+        // Per folder: folder b holds the image without EXIF, so b keeps no prior.
+        let folder = layout(CameraMode::PerFolder, &hints);
+        assert_eq!(folder.intrinsics.group, vec![0, 0, 1, 1, 1]);
+        assert!(folder.prior[0].is_some() && folder.prior[2].is_none());
+        assert_eq!(
+            folder.intrinsics.scale[2],
+            ImageIntrinsics::from_sizes(&sizes).scale[2]
+        );
+        assert_eq!(
+            layout(CameraMode::PerImage, &hints).intrinsics.group,
+            vec![0, 1, 2, 3, 4]
+        );
+        assert_eq!(layout(CameraMode::Single, &hints).intrinsics.groups(), 1);
+        // No EXIF at all: auto leaves the split to the data.
+        let bare: Vec<CameraHint> = (0..5).map(|_| hint("", None, None)).collect();
+        let auto = layout(CameraMode::Auto, &bare);
+        assert_eq!(
+            (auto.decided_by, auto.intrinsics.groups()),
+            ("from the data", 1)
+        );
+        assert!(
+            camera_layout(
+                &sizes,
+                &KnownIntrinsics::Unknown,
+                CameraMode::Auto,
+                &hints[..2],
+                1.2
+            )
+            .is_err()
+        );
+        let given = camera_layout(
+            &sizes,
+            &KnownIntrinsics::FocalPx(500.0),
+            CameraMode::Auto,
+            &hints,
+            1.2,
+        )
+        .unwrap();
+        assert_eq!((given.decided_by, given.known_phi), ("given", Some(1.0)));
+    }
 
     fn as_cameras(poses: &[Option<CameraPose>]) -> Vec<Option<Camera>> {
         let k = posediff_geometry::Intrinsics::new(500.0, 500.0, 320.0, 240.0).unwrap();

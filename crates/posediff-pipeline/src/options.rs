@@ -244,16 +244,74 @@ impl Default for RetryOptions {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum CameraMode {
-    /// Decided from the data: a focal calibrated per image from the view graph
-    /// (`mapper.calibration`), and the images whose focals agree within
-    /// `mapper.calibration.group_tolerance` share one camera; every other image is a camera of
-    /// its own. A set taken with one lens stays one camera.
+    /// With EXIF: a camera per distinct EXIF camera (make, model, focal length) and image size,
+    /// as COLMAP groups; the images without EXIF share one more. Without EXIF, decided from the
+    /// data: a focal calibrated per image from the view graph (`mapper.calibration`), and the
+    /// images whose focals agree within `mapper.calibration.group_tolerance` share one camera;
+    /// every other image is a camera of its own. A set taken with one lens stays one camera.
     #[default]
     Auto,
     /// One camera for all images (one focal factor for the set; the mapper before cameras).
     Single,
+    /// A camera per folder of the input (COLMAP's `single_camera_per_folder`).
+    PerFolder,
     /// A camera per image (COLMAP's default): a focal each, refined in the bundle adjustment.
     PerImage,
+}
+
+/// What the caller knows of one image's camera before any estimate: its folder and what its
+/// EXIF says. [`crate::geometric::GeometricConfig::hints`] holds one per image (or none).
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct CameraHint {
+    /// The image's folder relative to the input (`per-folder` groups by it).
+    pub folder: String,
+    /// The camera its EXIF names (make, model, focal length); `None` without EXIF.
+    pub device: Option<String>,
+    /// The focal its EXIF gives.
+    pub focal: ExifFocal,
+}
+
+/// An image's EXIF focal tags, converted to a focal in pixels as COLMAP 4.2 does
+/// (`Bitmap::ExifFocalLength`, [`Self::prior`]).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct ExifFocal {
+    /// `FocalLength`, mm.
+    pub focal_mm: Option<f64>,
+    /// `FocalLengthIn35mmFilm`, mm.
+    pub focal_35mm: Option<f64>,
+    /// `FocalPlaneXResolution` in pixels per mm.
+    pub focal_plane_px_per_mm: Option<f64>,
+    /// `PixelXDimension` (the width the focal-plane resolution refers to).
+    pub pixel_width: Option<u32>,
+}
+
+impl ExifFocal {
+    /// The focal in pixels of an image `width × height` and how it was read:
+    /// 1. `FocalLengthIn35mmFilm`: `f_px = f_35 / 35 · max(W, H)` (COLMAP's rule);
+    /// 2. else `FocalLength` with `FocalPlaneXResolution`, rescaled when `PixelXDimension` is
+    ///    not the file's width (a resized copy).
+    ///
+    /// COLMAP's third source, a sensor-width table per camera model, is not carried: a focal in
+    /// mm alone gives no prior.
+    pub fn prior(&self, width: u32, height: u32) -> Option<(f64, &'static str)> {
+        let max_side = f64::from(width.max(height));
+        let usable = |v: &f64| v.is_finite() && *v > 0.0;
+        if let Some(f35) = self.focal_35mm.filter(usable) {
+            return Some((f35 / 35.0 * max_side, "exif 35 mm equivalent"));
+        }
+        let (f, per_mm) = (
+            self.focal_mm.filter(usable)?,
+            self.focal_plane_px_per_mm.filter(usable)?,
+        );
+        let rescale = self
+            .pixel_width
+            .filter(|w| *w > 0)
+            .map_or(1.0, |w| f64::from(width) / f64::from(w));
+        Some((
+            f * per_mm * rescale,
+            "exif focal length and focal plane resolution",
+        ))
+    }
 }
 
 impl CameraMode {
@@ -262,6 +320,7 @@ impl CameraMode {
         match self {
             Self::Auto => "auto",
             Self::Single => "single",
+            Self::PerFolder => "per-folder",
             Self::PerImage => "per-image",
         }
     }
@@ -274,9 +333,10 @@ impl std::str::FromStr for CameraMode {
         match s {
             "auto" => Ok(Self::Auto),
             "single" => Ok(Self::Single),
+            "per-folder" => Ok(Self::PerFolder),
             "per-image" => Ok(Self::PerImage),
             other => Err(PosediffError::InvalidArgument(format!(
-                "camera mode {other:?}: expected auto, single or per-image"
+                "camera mode {other:?}: expected auto, single, per-folder or per-image"
             ))),
         }
     }
@@ -492,6 +552,32 @@ impl PipelineOptions {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_exif_35mm_equivalent_wins_then_the_focal_plane() {
+        let focal = ExifFocal {
+            focal_mm: Some(4.25),
+            focal_35mm: Some(26.0),
+            focal_plane_px_per_mm: Some(735.5),
+            pixel_width: Some(4032),
+        };
+        let (f, how) = focal.prior(4032, 3024).unwrap_or_default();
+        assert!((f - 26.0 / 35.0 * 4032.0).abs() < 1e-9);
+        assert_eq!(how, "exif 35 mm equivalent");
+        let plane = ExifFocal {
+            focal_35mm: None,
+            ..focal
+        };
+        // A half-size copy of the photo: the pixels per mm halve with it.
+        let (f, how) = plane.prior(2016, 1512).unwrap_or_default();
+        assert!((f - 4.25 * 735.5 * 0.5).abs() < 1e-9, "{f}");
+        assert!(how.contains("focal plane"));
+        let bare = ExifFocal {
+            focal_plane_px_per_mm: None,
+            ..plane
+        };
+        assert!(bare.prior(4032, 3024).is_none(), "mm alone is no prior");
+    }
 
     /// Evidence decides only when one way has the screen's minimum and twice the other's.
     #[test]

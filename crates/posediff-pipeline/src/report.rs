@@ -186,22 +186,19 @@ impl GeometricReport {
     pub(crate) fn record_cameras(
         &mut self,
         mode: crate::options::CameraMode,
-        known: bool,
+        decided_by: &str,
+        image_prior: &[Option<String>],
         intrinsics: &posediff_sfm::ImageIntrinsics,
         phi: f64,
         calibration: Option<&posediff_sfm::report::CameraCalibrationReport>,
     ) {
-        use crate::options::CameraMode;
         let count = intrinsics.groups();
         let mut focal_px = vec![0.0; count];
+        let mut prior = vec![None; count];
         for (i, &g) in intrinsics.group.iter().enumerate().rev() {
             focal_px[g] = intrinsics.focal(phi, i);
+            prior[g] = image_prior.get(i).cloned().flatten();
         }
-        let decided_by = match (known, mode) {
-            (true, _) => "given",
-            (false, CameraMode::Auto) => "from the data",
-            (false, m) => m.as_str(),
-        };
         // The calibration's shared φ was the first start; per image: ratio · φ_initial · s_i
         // with s_i before folding (the longer side).
         let image_focal_calibrated = calibration
@@ -220,6 +217,10 @@ impl GeometricReport {
         self.cameras = CamerasOutcome {
             mode: mode.as_str().into(),
             decided_by: decided_by.into(),
+            prior: prior
+                .into_iter()
+                .map(|p| p.unwrap_or_else(|| "none (self-calibrated)".into()))
+                .collect(),
             count,
             image_camera: intrinsics.group.clone(),
             focal_px,
@@ -323,9 +324,12 @@ impl GeometricReport {
 pub struct CamerasOutcome {
     /// The camera mode asked for (`cameras.mode`).
     pub mode: String,
-    /// How the cameras were decided: `given` (known intrinsics), `single`, `per-image`, or
-    /// `from the data` (auto).
+    /// How the cameras were decided: `given` (known intrinsics), `single`, `per-folder`,
+    /// `per-image`, `exif` (auto with EXIF) or `from the data` (auto without).
     pub decided_by: String,
+    /// Each camera's focal prior: `given`, how its EXIF gave one (`exif 35 mm equivalent`, …),
+    /// or `none (self-calibrated)`.
+    pub prior: Vec<String>,
     /// Number of cameras.
     pub count: usize,
     /// Each image's camera (index into `focal_px`).

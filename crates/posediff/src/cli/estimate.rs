@@ -74,11 +74,12 @@ pub struct Args {
     /// (Sets the options tree's `pairs.selection`; default `auto`.)
     #[arg(long)]
     pairs: Option<posediff_matching::PairSelection>,
-    /// Which photos share a camera (checkpoint-free path, unknown intrinsics): `auto` (a
-    /// focal per image calibrated from the view graph; images whose focals agree within
-    /// `mapper.calibration.group_tolerance` share one camera, each other image gets its own),
-    /// `single` (one focal for all) or `per-image` (COLMAP's default). (Sets the options
-    /// tree's `cameras.mode`; default `auto`.)
+    /// Which photos share a camera (checkpoint-free path, unknown intrinsics): `auto` (with
+    /// EXIF, a camera per EXIF make, model, focal length and image size, its focal prior from
+    /// the EXIF as COLMAP reads it; without, a focal per image calibrated from the view graph,
+    /// and images whose focals agree within `mapper.calibration.group_tolerance` share one
+    /// camera), `single` (one focal for all), `per-folder` or `per-image` (COLMAP's default).
+    /// (Sets the options tree's `cameras.mode`; default `auto`.)
     #[arg(long, value_name = "MODE")]
     camera_mode: Option<posediff_pipeline::options::CameraMode>,
     /// The pipeline's options from a TOML (`.toml`) or JSON file: any subset of the tree

@@ -21,6 +21,10 @@ pub struct Args {
     /// Seed of the draw.
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// Write EXIF into every copy (make, model, focal length, rounded 35 mm equivalent of
+    /// its true focal), as a phone's photos carry.
+    #[arg(long)]
+    exif: bool,
     /// Output folder (created).
     #[arg(long)]
     out: PathBuf,
@@ -38,6 +42,7 @@ impl Args {
             every: self.every,
             range: (lo, hi),
             seed: self.seed,
+            exif: self.exif,
         };
         let factors = zoom_copy(&self.set, &self.out, &variant)?;
         let zoomed = factors.iter().filter(|f| **f > 1.0).count();

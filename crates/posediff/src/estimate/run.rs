@@ -17,6 +17,8 @@ use posediff_sfm::points::PointOptions;
 use crate::correspondences::{LearnedMatcher, MatcherChoice, SharedLearned, learned_weight_files};
 use crate::error::{PosediffError, Result};
 use crate::estimate::estimator::{EstimateInput, Estimator, Progress};
+use posediff_pipeline::options::CameraHint;
+
 use crate::estimate::geometric::{
     GeometricConfig, KnownIntrinsics, Refinement, bundle_refine_cameras,
     estimate_geometric_counted, refine_given_cameras_counted,
@@ -26,6 +28,7 @@ use crate::estimate::run_report::{
     MethodReport, NetworkReport, NetworkSeconds, PairCount, PointsSummary, RunReport, SampleSpread,
     SkippedImage, Warning,
 };
+use crate::io::exif::{ExifCamera, read_exif};
 use crate::io::export::{ImageCamera, read_cameras_json_partial};
 use crate::io::loader::relative_name;
 use crate::io::loader::{check_images, image_files};
@@ -317,6 +320,7 @@ impl RunOptions {
             },
             options,
             learned: None,
+            hints: Vec::new(),
         }
     }
 }
@@ -448,6 +452,9 @@ pub fn run(
         }
     };
     let mut geometric = options.geometric_config(&known);
+    if matches!(known, KnownIntrinsics::Unknown) {
+        geometric.hints = camera_hints(files, names)?;
+    }
     let needs_matches = network.is_none() || options.ggs;
     if needs_matches {
         geometric.learned = options.load_learned()?;
@@ -671,12 +678,44 @@ fn pair_counts(pairs: &[PairMatches]) -> Vec<PairCount> {
         .collect()
 }
 
-/// A cameras.json's entries matched to the images by name.
+/// Each image's folder and EXIF camera, for `cameras.mode`'s groups and focal priors.
+///
+/// # Errors
+/// An image that cannot be opened.
+pub fn camera_hints(files: &[PathBuf], names: &[String]) -> Result<Vec<CameraHint>> {
+    use rayon::prelude::*;
+    files
+        .par_iter()
+        .zip(names)
+        .map(|(file, name)| {
+            let folder = Path::new(name)
+                .parent()
+                .map(|p| p.to_string_lossy().into_owned())
+                .unwrap_or_default();
+            let exif = read_exif(file)?;
+            Ok(ExifCamera::hint(exif.as_ref(), folder))
+        })
+        .collect()
+}
+
+/// A cameras.json's entries matched to the images by name; their cameras must be pinhole.
 fn read_per_image(path: &Path, names: &[String], what: &str) -> Result<Matched<ImageCamera>> {
     let given = read_cameras_json_partial(path).map_err(|e| PosediffError::Context {
         what: format!("reading {what} {}", path.display()),
         source: Box::new(e),
     })?;
+    let distorted = crate::io::export::distorted_images(path)?;
+    if let Some(first) = distorted.first() {
+        return Err(PosediffError::invalid(
+            path,
+            format!(
+                "{what}: {} camera(s) with lens distortion ({first}, …); {what} takes pinhole \
+                 cameras: undistort the images first (COLMAP's image_undistorter) and give \
+                 their PINHOLE cameras",
+                distorted.len()
+            ),
+        ));
+    }
     match_by_name(
         names,
         given.into_iter().map(|g| (g.image.clone(), g)).collect(),

@@ -141,10 +141,13 @@ pub fn read_cameras_json_partial(path: &Path) -> Result<Vec<ImageCamera>> {
                 });
             }
             let r: CameraRecord = serde_json::from_value(v).map_err(entry)?;
-            let camera = r.to_camera().map_err(|e| PosediffError::InvalidFile {
+            let invalid = |e: posediff_geometry::GeometryError| PosediffError::InvalidFile {
                 path: path.to_owned(),
                 reason: format!("entry {k} ({}): {e}", r.image),
-            })?;
+            };
+            let camera = r.to_camera().map_err(invalid)?;
+            // A lens model must be whole and agree with K (the pinhole part returned here).
+            r.lens().map_err(invalid)?;
             Ok(ImageCamera {
                 image: r.image,
                 size: camera.image_size,
@@ -152,6 +155,26 @@ pub fn read_cameras_json_partial(path: &Path) -> Result<Vec<ImageCamera>> {
             })
         })
         .collect()
+}
+
+/// The images of a cameras.json whose cameras carry lens distortion (`model`/`params`), for the
+/// readers that take only pinhole cameras (`--intrinsics`, `--init`).
+///
+/// # Errors
+/// As [`read_cameras_json_partial`].
+pub fn distorted_images(path: &Path) -> Result<Vec<String>> {
+    let text = std::fs::read_to_string(path).map_err(|e| PosediffError::Read {
+        path: path.to_owned(),
+        source: e,
+    })?;
+    let values: Vec<serde_json::Value> =
+        serde_json::from_str(&text).map_err(|e| PosediffError::invalid(path, e))?;
+    Ok(values
+        .into_iter()
+        .filter_map(|v| serde_json::from_value::<CameraRecord>(v).ok())
+        .filter(|r| r.lens().is_ok_and(|l| l.is_distorted()))
+        .map(|r| r.image)
+        .collect())
 }
 
 /// The cameras of the COLMAP model in `dir` (text or binary; PINHOLE, SIMPLE_PINHOLE,

@@ -8,10 +8,13 @@
 //! - [`co3d`]: CO3Dv2 annotations and the official test protocol's frame choice.
 //! - [`outputs`]: the output folder (COLMAP sparse/0, images, nerfstudio, PLY, viewer).
 //! - [`viewer`]: view.html, a self-contained three.js page.
+//! - [`exif`]: the camera and focal prior an image's EXIF gives (COLMAP's rules), and writing
+//!   EXIF into copies.
 //! - [`variants`]: harder copies of a set (zoomed photos) with their ground truth transformed.
 
 pub mod co3d;
 pub mod colmap;
+pub mod exif;
 pub mod export;
 pub mod loader;
 pub mod outputs;

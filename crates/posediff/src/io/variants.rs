@@ -21,6 +21,26 @@ pub struct ZoomVariant {
     pub range: (f64, f64),
     /// Seed of the draw.
     pub seed: u64,
+    /// Write EXIF into every copy as a phone would (`Make`, `Model`, `FocalLength` and the
+    /// rounded `FocalLengthIn35mmFilm` of its true focal, [`variant_exif`]), so that a zoomed
+    /// photo names another focal length, as a zoom lens's photos do.
+    pub exif: bool,
+}
+
+/// The EXIF a variant writes for a photo of true focal `focal_px` and longer side `max_side`:
+/// the 35 mm equivalent rounded to whole mm as cameras store it (a prior within
+/// `0.5 / f_35` of the truth) and a focal length in mm at a phone's crop factor of 7.
+pub fn variant_exif(focal_px: f64, max_side: u32) -> crate::io::exif::ExifCamera {
+    let f35 = (focal_px / f64::from(max_side) * 35.0).round();
+    crate::io::exif::ExifCamera {
+        make: "posediff".into(),
+        model: "variant camera".into(),
+        focal: posediff_pipeline::options::ExifFocal {
+            focal_mm: Some((f35 / 7.0 * 100.0).round() / 100.0),
+            focal_35mm: Some(f35),
+            ..Default::default()
+        },
+    }
 }
 
 impl Default for ZoomVariant {
@@ -30,6 +50,7 @@ impl Default for ZoomVariant {
             every: 2,
             range: (1.3, 1.6),
             seed: 0,
+            exif: false,
         }
     }
 }
@@ -51,24 +72,38 @@ fn read_records(set: &Path) -> Result<Vec<CameraRecord>> {
     serde_json::from_str(&text).map_err(|e| PosediffError::invalid(&path, e))
 }
 
-fn write_image(path: &Path, image: &Mat) -> Result<()> {
+fn write_bytes(path: &Path, bytes: &[u8]) -> Result<()> {
     if let Some(dir) = path.parent() {
         std::fs::create_dir_all(dir).map_err(|e| PosediffError::Write {
             path: dir.to_owned(),
             source: e,
         })?;
     }
-    let ok = opencv::imgcodecs::imwrite(
-        path,
+    std::fs::write(path, bytes).map_err(|e| PosediffError::Write {
+        path: path.to_owned(),
+        source: e,
+    })
+}
+
+/// `image` encoded as `path`'s extension says (JPEG at quality 95).
+fn encode(path: &Path, image: &Mat) -> Result<Vec<u8>> {
+    let ext = path
+        .extension()
+        .map(|e| format!(".{}", e.to_string_lossy()))
+        .unwrap_or_else(|| ".png".into());
+    let mut bytes = opencv::core::Vector::<u8>::new();
+    let ok = opencv::imgcodecs::imencode(
+        &ext,
         image,
+        &mut bytes,
         &opencv::core::Vector::from_slice(&[opencv::imgcodecs::IMWRITE_JPEG_QUALITY, 95]),
     )?;
     if ok {
-        Ok(())
+        Ok(bytes.to_vec())
     } else {
         Err(PosediffError::InvalidFile {
             path: path.to_owned(),
-            reason: "OpenCV could not write the image".into(),
+            reason: "OpenCV could not encode the image".into(),
         })
     }
 }
@@ -125,7 +160,7 @@ pub fn zoom_copy(set: &Path, out: &Path, variant: &ZoomVariant) -> Result<Vec<f6
             1.0
         };
         let mut record = record.clone();
-        if zoom > 1.0 {
+        let bytes = if zoom > 1.0 {
             let cw = ((f64::from(w) / zoom).round() as i32).clamp(1, w);
             let ch = ((f64::from(h) / zoom).round() as i32).clamp(1, h);
             let crop = ((w - cw) / 2, (h - ch) / 2, cw, ch);
@@ -139,25 +174,26 @@ pub fn zoom_copy(set: &Path, out: &Path, variant: &ZoomVariant) -> Result<Vec<f6
                 0.0,
                 opencv::imgproc::INTER_AREA,
             )?;
-            write_image(&out.join(&record.image), &resized)?;
             record.k = cropped_k(&record.k, crop, (record.width, record.height));
             // The zoom actually applied (the crop is rounded to whole pixels).
             factors.push(f64::from(w) / f64::from(cw));
+            encode(&out.join(&record.image), &resized)?
         } else {
-            // The photo itself, byte for byte (re-encoding would change its features).
-            let target = out.join(&record.image);
-            if let Some(dir) = target.parent() {
-                std::fs::create_dir_all(dir).map_err(|e| PosediffError::Write {
-                    path: dir.to_owned(),
-                    source: e,
-                })?;
-            }
-            std::fs::copy(&source, &target).map_err(|e| PosediffError::Write {
-                path: target.clone(),
-                source: e,
-            })?;
             factors.push(1.0);
-        }
+            // The photo itself, byte for byte (re-encoding would change its features); EXIF
+            // goes in a segment of its own, the image data untouched.
+            std::fs::read(&source).map_err(|e| PosediffError::Read {
+                path: source.clone(),
+                source: e,
+            })?
+        };
+        let bytes = if variant.exif {
+            let exif = variant_exif(record.k[0][0], record.width.max(record.height));
+            crate::io::exif::with_exif(&bytes, &exif)?
+        } else {
+            bytes
+        };
+        write_bytes(&out.join(&record.image), &bytes)?;
         written.push(record);
     }
     let path = out.join("cameras.json");
