@@ -38,7 +38,10 @@ def main():
     estimated = [c for c in cams if c.get("estimated", True)]
     if rec.num_reg_images() != len(estimated):
         fail(f"pycolmap has {rec.num_reg_images()} images, cameras.json {len(estimated)} estimated")
-    distinct = {(c["width"], c["height"], json.dumps(c["K"])) for c in estimated}
+    distinct = {
+        (c["width"], c["height"], json.dumps(c["K"]), c.get("model"), json.dumps(c.get("params")))
+        for c in estimated
+    }
     if rec.num_cameras() != len(distinct):
         fail(f"{rec.num_cameras()} COLMAP cameras for {len(distinct)} distinct intrinsics")
     n = rec.num_points3D()
@@ -61,6 +64,17 @@ def main():
         K[1, 2] -= 0.5
         if np.abs(K - np.array(c["K"])).max() > 1e-9:
             fail(f"{image.name}: K differs from cameras.json")
+        # The lens: cameras.json's model and params (PINHOLE when absent), COLMAP's principal
+        # point half a pixel on.
+        model = c.get("model", "PINHOLE")
+        if image.camera.model.name != model:
+            fail(f"{image.name}: pycolmap reads {image.camera.model.name}, cameras.json {model}")
+        if "params" in c:
+            params = np.array(c["params"], dtype=np.float64)
+            centre = 1 if model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL") else 2
+            params[centre:centre + 2] += 0.5
+            if np.abs(image.camera.params - params).max() > 1e-9:
+                fail(f"{image.name}: params {image.camera.params} vs cameras.json {params}")
     errors, stored = [], []
     for pid, p in rec.points3D.items():
         d = []

@@ -263,6 +263,24 @@ impl LensCamera {
         })
     }
 
+    /// The photo's pixel of the undistorted pixel `p` (the pixel the pinhole part of this
+    /// camera gives; `p` itself for a model without distortion).
+    pub fn distort_pixel(&self, p: &Vector2<f64>) -> Vector2<f64> {
+        let ((fx, fy), (cx, cy)) = (self.focal(), self.principal());
+        let (d, _) = self.distort((p.x - cx) / fx, (p.y - cy) / fy);
+        Vector2::new(fx * d.x + cx, fy * d.y + cy)
+    }
+
+    /// The undistorted pixel of the photo's pixel `p`, the inverse of [`Self::distort_pixel`].
+    ///
+    /// # Errors
+    /// As [`Self::unproject`].
+    pub fn undistort_pixel(&self, p: &Vector2<f64>) -> Result<Vector2<f64>> {
+        let ((fx, fy), (cx, cy)) = (self.focal(), self.principal());
+        let x = self.unproject(p)?;
+        Ok(Vector2::new(fx * x.x + cx, fy * x.y + cy))
+    }
+
     /// `∂pixel/∂p` of [`Self::project`] at camera-frame point `p` (`z > 0`), for the solvers.
     pub fn project_jacobian(&self, p: &Vector3<f64>) -> nalgebra::Matrix2x3<f64> {
         let (fx, fy) = self.focal();

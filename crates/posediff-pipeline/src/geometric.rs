@@ -11,7 +11,8 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use nalgebra::{Matrix3, Rotation3};
-use posediff_geometry::{Camera, ImageSize, Pose};
+use posediff_geometry::lens::{CameraModel, LensCamera};
+use posediff_geometry::{Camera, ImageSize, Intrinsics, Pose};
 use posediff_guidance::GgsConfig;
 use posediff_matching::pairs::{BagOfWords, RetrievalOptions, select_pairs_with};
 use posediff_matching::{ImageFeatures, PairMatches, PairRule, PairSelection};
@@ -27,7 +28,7 @@ use crate::error::{PosediffError, Result};
 pub use crate::ggs::{model_frame_matches, official_ggs};
 pub use crate::orientation::{STRONG_PAIR, TURN_PARTNERS, TURN_TESTS};
 use crate::orientation::{turn_components, turn_left_out};
-use crate::report::Warning;
+use crate::report::{DistortionOutcome, Warning};
 use crate::two_view::{OpenCvTwoView, TwoViewCache};
 
 pub use posediff_sfm::intrinsics::{focal_scale, image_centre};
@@ -179,6 +180,243 @@ pub struct GeometricEstimate {
     pub report: GeometricReport,
     /// Things the user should know.
     pub warnings: Vec<Warning>,
+    /// The lens distortion calibrated before the mapper (`cameras.distortion`), when one was
+    /// measured: `pairs` and `points` are then in undistorted pixels, the cameras pinhole on
+    /// them, and [`RadialLens::distort_pixel`] maps back to the photos' pixels.
+    pub lens: Option<RadialLens>,
+}
+
+/// Each image's radial distortion as calibrated before the mapper: SIMPLE_RADIAL's
+/// `x_d = x_u (1 + k r_u²)` in coordinates normalised as `x = (p − centre) / scale`
+/// ([`posediff_sfm::distortion_calibration`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct RadialLens {
+    /// Per image, the centre of the normalisation (its principal point), pixels.
+    pub centre: Vec<[f64; 2]>,
+    /// Per image, the normalisation's scale, pixels.
+    pub scale: Vec<f64>,
+    /// Per image, the coefficient in the normalised coordinates.
+    pub k: Vec<f64>,
+}
+
+impl RadialLens {
+    /// The undistorted pixel of image `i`'s pixel `p`; `None` beyond the model's fold.
+    pub fn undistort_pixel(&self, i: usize, p: [f64; 2]) -> Option<[f64; 2]> {
+        let (c, s) = (self.centre[i], self.scale[i]);
+        let x = posediff_sfm::distortion_calibration::undistort(
+            [(p[0] - c[0]) / s, (p[1] - c[1]) / s],
+            self.k[i],
+        )?;
+        Some([c[0] + s * x[0], c[1] + s * x[1]])
+    }
+
+    /// The photo's pixel of image `i`'s undistorted pixel `p`.
+    pub fn distort_pixel(&self, i: usize, p: [f64; 2]) -> [f64; 2] {
+        let (c, s) = (self.centre[i], self.scale[i]);
+        let x = posediff_sfm::distortion_calibration::distort(
+            [(p[0] - c[0]) / s, (p[1] - c[1]) / s],
+            self.k[i],
+        );
+        [c[0] + s * x[0], c[1] + s * x[1]]
+    }
+
+    /// COLMAP's SIMPLE_RADIAL `k` of image `i` at its estimated focal `focal` (pixels).
+    pub fn coefficient(&self, i: usize, focal: f64) -> f64 {
+        posediff_sfm::distortion_calibration::coefficient_at(self.k[i], self.scale[i], focal)
+    }
+
+    /// Image `i`'s lens around its pinhole intrinsics `k`: SIMPLE_RADIAL `[f, cx, cy, k]` at its
+    /// focal (OPENCV `[fx, fy, cx, cy, k, 0, 0, 0]` if the two focals differ).
+    ///
+    /// # Errors
+    /// A principal point other than the calibration's centre (the model would not be exact).
+    pub fn lens_camera(&self, i: usize, k: &Intrinsics) -> Result<LensCamera> {
+        let c = self.centre[i];
+        let off = (k.cx() - c[0]).hypot(k.cy() - c[1]);
+        if off > 1e-6 * k.fx() {
+            return Err(PosediffError::InvalidArgument(format!(
+                "image {i}: principal point ({}, {}) moved {off:.3} px from the distortion's \
+                 centre; its SIMPLE_RADIAL model would not be exact",
+                k.cx(),
+                k.cy()
+            )));
+        }
+        let lens = if k.fx() == k.fy() {
+            LensCamera::new(
+                CameraModel::SimpleRadial,
+                vec![k.fx(), k.cx(), k.cy(), self.coefficient(i, k.fx())],
+            )
+        } else {
+            // Normalised by fx; OpenCV's k1 is in coordinates normalised per axis, which
+            // coincide only for equal focals: the rare anisotropic camera is approximated.
+            LensCamera::new(
+                CameraModel::OpenCv,
+                vec![
+                    k.fx(),
+                    k.fy(),
+                    k.cx(),
+                    k.cy(),
+                    self.coefficient(i, k.fx()),
+                    0.0,
+                    0.0,
+                    0.0,
+                ],
+            )
+        };
+        Ok(lens?)
+    }
+
+    /// Undistorts every keypoint of `features` (in place; once: the caller's invariant).
+    fn undistort_features(&self, features: &mut [ImageFeatures]) {
+        for (i, f) in features.iter_mut().enumerate() {
+            for p in &mut f.keypoints {
+                // Inside the image the model never folds (the calibration's range keeps the
+                // fold beyond the corners), so every keypoint has its undistorted pixel.
+                if let Some(u) = self.undistort_pixel(i, *p) {
+                    *p = u;
+                }
+            }
+        }
+    }
+
+    /// Undistorts every match of `pairs` (in place; once).
+    fn undistort_pairs(&self, pairs: &mut [PairMatches]) {
+        for p in pairs {
+            for x in &mut p.kp1 {
+                if let Some(u) = self.undistort_pixel(p.first, *x) {
+                    *x = u;
+                }
+            }
+            for x in &mut p.kp2 {
+                if let Some(u) = self.undistort_pixel(p.second, *x) {
+                    *x = u;
+                }
+            }
+        }
+    }
+}
+
+/// A matcher whose new features come undistorted (the turned retry's, made after the lens
+/// calibration); matching itself is the inner matcher's.
+struct Undistorting<'a> {
+    inner: &'a dyn Correspondences,
+    lens: &'a RadialLens,
+    /// The estimate's images, to find a turned image's lens by its path.
+    images: &'a [PathBuf],
+}
+
+impl Correspondences for Undistorting<'_> {
+    fn extract(&self, images: &[PathBuf], counter: &dyn StepCounter) -> Result<Vec<ImageFeatures>> {
+        let mut features = self.inner.extract(images, counter)?;
+        self.lens.undistort_features(&mut features);
+        Ok(features)
+    }
+
+    fn match_pairs(
+        &self,
+        features: &[ImageFeatures],
+        pairs: &[(usize, usize)],
+        stage: (&dyn StepCounter, &str),
+    ) -> Result<Vec<PairMatches>> {
+        self.inner.match_pairs(features, pairs, stage)
+    }
+
+    fn depends_on_orientation(&self) -> bool {
+        self.inner.depends_on_orientation()
+    }
+
+    fn extract_turned(
+        &self,
+        images: &[&std::path::Path],
+        counter: &dyn StepCounter,
+    ) -> Result<Option<Vec<ImageFeatures>>> {
+        let Some(mut features) = self.inner.extract_turned(images, counter)? else {
+            return Ok(None);
+        };
+        for (path, f) in images.iter().zip(&mut features) {
+            let i = self
+                .images
+                .iter()
+                .position(|p| p.as_path() == *path)
+                .ok_or_else(|| {
+                    PosediffError::InvalidArgument(format!(
+                        "{} is not an image of this estimate",
+                        path.display()
+                    ))
+                })?;
+            for p in &mut f.keypoints {
+                if let Some(u) = self.lens.undistort_pixel(i, *p) {
+                    *p = u;
+                }
+            }
+        }
+        Ok(Some(features))
+    }
+}
+
+/// The lens calibration before the mapper: with unknown intrinsics and `cameras.distortion`
+/// on, each camera group's radial coefficient from the verified matches; `None` when off,
+/// given intrinsics, or no distortion measured (then the report says which).
+fn calibrate_lens(
+    sizes: &[ImageSize],
+    pairs: &[PairMatches],
+    config: &GeometricConfig,
+) -> Result<(Option<RadialLens>, DistortionOutcome)> {
+    let Some(options) = &config.options.cameras.distortion else {
+        return Ok((None, DistortionOutcome::off()));
+    };
+    if !matches!(config.intrinsics, KnownIntrinsics::Unknown) {
+        return Ok((None, DistortionOutcome::off()));
+    }
+    let layout = camera_layout(
+        sizes,
+        &config.intrinsics,
+        config.options.cameras.mode,
+        &config.hints,
+        config.options.mapper.focal_prior,
+    )?
+    .intrinsics;
+    let scale: Vec<f64> = layout
+        .scale
+        .iter()
+        .map(|s| s * config.options.mapper.focal_prior)
+        .collect();
+    let corner: Vec<f64> = sizes
+        .iter()
+        .zip(&layout.principal)
+        .zip(&scale)
+        .map(|((size, c), s)| {
+            let (w, h) = (f64::from(size.width()), f64::from(size.height()));
+            let dx = c[0].max(w - c[0]);
+            let dy = c[1].max(h - c[1]);
+            dx.hypot(dy) / s
+        })
+        .collect();
+    let calibration = posediff_sfm::distortion_calibration::calibrate_distortion(
+        pairs,
+        &layout.group,
+        &layout.principal,
+        &scale,
+        &corner,
+        options,
+    );
+    let outcome = DistortionOutcome {
+        calibrated: true,
+        measured: calibration.determined.iter().any(|d| *d),
+        pairs: calibration.pairs,
+        cost_pinhole: calibration.cost_pinhole,
+        cost: calibration.cost,
+        k1: Vec::new(),
+    };
+    if !outcome.measured {
+        return Ok((None, outcome));
+    }
+    let lens = RadialLens {
+        k: layout.group.iter().map(|g| calibration.k[*g]).collect(),
+        centre: layout.principal,
+        scale,
+    };
+    Ok((Some(lens), outcome))
 }
 
 impl From<SfmError> for PosediffError {
@@ -248,6 +486,25 @@ pub fn estimate_geometric_counted(
         }
         times[2] += clock.elapsed().as_secs_f64();
     }
+    // The lens: with a distortion measured, every keypoint is undistorted here, once (the
+    // features for the later passes, the pairs made so far), and the turned retry's new
+    // features through `Undistorting`.
+    let clock = Instant::now();
+    let (lens, distortion) = calibrate_lens(&sizes, &pairs, config)?;
+    if let Some(lens) = &lens {
+        lens.undistort_features(&mut features);
+        lens.undistort_pairs(&mut pairs);
+    }
+    let distortion_seconds = clock.elapsed().as_secs_f64();
+    let undistorting = lens.as_ref().map(|lens| Undistorting {
+        inner: matcher.as_ref(),
+        lens,
+        images,
+    });
+    let matcher: &dyn Correspondences = match &undistorting {
+        Some(u) => u,
+        None => matcher.as_ref(),
+    };
     // The features are only needed again by the second pass and the turned retry (SIFT's of
     // a thousand images are gigabytes): dropped before the mapper otherwise.
     let mut features = (densify.is_some() || retry).then_some(features);
@@ -296,7 +553,7 @@ pub fn estimate_geometric_counted(
             features,
             &pairs,
             &estimate.cameras,
-            matcher.as_ref(),
+            matcher,
             &config.options.retry,
             counter,
         )? {
@@ -320,6 +577,20 @@ pub fn estimate_geometric_counted(
         }
     }
     estimate.report.turned_images = turned_images;
+    let mut distortion = distortion;
+    if let Some(lens) = &lens {
+        // Each camera's COLMAP k at its focal, from its first estimated image.
+        let mut k1 = vec![None; estimate.report.cameras.count];
+        for (i, &g) in estimate.report.cameras.image_camera.iter().enumerate() {
+            if let (None, Some(c)) = (k1[g], estimate.cameras[i]) {
+                k1[g] = Some(lens.coefficient(i, c.intrinsics.fx()));
+            }
+        }
+        distortion.k1 = k1;
+    }
+    estimate.report.cameras.distortion = distortion;
+    estimate.report.times.distortion = distortion_seconds;
+    estimate.lens = lens;
     estimate.report.pair_selection = selection;
     estimate.report.pairs_matched = estimate.pairs.len();
     estimate.report.pairs_densified = densified;
@@ -560,6 +831,7 @@ pub fn refine_given_cameras_counted(
         points: Vec::new(),
         report,
         warnings: Vec::new(),
+        lens: None,
     })
 }
 
@@ -787,6 +1059,7 @@ fn map_supported_matches(
         points: reconstruction.points,
         report,
         warnings,
+        lens: None,
     })
 }
 

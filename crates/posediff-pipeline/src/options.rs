@@ -343,11 +343,25 @@ impl std::str::FromStr for CameraMode {
 }
 
 /// The cameras of an estimate without known intrinsics.
-#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct CameraOptions {
     /// Which photos share a camera (`--camera-mode`).
     pub mode: CameraMode,
+    /// The radial distortion of each camera, calibrated from the first pass's verified matches
+    /// before the mapper ([`posediff_sfm::distortion_calibration`]); every keypoint is then
+    /// undistorted once and the cameras are SIMPLE_RADIAL in the exports. `null`: pinhole
+    /// cameras, no calibration.
+    pub distortion: Option<posediff_sfm::distortion_calibration::DistortionCalibrationOptions>,
+}
+
+impl Default for CameraOptions {
+    fn default() -> Self {
+        Self {
+            mode: CameraMode::default(),
+            distortion: Some(Default::default()),
+        }
+    }
 }
 
 /// When the second matching pass runs.

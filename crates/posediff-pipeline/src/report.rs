@@ -15,6 +15,8 @@ pub struct GeometricTimes {
     pub matching_pairs: f64,
     /// Extraction, selection and matching together.
     pub matching: f64,
+    /// The lens distortion calibration and the undistortion of the keypoints.
+    pub distortion: f64,
     /// Homography tests, least-squares F and relative poses (all focal starts).
     pub two_view: f64,
     /// Rotation and translation averaging (all starts).
@@ -225,6 +227,7 @@ impl GeometricReport {
             image_camera: intrinsics.group.clone(),
             focal_px,
             image_focal_calibrated,
+            distortion: DistortionOutcome::default(),
         };
     }
 
@@ -340,6 +343,33 @@ pub struct CamerasOutcome {
     /// Auto: each image's own focal from the view-graph calibration before grouping, pixels
     /// (`null` where its pairs did not determine it: it joined the main camera).
     pub image_focal_calibrated: Vec<Option<f64>>,
+    /// The lens distortion calibrated before the mapper (`cameras.distortion`).
+    pub distortion: DistortionOutcome,
+}
+
+/// run.json's `cameras.distortion`.
+#[derive(Debug, Clone, PartialEq, Default, Serialize)]
+pub struct DistortionOutcome {
+    /// Whether the calibration ran (off: `cameras.distortion = null` or given intrinsics).
+    pub calibrated: bool,
+    /// Whether it measured a distortion (else the cameras are pinhole: none the pairs show).
+    pub measured: bool,
+    /// Pairs it used.
+    pub pairs: usize,
+    /// Robust cost of those pairs' fundamental-matrix fits without distortion (pixels²).
+    pub cost_pinhole: f64,
+    /// The same with the calibrated distortion.
+    pub cost: f64,
+    /// Per camera, COLMAP's SIMPLE_RADIAL `k` at its estimated focal (`null`: none of its
+    /// images estimated); empty when none measured.
+    pub k1: Vec<Option<f64>>,
+}
+
+impl DistortionOutcome {
+    /// Not calibrated.
+    pub fn off() -> Self {
+        Self::default()
+    }
 }
 
 /// Where the focal of a geometric estimate came from (run.json's `focal_source`).

@@ -7,6 +7,7 @@
 //! | view graph: components, union-find | [`view_graph`] |
 //! | a shared focal: self-calibration, homographies | [`focal`], [`intrinsics`] |
 //! | a focal per camera, cameras from the data (ViewGraphCalibrator) | [`view_graph_calibration`] |
+//! | radial distortion from the pairs' epipolar residuals (one k1 per camera) | [`distortion_calibration`] |
 //! | rotation averaging (MST + Cauchy IRLS) | [`rotation_averaging`] |
 //! | translation averaging (LUD, scales eliminated) | [`translation_averaging`] |
 //! | Sampson refinement (GGS's objective to convergence) | [`sampson_refine`] |
@@ -32,6 +33,7 @@
 pub mod bundle;
 pub mod bundle_refine;
 pub mod camera;
+pub mod distortion_calibration;
 pub mod error;
 pub mod focal;
 pub mod intrinsics;

@@ -7,6 +7,7 @@ use std::path::{Path, PathBuf};
 use nalgebra::Vector3;
 use opencv::core::{Mat, Size, Vector};
 use opencv::prelude::*;
+use posediff_geometry::lens::LensCamera;
 use posediff_geometry::{Camera, ImageSize, PairMatches};
 use posediff_sfm::points::{PointOptions, PointsReport, triangulate_points};
 use rayon::prelude::*;
@@ -31,9 +32,21 @@ pub struct ImageCamera {
     pub size: ImageSize,
     /// The camera.
     pub camera: Option<Camera>,
+    /// The lens, when it distorts (SIMPLE_RADIAL, OPENCV, …): its focal and principal point
+    /// are `camera`'s. `camera` then maps to undistorted pixels, as do the record's keypoints;
+    /// [`Self::photo_pixel`] maps those to the photo's pixels.
+    pub lens: Option<LensCamera>,
 }
 
 impl ImageCamera {
+    /// The photo's pixel of the undistorted pixel `xy` (`xy` itself without a lens).
+    pub fn photo_pixel(&self, xy: [f64; 2]) -> [f64; 2] {
+        match &self.lens {
+            Some(lens) => lens.distort_pixel(&nalgebra::Vector2::from(xy)).into(),
+            None => xy,
+        }
+    }
+
     /// The estimated cameras of `images` as named cameras (the others left out).
     pub fn estimated(images: &[ImageCamera]) -> Vec<NamedCamera> {
         images
@@ -52,7 +65,8 @@ impl ImageCamera {
 /// observes.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Keypoint {
-    /// Pixel coordinates, pixel centres at integers.
+    /// Pixel coordinates, pixel centres at integers; undistorted where the image's camera has a
+    /// lens ([`ImageCamera::photo_pixel`] gives the photo's pixel).
     pub xy: [f64; 2],
     /// Index into [`Reconstruction::points`].
     pub point: Option<usize>,
@@ -181,10 +195,38 @@ impl Reconstruction {
             images: records,
             points: scene,
         };
+        out.photo_errors();
         if let Some(paths) = paths {
             out.colour_from(paths)?;
         }
         Ok((out, report))
+    }
+
+    /// Each point's error in the photos' pixels where its images have a lens (COLMAP's
+    /// `ERROR`: between the lens's projection and the observed pixel), instead of the
+    /// undistorted pixels it was triangulated in.
+    fn photo_errors(&mut self) {
+        if self.images.iter().all(|i| i.camera.lens.is_none()) {
+            return;
+        }
+        // A point some camera cannot project (none: triangulation keeps points in front of
+        // estimated cameras) keeps its error.
+        'points: for p in &mut self.points {
+            let mut sum = 0.0;
+            for e in &p.track {
+                let image = &self.images[e.image];
+                let Some(camera) = &image.camera.camera else {
+                    continue 'points;
+                };
+                let Some(q) = camera.project(&nalgebra::Point3::from(p.xyz)) else {
+                    continue 'points;
+                };
+                let a = image.camera.photo_pixel([q.x, q.y]);
+                let b = image.camera.photo_pixel(image.keypoints[e.keypoint].xy);
+                sum += (a[0] - b[0]).hypot(a[1] - b[1]);
+            }
+            p.error_px = sum / p.track.len().max(1) as f64;
+        }
     }
 
     /// The estimated images' indices.
@@ -222,7 +264,9 @@ impl Reconstruction {
         let mut wanted: Vec<Vec<(usize, [f64; 2])>> = vec![Vec::new(); self.images.len()];
         for (index, p) in self.points.iter().enumerate() {
             for e in &p.track {
-                wanted[e.image].push((index, self.images[e.image].keypoints[e.keypoint].xy));
+                let image = &self.images[e.image];
+                let xy = image.camera.photo_pixel(image.keypoints[e.keypoint].xy);
+                wanted[e.image].push((index, xy));
             }
         }
         let per_image: Vec<(Vec<Sample>, Option<Vec<u8>>)> = wanted

@@ -9,11 +9,13 @@ use nalgebra::{Matrix3, Point3, Vector3};
 use posediff::io::colmap::{ColmapFormat, ColmapModel};
 use posediff::io::export::{
     ImageCamera, NamedCamera, NerfstudioCamera, NerfstudioTransforms, Pytorch3dRecord,
-    nerfstudio_applied_transform, read_cameras_json, read_colmap_cameras, read_nerfstudio,
-    read_ply, write_cameras_json, write_colmap, write_nerfstudio, write_ply, write_pytorch3d,
+    nerfstudio_applied_transform, read_cameras_json, read_cameras_json_partial,
+    read_colmap_cameras, read_nerfstudio, read_ply, write_cameras_json, write_cameras_json_partial,
+    write_colmap, write_nerfstudio, write_ply, write_pytorch3d,
 };
 use posediff::reconstruction::Reconstruction;
 use posediff_fixtures::shared_path;
+use posediff_geometry::lens::{CameraModel, LensCamera};
 use posediff_geometry::{Camera, ImageSize, Intrinsics, Pose, Quaternion};
 use posediff_sfm::points::PointOptions;
 
@@ -30,6 +32,7 @@ fn image_cameras(cams: &[NamedCamera]) -> Vec<ImageCamera> {
             image: c.image.clone(),
             size: c.camera.image_size,
             camera: Some(c.camera),
+            lens: None,
         })
         .collect()
 }
@@ -43,6 +46,7 @@ fn nerf_cameras(cams: &[NamedCamera]) -> Vec<NerfstudioCamera> {
         .enumerate()
         .map(|(i, c)| NerfstudioCamera {
             camera: c.camera,
+            lens: None,
             file_path: c.image.clone(),
             colmap_id: Some(i as u32 + 1),
         })
@@ -401,6 +405,105 @@ fn ply_points_are_in_the_transformed_world_with_their_colours() {
             assert!((f64::from(xyz[k]) - expected[k]).abs() < 1e-5 * (1.0 + expected[k].abs()));
         }
         assert_eq!(*rgb, p.rgb);
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// An OPENCV lens (a wide-angle phone's `k1 k2 p1 p2`) around each apple camera.
+fn wide_angle(c: &Camera) -> LensCamera {
+    let k = &c.intrinsics;
+    LensCamera::new(
+        CameraModel::OpenCv,
+        vec![k.fx(), k.fy(), k.cx(), k.cy(), -0.1, 0.01, 1e-3, -5e-4],
+    )
+    .unwrap()
+}
+
+/// A lens reaches every format once: COLMAP's 2-D points are where the lens images each point
+/// (distortion applied, and only once), its recomputed errors are the photos', the model reads
+/// back with the lens and the undistorted keypoints, and cameras.json and transforms.json carry
+/// the coefficients.
+#[test]
+fn a_lens_reaches_every_format_and_comes_back() {
+    let (cams, truth, pairs) = apple_scene();
+    let mut images = image_cameras(&cams);
+    for (im, c) in images.iter_mut().zip(&cams) {
+        im.lens = Some(wide_angle(&c.camera));
+    }
+    let (recon, _) =
+        Reconstruction::triangulate(images.clone(), None, &pairs, &PointOptions::default())
+            .unwrap();
+    assert_eq!(recon.points.len(), truth.len());
+    assert!(recon.mean_error_px().unwrap() < 1e-4);
+    let model = ColmapModel::from_reconstruction(&recon).unwrap();
+    let mut moved = 0.0_f64;
+    for (im, c) in model.images.iter().zip(&cams) {
+        let lens = wide_angle(&c.camera);
+        for (xy, id) in &im.points2d {
+            let x = c
+                .camera
+                .cam_from_world
+                .transform_point(&truth[id.unwrap() as usize - 1]);
+            let q = lens.project(&x.coords).unwrap();
+            let pinhole = c.camera.project(&truth[id.unwrap() as usize - 1]).unwrap();
+            assert!(
+                (xy[0] - 0.5 - q.x).abs() < 1e-6 && (xy[1] - 0.5 - q.y).abs() < 1e-6,
+                "{xy:?} vs {q:?}"
+            );
+            moved = moved.max((q - pinhole.coords).norm());
+        }
+    }
+    assert!(moved > 5.0, "the lens moves points by {moved} px at most");
+    for cam in &model.cameras {
+        assert_eq!(cam.model, "OPENCV");
+        assert_eq!(&cam.params[4..], &[-0.1, 0.01, 1e-3, -5e-4]);
+    }
+    let dir = posediff_fixtures::temp_dir("export-lens");
+    model
+        .write(&dir.join("sparse"), ColmapFormat::Binary)
+        .unwrap();
+    let read = ColmapModel::read(&dir.join("sparse")).unwrap();
+    assert!(read.recomputed_mean_error(&dir).unwrap().unwrap() < 1e-4);
+    let back = read.to_reconstruction(&dir).unwrap();
+    for (a, b) in back.images.iter().zip(&recon.images) {
+        let (la, lb) = (
+            a.camera.lens.as_ref().unwrap(),
+            b.camera.lens.as_ref().unwrap(),
+        );
+        assert_eq!(la.model(), lb.model());
+        for (x, y) in la.params().iter().zip(lb.params()) {
+            assert!((x - y).abs() < 1e-9);
+        }
+        for (x, y) in a.keypoints.iter().zip(&b.keypoints) {
+            assert!((x.xy[0] - y.xy[0]).abs() < 1e-6 && (x.xy[1] - y.xy[1]).abs() < 1e-6);
+        }
+    }
+    // cameras.json: model and params, read back as the same lens.
+    write_cameras_json_partial(&dir.join("cameras.json"), &images).unwrap();
+    let json = read_cameras_json_partial(&dir.join("cameras.json")).unwrap();
+    for (a, b) in json.iter().zip(&images) {
+        assert_eq!(a.lens, b.lens);
+    }
+    // transforms.json: the apple's focals differ per frame, so the coefficients are per frame
+    // and the top level has none (nerfstudio then reads each frame's).
+    let nerf: Vec<NerfstudioCamera> = nerf_cameras(&cams)
+        .into_iter()
+        .zip(&images)
+        .map(|(n, im)| NerfstudioCamera {
+            lens: im.lens.clone(),
+            ..n
+        })
+        .collect();
+    write_nerfstudio(&dir.join("transforms.json"), &nerf, None).unwrap();
+    let t: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("transforms.json")).unwrap())
+            .unwrap();
+    assert!(t.get("k1").is_none(), "{}", t["k1"]);
+    for f in t["frames"].as_array().unwrap() {
+        assert_eq!(
+            [&f["k1"], &f["k2"], &f["p1"], &f["p2"]].map(|v| v.as_f64().unwrap()),
+            [-0.1, 0.01, 1e-3, -5e-4]
+        );
     }
     std::fs::remove_dir_all(&dir).unwrap();
 }

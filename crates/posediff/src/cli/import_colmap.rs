@@ -30,15 +30,21 @@ impl Args {
                 posediff::io::records::colmap_for_images(&model, &image_files(&dir)?, &dir)?
             }
             None => {
-                let mut cams = posediff::io::export::read_colmap_cameras(&model)?;
-                cams.sort_by(|a, b| a.image.cmp(&b.image));
-                cams.into_iter()
-                    .map(|c| ImageCamera {
+                let colmap = ColmapModel::read(&model)?;
+                let cams = colmap.named_cameras(&model)?;
+                let lenses = colmap.image_lenses(&model)?;
+                let mut entries: Vec<ImageCamera> = cams
+                    .into_iter()
+                    .zip(lenses)
+                    .map(|(c, lens)| ImageCamera {
                         image: c.image,
                         size: c.camera.image_size,
                         camera: Some(c.camera),
+                        lens,
                     })
-                    .collect()
+                    .collect();
+                entries.sort_by(|a, b| a.image.cmp(&b.image));
+                entries
             }
         };
         write_cameras_json_partial(&out, &entries)?;

@@ -3,15 +3,20 @@
 use std::path::PathBuf;
 
 use anyhow::Context;
-use posediff::io::variants::{ZoomVariant, zoom_copy};
+use posediff::io::variants::{RadialVariant, ZoomVariant, radial_copy, zoom_copy};
 
-/// Write a zoomed copy of a set (`images/` + `cameras.json`): every `--every`-th photo is a
-/// centred crop resized back to full size, so its focal is the zoom times the original's; the
-/// copy's cameras.json holds the transformed ground truth.
+/// Write a harder copy of a set (`images/` + `cameras.json`) with its ground truth transformed:
+/// zoomed (every `--every`-th photo a centred crop resized back to full size, so its focal is
+/// the zoom times the original's) or, with `--radial`, every photo seen through a radial lens
+/// distortion (cameras.json then carries an OPENCV model with `k1 k2`).
 #[derive(clap::Args)]
 pub struct Args {
     /// The set: a folder with `images/` and `cameras.json`.
     set: PathBuf,
+    /// Distort instead of zooming: `K1:K2` of OpenCV's radial model (issue 40's wide-angle
+    /// copies use `-0.12:0.02`).
+    #[arg(long, value_name = "K1:K2", allow_hyphen_values = true)]
+    radial: Option<String>,
     /// Zoom every N-th photo.
     #[arg(long, default_value_t = 2)]
     every: usize,
@@ -33,6 +38,18 @@ pub struct Args {
 impl Args {
     /// Runs the command.
     pub fn run(self) -> anyhow::Result<()> {
+        if let Some(radial) = &self.radial {
+            let (k1, k2) = radial
+                .split_once(':')
+                .and_then(|(a, b)| Some((a.parse().ok()?, b.parse().ok()?)))
+                .with_context(|| format!("--radial {radial}: expected K1:K2, e.g. -0.12:0.02"))?;
+            radial_copy(&self.set, &self.out, &RadialVariant { k1, k2 })?;
+            println!(
+                "distorted copy (k1 {k1}, k2 {k2}) written to {}",
+                self.out.display()
+            );
+            return Ok(());
+        }
         let (lo, hi) = self
             .zoom
             .split_once(':')

@@ -475,12 +475,21 @@ pub fn run(
                 .iter()
                 .zip(&result.cameras)
                 .zip(&result.sizes)
-                .map(|((name, camera), size)| ImageCamera {
-                    image: name.clone(),
-                    size: *size,
-                    camera: *camera,
+                .enumerate()
+                .map(|(i, ((name, camera), size))| {
+                    // The calibrated distortion, as a COLMAP model around each camera.
+                    let lens = match (&result.lens, camera) {
+                        (Some(lens), Some(c)) => Some(lens.lens_camera(i, &c.intrinsics)?),
+                        _ => None,
+                    };
+                    Ok(ImageCamera {
+                        image: name.clone(),
+                        size: *size,
+                        camera: *camera,
+                        lens,
+                    })
                 })
-                .collect();
+                .collect::<Result<_>>()?;
             let mut report = RunReport::new(
                 files.clone(),
                 MethodReport::Geometric {
@@ -617,6 +626,7 @@ fn network_run(
             image: c.image.clone(),
             size: c.camera.image_size,
             camera: Some(c.camera),
+            lens: None,
         })
         .collect();
     warnings.extend(estimate.warnings.iter().cloned());

@@ -14,6 +14,7 @@ use std::fmt::Write as _;
 use std::path::Path;
 
 use nalgebra::Vector3;
+use posediff_geometry::lens::{CameraModel, LensCamera};
 use posediff_geometry::{Camera, ImageSize, Intrinsics, Pose, Quaternion, QuaternionSign};
 
 use crate::error::{PosediffError, Result, read_text};
@@ -93,15 +94,47 @@ pub struct ColmapModel {
 }
 
 /// COLMAP's model ids and parameter counts (the pinhole-like models this crate reads).
-const MODELS: [(&str, i32, usize); 5] = [
+const MODELS: [(&str, i32, usize); 6] = [
     ("SIMPLE_PINHOLE", 0, 3),
     ("PINHOLE", 1, 4),
     ("SIMPLE_RADIAL", 2, 4),
     ("RADIAL", 3, 5),
     ("OPENCV", 4, 8),
+    ("OPENCV_FISHEYE", 5, 8),
 ];
 
+/// The index of the principal point's `x` among `model`'s parameters.
+fn principal_index(model: CameraModel) -> usize {
+    match model {
+        CameraModel::SimplePinhole | CameraModel::SimpleRadial | CameraModel::Radial => 1,
+        CameraModel::Pinhole | CameraModel::OpenCv | CameraModel::OpenCvFisheye => 2,
+    }
+}
+
 impl ColmapCamera {
+    /// The camera's lens: its model and parameters with the principal point in OpenCV pixels.
+    ///
+    /// # Errors
+    /// An unknown model, a wrong parameter count, invalid values.
+    pub fn lens(&self) -> std::result::Result<LensCamera, String> {
+        let model =
+            CameraModel::from_name(&self.model).map_err(|e| format!("camera {}: {e}", self.id))?;
+        if self.params.len() != model.num_params() {
+            return Err(format!(
+                "camera {}: {} has {} parameters, got {}",
+                self.id,
+                self.model,
+                model.num_params(),
+                self.params.len()
+            ));
+        }
+        let mut params = self.params.clone();
+        let i = principal_index(model);
+        params[i] -= PIXEL_CENTRE_OFFSET;
+        params[i + 1] -= PIXEL_CENTRE_OFFSET;
+        LensCamera::new(model, params).map_err(|e| format!("camera {}: {e}", self.id))
+    }
+
     /// Pinhole intrinsics in OpenCV pixels (distortion dropped).
     ///
     /// # Errors
@@ -113,7 +146,7 @@ impl ColmapCamera {
             .map(|m| m.2)
             .ok_or_else(|| {
                 format!(
-                    "camera {}: model {} (expected PINHOLE, SIMPLE_PINHOLE, SIMPLE_RADIAL, RADIAL or OPENCV)",
+                    "camera {}: model {} (expected PINHOLE, SIMPLE_PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV or OPENCV_FISHEYE)",
                     self.id, self.model
                 )
             })?;
@@ -127,7 +160,7 @@ impl ColmapCamera {
         }
         let p = &self.params;
         let (fx, fy, cx, cy) = match self.model.as_str() {
-            "PINHOLE" | "OPENCV" => (p[0], p[1], p[2], p[3]),
+            "PINHOLE" | "OPENCV" | "OPENCV_FISHEYE" => (p[0], p[1], p[2], p[3]),
             _ => (p[0], p[0], p[1], p[2]),
         };
         let size = u32::try_from(self.width)
@@ -148,33 +181,30 @@ impl ColmapModel {
     /// A camera whose rotation is not a rotation.
     pub fn from_reconstruction(r: &Reconstruction) -> Result<Self> {
         let mut model = Self::default();
-        let mut camera_ids: HashMap<[u64; 6], u32> = HashMap::new();
+        let mut camera_ids: HashMap<Vec<u64>, u32> = HashMap::new();
         let mut image_ids = vec![None; r.images.len()];
         for (index, record) in r.images.iter().enumerate() {
             let Some(cam) = &record.camera.camera else {
                 continue;
             };
-            let k = &cam.intrinsics;
             let s = cam.image_size;
-            let params = vec![
-                k.fx(),
-                k.fy(),
-                k.cx() + PIXEL_CENTRE_OFFSET,
-                k.cy() + PIXEL_CENTRE_OFFSET,
-            ];
-            let key = [
-                u64::from(s.width()),
-                u64::from(s.height()),
-                params[0].to_bits(),
-                params[1].to_bits(),
-                params[2].to_bits(),
-                params[3].to_bits(),
-            ];
+            let lens = record
+                .camera
+                .lens
+                .clone()
+                .unwrap_or_else(|| LensCamera::pinhole(&cam.intrinsics));
+            let mut params = lens.params().to_vec();
+            let principal = principal_index(lens.model());
+            params[principal] += PIXEL_CENTRE_OFFSET;
+            params[principal + 1] += PIXEL_CENTRE_OFFSET;
+            let mut key = vec![u64::from(s.width()), u64::from(s.height())];
+            key.push(lens.model().colmap_id() as u64);
+            key.extend(params.iter().map(|p| p.to_bits()));
             let next = model.cameras.len() as u32 + 1;
             let camera_id = *camera_ids.entry(key).or_insert_with(|| {
                 model.cameras.push(ColmapCamera {
                     id: next,
-                    model: "PINHOLE".into(),
+                    model: lens.model().name().into(),
                     width: u64::from(s.width()),
                     height: u64::from(s.height()),
                     params,
@@ -198,11 +228,10 @@ impl ColmapModel {
                     .keypoints
                     .iter()
                     .map(|kp| {
+                        // The photo's pixel: COLMAP's 2-D points are where the lens images.
+                        let xy = record.camera.photo_pixel(kp.xy);
                         (
-                            [
-                                kp.xy[0] + PIXEL_CENTRE_OFFSET,
-                                kp.xy[1] + PIXEL_CENTRE_OFFSET,
-                            ],
+                            [xy[0] + PIXEL_CENTRE_OFFSET, xy[1] + PIXEL_CENTRE_OFFSET],
                             kp.point.map(|p| p as u64 + 1),
                         )
                     })
@@ -270,26 +299,41 @@ impl ColmapModel {
             .enumerate()
             .map(|(k, im)| (im.id, k))
             .collect();
-        let mut images: Vec<ImageRecord> = self
-            .images
-            .iter()
-            .zip(named)
-            .map(|(im, n)| ImageRecord {
+        let lenses = self.image_lenses(dir)?;
+        let mut images = Vec::with_capacity(self.images.len());
+        for ((im, n), lens) in self.images.iter().zip(named).zip(lenses) {
+            // The keypoints live in undistorted pixels, where the pinhole camera projects.
+            let keypoints = im
+                .points2d
+                .iter()
+                .enumerate()
+                .map(|(j, (xy, _))| {
+                    let photo = [xy[0] - PIXEL_CENTRE_OFFSET, xy[1] - PIXEL_CENTRE_OFFSET];
+                    let xy = match &lens {
+                        Some(lens) => lens
+                            .undistort_pixel(&nalgebra::Vector2::from(photo))
+                            .map_err(|e| {
+                                PosediffError::invalid(
+                                    dir,
+                                    format!("image {}: 2-D point {j}: {e}", im.name),
+                                )
+                            })?
+                            .into(),
+                        None => photo,
+                    };
+                    Ok(Keypoint { xy, point: None })
+                })
+                .collect::<Result<Vec<_>>>()?;
+            images.push(ImageRecord {
                 camera: ImageCamera {
                     image: n.image,
                     size: n.camera.image_size,
                     camera: Some(n.camera),
+                    lens,
                 },
-                keypoints: im
-                    .points2d
-                    .iter()
-                    .map(|(xy, _)| Keypoint {
-                        xy: [xy[0] - PIXEL_CENTRE_OFFSET, xy[1] - PIXEL_CENTRE_OFFSET],
-                        point: None,
-                    })
-                    .collect(),
-            })
-            .collect();
+                keypoints,
+            });
+        }
         let mut points = Vec::with_capacity(self.points.len());
         for (k, p) in self.points.iter().enumerate() {
             let mut track = Vec::with_capacity(p.track.len());
@@ -319,6 +363,27 @@ impl ColmapModel {
         Ok(Reconstruction { images, points })
     }
 
+    /// Each registered image's lens when its camera distorts, in the model's image order.
+    ///
+    /// # Errors
+    /// An image naming an unknown camera, an unreadable camera.
+    pub fn image_lenses(&self, dir: &Path) -> Result<Vec<Option<LensCamera>>> {
+        let cams: HashMap<u32, &ColmapCamera> = self.cameras.iter().map(|c| (c.id, c)).collect();
+        self.images
+            .iter()
+            .map(|im| {
+                let cam = cams.get(&im.camera_id).ok_or_else(|| {
+                    PosediffError::invalid(
+                        dir,
+                        format!("image {} names unknown camera {}", im.id, im.camera_id),
+                    )
+                })?;
+                let lens = cam.lens().map_err(|e| PosediffError::invalid(dir, e))?;
+                Ok(lens.is_distorted().then_some(lens))
+            })
+            .collect()
+    }
+
     /// Mean over points of the reprojection error recomputed from the cameras and 2-D points
     /// (`None` without points).
     ///
@@ -326,6 +391,7 @@ impl ColmapModel {
     /// As [`Self::named_cameras`]; a track naming an unknown image or 2-D point.
     pub fn recomputed_mean_error(&self, dir: &Path) -> Result<Option<f64>> {
         let named = self.named_cameras(dir)?;
+        let lenses = self.image_lenses(dir)?;
         let by_id: HashMap<u32, (usize, &Camera)> = self
             .images
             .iter()
@@ -351,6 +417,10 @@ impl ColmapModel {
                     .ok_or_else(|| {
                         PosediffError::invalid(dir, format!("point {} behind image {image}", p.id))
                     })?;
+                let q = match &lenses[*k] {
+                    Some(lens) => lens.distort_pixel(&q.coords),
+                    None => q.coords,
+                };
                 sum += (q.x + PIXEL_CENTRE_OFFSET - xy[0]).hypot(q.y + PIXEL_CENTRE_OFFSET - xy[1]);
             }
             total += sum / p.track.len().max(1) as f64;

@@ -17,6 +17,7 @@ use std::path::Path;
 
 use nalgebra::{Matrix3, Matrix4, Vector3};
 use posediff_geometry::camera_json::{CameraRecord, Pytorch3dParams};
+use posediff_geometry::lens::{CameraModel, LensCamera};
 use posediff_geometry::{Camera, ImageSize, Intrinsics, Pose, Pytorch3dCamera};
 use serde::{Deserialize, Serialize};
 
@@ -90,19 +91,26 @@ struct EstimatedRecord {
 }
 
 /// Writes `cameras.json` with every image: estimated cameras as usual plus `"estimated":
-/// true`, the others with `"K"`, `"R"` and `"t"` null and `"estimated": false`.
+/// true` (and `model`/`params` for a distorting lens), the others with `"K"`, `"R"` and `"t"`
+/// null and `"estimated": false`.
 ///
 /// # Errors
-/// I/O errors.
+/// I/O errors; a lens whose focal or principal point is not its camera's.
 pub fn write_cameras_json_partial(path: &Path, images: &[ImageCamera]) -> Result<()> {
     let values = images
         .iter()
         .map(|e| match &e.camera {
-            Some(c) => serde_json::to_value(EstimatedRecord {
-                record: CameraRecord::from_camera(e.image.clone(), c),
-                estimated: true,
-            }),
-            None => serde_json::to_value(MissingRecord {
+            Some(c) => {
+                let record = match &e.lens {
+                    Some(lens) => CameraRecord::from_lens_camera(e.image.clone(), c, lens)?,
+                    None => CameraRecord::from_camera(e.image.clone(), c),
+                };
+                Ok(serde_json::to_value(EstimatedRecord {
+                    record,
+                    estimated: true,
+                })?)
+            }
+            None => Ok(serde_json::to_value(MissingRecord {
                 image: e.image.clone(),
                 width: e.size.width(),
                 height: e.size.height(),
@@ -110,9 +118,9 @@ pub fn write_cameras_json_partial(path: &Path, images: &[ImageCamera]) -> Result
                 r: None,
                 t: None,
                 estimated: false,
-            }),
+            })?),
         })
-        .collect::<std::result::Result<Vec<_>, _>>()?;
+        .collect::<Result<Vec<_>>>()?;
     write(path, &serde_json::to_string_pretty(&values)?)
 }
 
@@ -138,6 +146,7 @@ pub fn read_cameras_json_partial(path: &Path) -> Result<Vec<ImageCamera>> {
                     image: m.image,
                     size: posediff_geometry::ImageSize::new(m.width, m.height)?,
                     camera: None,
+                    lens: None,
                 });
             }
             let r: CameraRecord = serde_json::from_value(v).map_err(entry)?;
@@ -146,12 +155,13 @@ pub fn read_cameras_json_partial(path: &Path) -> Result<Vec<ImageCamera>> {
                 reason: format!("entry {k} ({}): {e}", r.image),
             };
             let camera = r.to_camera().map_err(invalid)?;
-            // A lens model must be whole and agree with K (the pinhole part returned here).
-            r.lens().map_err(invalid)?;
+            // A lens model must be whole and agree with K (its pinhole part is `camera`'s).
+            let lens = r.lens().map_err(invalid)?;
             Ok(ImageCamera {
                 image: r.image,
                 size: camera.image_size,
                 camera: Some(camera),
+                lens: lens.is_distorted().then_some(lens),
             })
         })
         .collect()
@@ -210,19 +220,53 @@ pub struct NerfstudioIntrinsics {
     pub w: u32,
     /// Height, px.
     pub h: u32,
+    /// Radial distortion (OPENCV's `k1`; 0 for a pinhole camera).
+    #[serde(default)]
+    pub k1: f64,
+    /// Radial distortion (`k2`).
+    #[serde(default)]
+    pub k2: f64,
+    /// Tangential distortion (`p1`).
+    #[serde(default)]
+    pub p1: f64,
+    /// Tangential distortion (`p2`).
+    #[serde(default)]
+    pub p2: f64,
 }
 
 impl NerfstudioIntrinsics {
-    fn of(c: &Camera) -> Self {
+    /// `c`'s intrinsics with `lens`'s distortion as nerfstudio's OPENCV model.
+    ///
+    /// # Errors
+    /// A fisheye lens (nerfstudio's OPENCV_FISHEYE is not written yet).
+    fn of(c: &Camera, lens: Option<&LensCamera>) -> Result<Self> {
         let i = &c.intrinsics;
-        Self {
+        let d = lens.map_or(&[][..], LensCamera::distortion);
+        let at = |k: usize| d.get(k).copied().unwrap_or(0.0);
+        let (k1, k2, p1, p2) = match lens.map(LensCamera::model) {
+            None | Some(CameraModel::SimplePinhole | CameraModel::Pinhole) => (0.0, 0.0, 0.0, 0.0),
+            Some(CameraModel::SimpleRadial | CameraModel::Radial) => (at(0), at(1), 0.0, 0.0),
+            Some(CameraModel::OpenCv) => (at(0), at(1), at(2), at(3)),
+            Some(CameraModel::OpenCvFisheye) => {
+                return Err(PosediffError::InvalidArgument(
+                    "transforms.json: fisheye lenses (OPENCV_FISHEYE) are not written yet; \
+                     write COLMAP's model (sparse/0) instead"
+                        .into(),
+                ));
+            }
+        };
+        Ok(Self {
             fl_x: i.fx(),
             fl_y: i.fy(),
             cx: i.cx() + PIXEL_CENTRE_OFFSET,
             cy: i.cy() + PIXEL_CENTRE_OFFSET,
             w: c.image_size.width(),
             h: c.image_size.height(),
-        }
+            k1,
+            k2,
+            p1,
+            p2,
+        })
     }
 }
 
@@ -244,23 +288,13 @@ pub struct NerfstudioFrame {
 /// nerfstudio's `transforms.json`, with the fields its own COLMAP converter writes.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct NerfstudioTransforms {
-    /// Always `"OPENCV"` (pinhole here: the distortion terms are 0).
+    /// Always `"OPENCV"` (`k1 k2 p1 p2`, 0 for pinhole cameras).
     pub camera_model: String,
-    /// Shared intrinsics, when every frame has the same.
+    /// Shared intrinsics and distortion, when every frame has the same (then at the top level,
+    /// otherwise in each frame: nerfstudio reads per-frame distortion only when the top level
+    /// has none).
     #[serde(flatten, default, skip_serializing_if = "Option::is_none")]
     pub intrinsics: Option<NerfstudioIntrinsics>,
-    /// Radial distortion (0).
-    #[serde(default)]
-    pub k1: f64,
-    /// Radial distortion (0).
-    #[serde(default)]
-    pub k2: f64,
-    /// Tangential distortion (0).
-    #[serde(default)]
-    pub p1: f64,
-    /// Tangential distortion (0).
-    #[serde(default)]
-    pub p2: f64,
     /// The frames.
     pub frames: Vec<NerfstudioFrame>,
     /// The 3×4 transform from the COLMAP world to this file's world (nerfstudio's
@@ -304,6 +338,8 @@ pub struct NerfstudioCamera {
     pub file_path: String,
     /// `colmap_im_id`.
     pub colmap_id: Option<u32>,
+    /// The lens, when it distorts (its pinhole part is `camera`'s intrinsics).
+    pub lens: Option<LensCamera>,
 }
 
 /// Writes nerfstudio's `transforms.json` as its COLMAP converter does: the world changed by
@@ -320,8 +356,8 @@ pub fn write_nerfstudio(
     let applied = nerfstudio_applied_transform();
     let all: Vec<NerfstudioIntrinsics> = cameras
         .iter()
-        .map(|c| NerfstudioIntrinsics::of(&c.camera))
-        .collect();
+        .map(|c| NerfstudioIntrinsics::of(&c.camera, c.lens.as_ref()))
+        .collect::<Result<_>>()?;
     let shared = all
         .first()
         .filter(|first| all.iter().all(|i| i == *first))
@@ -348,10 +384,6 @@ pub fn write_nerfstudio(
     let t = NerfstudioTransforms {
         camera_model: "OPENCV".into(),
         intrinsics: shared,
-        k1: 0.0,
-        k2: 0.0,
-        p1: 0.0,
-        p2: 0.0,
         frames,
         applied_transform: [0, 1, 2].map(|row| [0, 1, 2, 3].map(|col| applied[(row, col)])),
         ply_file_path: ply_file_path.map(str::to_owned),

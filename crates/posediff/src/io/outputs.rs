@@ -296,6 +296,7 @@ pub fn write_outputs(
             .filter_map(|(i, (record, file))| {
                 record.camera.camera.map(|camera| NerfstudioCamera {
                     camera,
+                    lens: record.camera.lens.clone(),
                     file_path: match options.images {
                         ImagesMode::None => file
                             .canonicalize()

@@ -174,7 +174,15 @@ pub fn colmap_for_images(
     images: &[std::path::PathBuf],
     root: &Path,
 ) -> crate::Result<Vec<crate::reconstruction::ImageCamera>> {
-    let cams = crate::io::export::read_colmap_cameras(model)?;
+    let colmap = crate::io::colmap::ColmapModel::read(model)?;
+    let cams = colmap.named_cameras(model)?;
+    // Each registered image's lens (a distorting model: SIMPLE_RADIAL, OPENCV, …).
+    let lenses: std::collections::HashMap<String, posediff_geometry::lens::LensCamera> = colmap
+        .images
+        .iter()
+        .zip(colmap.image_lenses(model)?)
+        .filter_map(|(im, lens)| lens.map(|l| (im.name.clone(), l)))
+        .collect();
     let names: Vec<String> = images
         .iter()
         .map(|p| crate::io::loader::relative_name(p, Some(root)))
@@ -207,6 +215,7 @@ pub fn colmap_for_images(
         .zip(matched.per_image)
         .map(|((path, name), camera)| match camera {
             Some(c) => Ok(crate::reconstruction::ImageCamera {
+                lens: lenses.get(&name).cloned(),
                 image: name,
                 size: c.image_size,
                 camera: Some(c),
@@ -217,6 +226,7 @@ pub fn colmap_for_images(
                     image: name,
                     size: crate::reconstruction::mat_size(&img, path)?,
                     camera: None,
+                    lens: None,
                 })
             }
         })

@@ -203,6 +203,167 @@ pub fn zoom_copy(set: &Path, out: &Path, variant: &ZoomVariant) -> Result<Vec<f6
     Ok(factors)
 }
 
+/// The "wide-angle" variant: every photo seen through an OpenCV radial distortion
+/// (`x_d = x (1 + k1 r² + k2 r⁴)` in normalised coordinates of its own `K`), so the copy's
+/// ground truth is the same `K` with an OPENCV model `[fx, fy, cx, cy, k1, k2, 0, 0]`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RadialVariant {
+    /// `k1`.
+    pub k1: f64,
+    /// `k2`.
+    pub k2: f64,
+}
+
+impl Default for RadialVariant {
+    /// Issue 40's "wide-angle": `k1 = −0.12`, `k2 = 0.02`.
+    fn default() -> Self {
+        Self {
+            k1: -0.12,
+            k2: 0.02,
+        }
+    }
+}
+
+/// Writes the distorted copy of `set` to `out` (`images/` and `cameras.json` with each
+/// camera's lens): each output pixel takes the original's colour at its undistorted position
+/// (bilinear). A barrel lens (`k1 < 0`) sees more than the original at the same focal, so the
+/// copy's focal is the original's times the smallest factor `α ≥ 1` that keeps every corner's
+/// undistorted position inside the original (no black border, as a real lens has none);
+/// cameras.json holds that focal.
+///
+/// # Errors
+/// A set without cameras.json or with unreadable images, a distortion that folds inside an
+/// image, writing failures.
+pub fn radial_copy(set: &Path, out: &Path, variant: &RadialVariant) -> Result<()> {
+    use posediff_geometry::{CameraModel, LensCamera};
+    let records = read_records(set)?;
+    let mut written = Vec::with_capacity(records.len());
+    for record in &records {
+        let source: PathBuf = set.join(&record.image);
+        let image =
+            posediff_matching::image_check::decode(&source, opencv::imgcodecs::IMREAD_COLOR)?;
+        let (w, h) = (image.cols(), image.rows());
+        let alpha = inside_factor(&record.k, (w, h), variant)?;
+        let mut k = record.k;
+        k[0][0] *= alpha;
+        k[1][1] *= alpha;
+        let original = record.k;
+        let lens = LensCamera::new(
+            CameraModel::OpenCv,
+            vec![
+                k[0][0], k[1][1], k[0][2], k[1][2], variant.k1, variant.k2, 0.0, 0.0,
+            ],
+        )?;
+        let mut map_x = Mat::new_rows_cols_with_default(
+            h,
+            w,
+            opencv::core::CV_32FC1,
+            opencv::core::Scalar::all(0.0),
+        )?;
+        let mut map_y = map_x.try_clone()?;
+        for y in 0..h {
+            for x in 0..w {
+                let ray = lens
+                    .unproject(&nalgebra::Vector2::new(f64::from(x), f64::from(y)))
+                    .map_err(|e| {
+                        PosediffError::InvalidArgument(format!(
+                            "radial variant k1 {} k2 {}: pixel ({x}, {y}) of {}: {e}",
+                            variant.k1,
+                            variant.k2,
+                            source.display()
+                        ))
+                    })?;
+                *map_x.at_2d_mut::<f32>(y, x)? = (original[0][0] * ray.x + k[0][2]) as f32;
+                *map_y.at_2d_mut::<f32>(y, x)? = (original[1][1] * ray.y + k[1][2]) as f32;
+            }
+        }
+        let mut distorted = Mat::default();
+        opencv::imgproc::remap(
+            &image,
+            &mut distorted,
+            &map_x,
+            &map_y,
+            opencv::imgproc::INTER_LINEAR,
+            opencv::core::BORDER_CONSTANT,
+            opencv::core::Scalar::all(0.0),
+        )?;
+        let target = out.join(&record.image);
+        write_bytes(&target, &encode(&target, &distorted)?)?;
+        let mut record = record.clone();
+        record.k = k;
+        let camera = record.to_camera()?;
+        written.push(CameraRecord::from_lens_camera(
+            record.image.clone(),
+            &camera,
+            &lens,
+        )?);
+    }
+    let path = out.join("cameras.json");
+    let text =
+        serde_json::to_string_pretty(&written).map_err(|e| PosediffError::invalid(&path, e))?;
+    std::fs::write(&path, text).map_err(|e| PosediffError::Write { path, source: e })?;
+    Ok(())
+}
+
+/// The smallest focal factor `α ≥ 1` at which every corner of a `w × h` image, undistorted
+/// through `variant` at focal `α f`, falls inside the original at `f` (bisection; 1 when the
+/// lens shrinks nothing).
+fn inside_factor(k: &[[f64; 3]; 3], (w, h): (i32, i32), variant: &RadialVariant) -> Result<f64> {
+    let (fx, fy, cx, cy) = (k[0][0], k[1][1], k[0][2], k[1][2]);
+    let corners = [
+        (0.0, 0.0),
+        (f64::from(w - 1), 0.0),
+        (0.0, f64::from(h - 1)),
+        (f64::from(w - 1), f64::from(h - 1)),
+    ];
+    let inside = |alpha: f64| -> Result<bool> {
+        let lens = posediff_geometry::LensCamera::new(
+            posediff_geometry::CameraModel::OpenCv,
+            vec![
+                alpha * fx,
+                alpha * fy,
+                cx,
+                cy,
+                variant.k1,
+                variant.k2,
+                0.0,
+                0.0,
+            ],
+        )?;
+        for (u, v) in corners {
+            let Ok(ray) = lens.unproject(&nalgebra::Vector2::new(u, v)) else {
+                return Ok(false);
+            };
+            let (x, y) = (fx * ray.x + cx, fy * ray.y + cy);
+            if !(-0.5..=f64::from(w) - 0.5).contains(&x)
+                || !(-0.5..=f64::from(h) - 0.5).contains(&y)
+            {
+                return Ok(false);
+            }
+        }
+        Ok(true)
+    };
+    if inside(1.0)? {
+        return Ok(1.0);
+    }
+    let (mut lo, mut hi) = (1.0, 2.0);
+    if !inside(hi)? {
+        return Err(PosediffError::InvalidArgument(format!(
+            "radial variant k1 {} k2 {}: the lens sees beyond the photo even at twice its focal",
+            variant.k1, variant.k2
+        )));
+    }
+    for _ in 0..50 {
+        let mid = 0.5 * (lo + hi);
+        if inside(mid)? {
+            hi = mid;
+        } else {
+            lo = mid;
+        }
+    }
+    Ok(hi)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

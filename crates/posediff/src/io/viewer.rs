@@ -303,6 +303,7 @@ mod tests {
                     image: format!("{i}.jpg"),
                     size: c.image_size,
                     camera: Some(*c),
+                    lens: None,
                 })
                 .collect(),
         );
