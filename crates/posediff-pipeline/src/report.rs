@@ -358,7 +358,8 @@ pub struct DistortionOutcome {
     pub pairs: usize,
     /// Robust cost of those pairs' fundamental-matrix fits without distortion (pixels²).
     pub cost_pinhole: f64,
-    /// The same with the calibrated distortion.
+    /// The same with the best distortion found, kept or not (kept when it lowers the cost by
+    /// `cameras.distortion.min_improvement`).
     pub cost: f64,
     /// Per camera, COLMAP's SIMPLE_RADIAL `k` at its estimated focal (`null`: none of its
     /// images estimated); empty when none measured.

@@ -377,7 +377,9 @@ impl PyReconstruction {
 
     /// Writes the outputs into the folder `out` (created): cameras.json and run.json always,
     /// and each of `formats` (`"colmap"`: sparse/0, `"nerfstudio"`: transforms.json +
-    /// sparse_pc.ply, `"pytorch3d"`: pytorch3d.json, `"view"`: view.html). `images` makes
+    /// sparse_pc.ply, `"pytorch3d"`: pytorch3d.json, `"view"`: view.html, `"undistorted"`:
+    /// undistorted/, the photos resampled onto pinhole cameras where a lens was estimated, and
+    /// a PINHOLE model). `images` makes
     /// out/images a `"link"` to the inputs, a `"copy"` or `"none"` (default: link, copy for
     /// images given as arrays). Returns what was written (run.json's `outputs`).
     #[pyo3(signature = (out, formats = None, *, colmap_format = "text", images = None))]
@@ -422,6 +424,7 @@ impl PyReconstruction {
             colmap: false,
             nerfstudio: false,
             pytorch3d: false,
+            undistort: false,
         };
         for f in &formats {
             match f.as_str() {
@@ -430,9 +433,10 @@ impl PyReconstruction {
                 "nerfstudio" => options.nerfstudio = true,
                 "pytorch3d" => options.pytorch3d = true,
                 "view" => options.view = true,
+                "undistorted" => options.undistort = true,
                 other => {
                     return Err(value_err(format!(
-                        "unknown format {other:?}: give any of \"cameras\", \"colmap\", \"nerfstudio\", \"pytorch3d\", \"view\""
+                        "unknown format {other:?}: give any of \"cameras\", \"colmap\", \"nerfstudio\", \"pytorch3d\", \"view\", \"undistorted\""
                     )));
                 }
             }

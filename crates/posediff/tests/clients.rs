@@ -295,6 +295,7 @@ fn a_wide_angle_fountain_is_calibrated_and_exported_with_its_lens() {
         "--out".as_ref(),
         out.as_os_str(),
         "--no-view".as_ref(),
+        "--undistort".as_ref(),
         "--quiet".as_ref(),
     ]);
     let run: serde_json::Value =
@@ -337,6 +338,52 @@ fn a_wide_angle_fountain_is_calibrated_and_exported_with_its_lens() {
             );
         }
     }
+    // --undistort: a PINHOLE model whose 2-D points are the undistorted keypoints, and photos
+    // resampled so that each undistorted point shows what the photo shows at its photo pixel
+    // (and not what it shows at the undistorted position: the resampling goes the right way).
+    let photo = ColmapModel::read(&out.join("sparse/0")).unwrap();
+    let pinhole = ColmapModel::read(&out.join("undistorted/sparse/0")).unwrap();
+    assert!(pinhole.cameras.iter().all(|c| c.model == "PINHOLE"));
+    assert!(
+        pinhole
+            .recomputed_mean_error(&out)
+            .unwrap()
+            .is_some_and(|e| e < 1.0)
+    );
+    let name = &photo.images[0].name;
+    let a = posediff::reconstruction::read_colour(&set.join("images").join(name)).unwrap();
+    let b =
+        posediff::reconstruction::read_colour(&out.join("undistorted/images").join(name)).unwrap();
+    // The grey level at a COLMAP pixel; `None` outside the image (undistorted keypoints of a
+    // barrel lens reach beyond the frame).
+    let grey = |m: &opencv::core::Mat, xy: [f64; 2]| -> Option<f64> {
+        use opencv::prelude::*;
+        let (x, y) = ((xy[0] - 0.5).round() as i32, (xy[1] - 0.5).round() as i32);
+        let p = m.at_2d::<opencv::core::Vec3b>(y, x).ok()?;
+        Some((f64::from(p[0]) + f64::from(p[1]) + f64::from(p[2])) / 3.0)
+    };
+    let (mut right, mut wrong, mut n) = (0.0, 0.0, 0);
+    for ((p, _), (u, _)) in photo.images[0]
+        .points2d
+        .iter()
+        .zip(&pinhole.images[0].points2d)
+    {
+        if (p[0] - u[0]).hypot(p[1] - u[1]) <= 4.0 {
+            continue;
+        }
+        if let (Some(at), Some(there), Some(here)) = (grey(&a, *p), grey(&b, *u), grey(&b, *p)) {
+            right += (at - there).abs();
+            wrong += (at - here).abs();
+            n += 1;
+        }
+    }
+    assert!(n > 100, "{n} keypoints the lens moves by over 4 px");
+    assert!(
+        right < 0.5 * wrong,
+        "mean grey difference {} at the undistorted points, {} at the photo's",
+        right / f64::from(n),
+        wrong / f64::from(n)
+    );
     // The cameras against the copy's ground truth.
     let score = dir.join("score.json");
     posediff(&[

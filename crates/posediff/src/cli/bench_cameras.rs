@@ -1,15 +1,18 @@
-//! `posediff bench-cameras`: the real-cameras benchmark. Each set and its zoomed copy (every
-//! second photo zoomed 1.3–1.6×, `posediff variant`), estimated with `--camera-mode single`
-//! and `auto`, and, with `--colmap-python`, COLMAP 4.2's incremental and global mappers
-//! (pycolmap, default options: a camera per image) on the same images in the same run; every
-//! column scored against the (transformed) ground truth.
+//! `posediff bench-cameras`: the real-cameras benchmark. Each set and three harder copies
+//! (`posediff variant`: every second photo zoomed 1.3–1.6×, without and with the EXIF a phone
+//! writes, and a wide-angle copy with OpenCV's `k1 = −0.12, k2 = 0.02`), estimated with
+//! `--camera-mode single` and `auto`, and, with `--colmap-python`, COLMAP 4.2's incremental
+//! and global mappers (pycolmap, default options: a SIMPLE_RADIAL camera per image) on the same
+//! images in the same run; every column scored against the (transformed) ground truth, with
+//! the median radial coefficient each method estimated beside the truth's `k1`.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Instant;
 
 use anyhow::{Context, bail};
-use posediff::io::variants::{ZoomVariant, zoom_copy};
+use posediff::io::colmap::ColmapModel;
+use posediff::io::variants::{RadialVariant, ZoomVariant, radial_copy, zoom_copy};
 use posediff_geometry::camera_json::CameraRecord;
 use serde::Serialize;
 
@@ -48,6 +51,10 @@ struct Cell {
     registered: Option<f64>,
     /// Median relative focal error of the estimated cameras.
     focal_error: Option<f64>,
+    /// Median radial coefficient of the estimated cameras (SIMPLE_RADIAL's `k`; 0 for pinhole).
+    k1: Option<f64>,
+    /// The truth's `k1` (OPENCV's, of the wide-angle copy; 0 otherwise).
+    k1_truth: f64,
     seconds: f64,
     /// Why it failed.
     error: Option<String>,
@@ -106,15 +113,31 @@ impl Args {
             if !original.join("cameras.json").is_file() {
                 bail!("{}: no cameras.json (is --data right?)", original.display());
             }
-            let zoomed = self.out.join("variants").join(format!("{set}-zoom"));
+            let variants = self.out.join("variants");
+            let zoomed = variants.join(format!("{set}-zoom"));
             zoom_copy(&original, &zoomed, &ZoomVariant::default())?;
-            for (variant, dir) in [("original", original.clone()), ("zoomed", zoomed)] {
+            let exif = variants.join(format!("{set}-zoom-exif"));
+            zoom_copy(
+                &original,
+                &exif,
+                &ZoomVariant {
+                    exif: true,
+                    ..ZoomVariant::default()
+                },
+            )?;
+            let radial = variants.join(format!("{set}-radial"));
+            radial_copy(&original, &radial, &RadialVariant::default())?;
+            for (variant, dir) in [
+                ("original", original.clone()),
+                ("zoomed", zoomed),
+                ("zoomed + EXIF", exif),
+                ("radial", radial),
+            ] {
                 let truth = dir.join("cameras.json");
+                let k1_truth = truth_k1(&truth)?;
+                let tag = variant.replace(" + ", "-");
                 for mode in ["single", "auto"] {
-                    let out = self
-                        .out
-                        .join("runs")
-                        .join(format!("{set}-{variant}-{mode}"));
+                    let out = self.out.join("runs").join(format!("{set}-{tag}-{mode}"));
                     let start = Instant::now();
                     let status = Command::new(&exe)
                         .arg("estimate")
@@ -124,20 +147,20 @@ impl Args {
                         .status()?;
                     let seconds = start.elapsed().as_secs_f64();
                     cells.push(cell(
-                        set,
-                        variant,
+                        (set, variant, k1_truth),
                         format!("posediff {mode}"),
                         seconds,
                         || {
                             if !status.success() {
                                 bail!("posediff estimate failed ({status})");
                             }
-                            score(&out.join("cameras.json"), &truth)
+                            let (m, r, f) = score(&out.join("cameras.json"), &truth)?;
+                            Ok((m, r, f, ours_k1(&out.join("cameras.json"))?))
                         },
                     ));
                 }
                 if let (Some(python), Some(script)) = (&self.colmap_python, &self.colmap_script) {
-                    let out = self.out.join("colmap").join(format!("{set}-{variant}"));
+                    let out = self.out.join("colmap").join(format!("{set}-{tag}"));
                     let start = Instant::now();
                     let output = Command::new(python)
                         .arg(script)
@@ -149,8 +172,7 @@ impl Args {
                         let seconds = seconds_of(&text, mapper)
                             .unwrap_or_else(|| start.elapsed().as_secs_f64());
                         cells.push(cell(
-                            set,
-                            variant,
+                            (set, variant, k1_truth),
                             format!("COLMAP 4.2 {mapper}"),
                             seconds,
                             || {
@@ -163,7 +185,9 @@ impl Args {
                                             .unwrap_or("")
                                     );
                                 }
-                                score(&out.join(mapper).join("cameras.json"), &truth)
+                                let (m, r, f) =
+                                    score(&out.join(mapper).join("cameras.json"), &truth)?;
+                                Ok((m, r, f, colmap_k1(&out.join(mapper))))
                             },
                         ));
                     }
@@ -190,16 +214,62 @@ fn seconds_of(text: &str, what: &str) -> Option<f64> {
         .and_then(|v| v.get("seconds")?.as_f64())
 }
 
+/// The median of `values` (`None` when empty).
+fn median(mut values: Vec<f64>) -> Option<f64> {
+    values.sort_by(f64::total_cmp);
+    (!values.is_empty()).then(|| values[values.len() / 2])
+}
+
+/// The truth's `k1`: an OPENCV/RADIAL/SIMPLE_RADIAL record's first distortion term, 0 for
+/// pinhole records.
+fn truth_k1(path: &Path) -> anyhow::Result<f64> {
+    let gt: Vec<CameraRecord> = serde_json::from_value(serde_json::Value::Array(records(path)?))?;
+    let lens = gt.first().context("an empty ground truth")?.lens()?;
+    Ok(lens.distortion().first().copied().unwrap_or(0.0))
+}
+
+/// The median radial coefficient of our cameras.json (0 for pinhole cameras).
+fn ours_k1(path: &Path) -> anyhow::Result<Option<f64>> {
+    let mut ks = Vec::new();
+    for v in records(path)? {
+        if v.get("estimated") == Some(&serde_json::Value::Bool(false)) {
+            continue;
+        }
+        let r: CameraRecord = serde_json::from_value(v)?;
+        ks.push(r.lens()?.distortion().first().copied().unwrap_or(0.0));
+    }
+    Ok(median(ks))
+}
+
+/// The median radial coefficient of COLMAP's largest model under `dir` (`dir/0`, `dir/1`, …);
+/// `None` when none reads.
+fn colmap_k1(dir: &Path) -> Option<f64> {
+    let models = std::fs::read_dir(dir).ok()?;
+    let best = models
+        .filter_map(|e| ColmapModel::read(&e.ok()?.path()).ok())
+        .max_by_key(|m| m.images.len())?;
+    median(
+        best.images
+            .iter()
+            .filter_map(|im| best.cameras.iter().find(|c| c.id == im.camera_id))
+            .filter_map(|c| c.lens().ok())
+            .map(|l| l.distortion().first().copied().unwrap_or(0.0))
+            .collect(),
+    )
+}
+
+/// What a scored method gives: mAA(30), registered, median focal error, median `k1`.
+type Scores = (f64, f64, Option<f64>, Option<f64>);
+
 fn cell(
-    set: &str,
-    variant: &'static str,
+    (set, variant, k1_truth): (&str, &'static str, f64),
     method: String,
     seconds: f64,
-    scored: impl FnOnce() -> anyhow::Result<(f64, f64, Option<f64>)>,
+    scored: impl FnOnce() -> anyhow::Result<Scores>,
 ) -> Cell {
-    let (maa_30, registered, focal_error, error) = match scored() {
-        Ok((m, r, f)) => (Some(m), Some(r), f, None),
-        Err(e) => (None, None, None, Some(format!("{e:#}"))),
+    let (maa_30, registered, focal_error, k1, error) = match scored() {
+        Ok((m, r, f, k)) => (Some(m), Some(r), f, k, None),
+        Err(e) => (None, None, None, None, Some(format!("{e:#}"))),
     };
     Cell {
         set: set.to_owned(),
@@ -208,6 +278,8 @@ fn cell(
         maa_30,
         registered,
         focal_error,
+        k1,
+        k1_truth,
         seconds,
         error,
     }
@@ -215,7 +287,7 @@ fn cell(
 
 fn markdown(cells: &[Cell]) -> String {
     let mut s = String::from(
-        "| set | variant | method | mAA(30) | registered | median focal error | seconds |\n|---|---|---|---|---|---|---|\n",
+        "| set | variant | method | mAA(30) | registered | median focal error | k1 (truth) | seconds |\n|---|---|---|---|---|---|---|---|\n",
     );
     let f = |v: Option<f64>, pct: bool| match v {
         Some(v) if pct => format!("{:.1} %", 100.0 * v),
@@ -224,13 +296,15 @@ fn markdown(cells: &[Cell]) -> String {
     };
     for c in cells {
         s.push_str(&format!(
-            "| {} | {} | {} | {} | {} | {} | {:.1} |\n",
+            "| {} | {} | {} | {} | {} | {} | {} ({:.3}) | {:.1} |\n",
             c.set,
             c.variant,
             c.method,
             f(c.maa_30, false),
             f(c.registered, false),
             f(c.focal_error, true),
+            f(c.k1, false),
+            c.k1_truth,
             c.seconds
         ));
     }

@@ -127,6 +127,11 @@ pub struct Args {
     /// Do not write view.html.
     #[arg(long)]
     no_view: bool,
+    /// Also write out/undistorted/ where a lens distortion was estimated: the photos resampled
+    /// onto their pinhole cameras and a PINHOLE COLMAP model (as COLMAP's image undistorter,
+    /// for 3DGS and gsplat).
+    #[arg(long)]
+    undistort: bool,
     /// Go on without images that are corrupt, truncated or unreadable (listed in run.json)
     /// instead of stopping.
     #[arg(long)]
@@ -159,6 +164,7 @@ impl Args {
                 ImagesArg::None => ImagesMode::None,
             },
             view: !self.no_view,
+            undistort: self.undistort,
             ..OutputOptions::default()
         }
     }

@@ -263,16 +263,10 @@ impl ColmapModel {
     /// # Errors
     /// An image naming an unknown camera, an unreadable camera, an invalid rotation.
     pub fn named_cameras(&self, dir: &Path) -> Result<Vec<NamedCamera>> {
-        let cams: HashMap<u32, &ColmapCamera> = self.cameras.iter().map(|c| (c.id, c)).collect();
         self.images
             .iter()
-            .map(|im| {
-                let cam = cams.get(&im.camera_id).ok_or_else(|| {
-                    PosediffError::invalid(
-                        dir,
-                        format!("image {} names unknown camera {}", im.id, im.camera_id),
-                    )
-                })?;
+            .zip(self.image_cameras(dir)?)
+            .map(|(im, cam)| {
                 let (k, size) = cam
                     .intrinsics()
                     .map_err(|e| PosediffError::invalid(dir, e))?;
@@ -281,6 +275,25 @@ impl ColmapModel {
                 Ok(NamedCamera {
                     image: im.name.clone(),
                     camera: Camera::new(k, Pose::new(r, Vector3::from(im.tvec)), size),
+                })
+            })
+            .collect()
+    }
+
+    /// Each registered image's camera, in the model's image order.
+    ///
+    /// # Errors
+    /// An image naming an unknown camera.
+    fn image_cameras(&self, dir: &Path) -> Result<Vec<&ColmapCamera>> {
+        let cams: HashMap<u32, &ColmapCamera> = self.cameras.iter().map(|c| (c.id, c)).collect();
+        self.images
+            .iter()
+            .map(|im| {
+                cams.get(&im.camera_id).copied().ok_or_else(|| {
+                    PosediffError::invalid(
+                        dir,
+                        format!("image {} names unknown camera {}", im.id, im.camera_id),
+                    )
                 })
             })
             .collect()
@@ -368,16 +381,9 @@ impl ColmapModel {
     /// # Errors
     /// An image naming an unknown camera, an unreadable camera.
     pub fn image_lenses(&self, dir: &Path) -> Result<Vec<Option<LensCamera>>> {
-        let cams: HashMap<u32, &ColmapCamera> = self.cameras.iter().map(|c| (c.id, c)).collect();
-        self.images
-            .iter()
-            .map(|im| {
-                let cam = cams.get(&im.camera_id).ok_or_else(|| {
-                    PosediffError::invalid(
-                        dir,
-                        format!("image {} names unknown camera {}", im.id, im.camera_id),
-                    )
-                })?;
+        self.image_cameras(dir)?
+            .into_iter()
+            .map(|cam| {
                 let lens = cam.lens().map_err(|e| PosediffError::invalid(dir, e))?;
                 Ok(lens.is_distorted().then_some(lens))
             })

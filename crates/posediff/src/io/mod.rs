@@ -19,5 +19,6 @@ pub mod export;
 pub mod loader;
 pub mod outputs;
 pub mod records;
+pub mod undistort;
 pub mod variants;
 pub mod viewer;

@@ -52,6 +52,9 @@ pub struct OutputOptions {
     pub nerfstudio: bool,
     /// `pytorch3d.json`.
     pub pytorch3d: bool,
+    /// `undistorted/` (images resampled onto their pinhole cameras and a PINHOLE model,
+    /// [`crate::io::undistort`]), when some camera has a lens.
+    pub undistort: bool,
 }
 
 impl Default for OutputOptions {
@@ -63,6 +66,7 @@ impl Default for OutputOptions {
             colmap: true,
             nerfstudio: true,
             pytorch3d: true,
+            undistort: false,
         }
     }
 }
@@ -311,6 +315,15 @@ pub fn write_outputs(
             .collect();
         write_nerfstudio(&out.join("transforms.json"), &nerf, Some("sparse_pc.ply"))?;
         files.push("transforms.json".into());
+    }
+    if options.undistort && r.images.iter().any(|i| i.camera.lens.is_some()) {
+        crate::io::undistort::write_undistorted(
+            &out.join("undistorted"),
+            r,
+            &inputs.files,
+            options.colmap_format,
+        )?;
+        files.push("undistorted".into());
     }
     if options.pytorch3d {
         write_pytorch3d(&out.join("pytorch3d.json"), &entries)?;

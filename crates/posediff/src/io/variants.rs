@@ -86,7 +86,7 @@ fn write_bytes(path: &Path, bytes: &[u8]) -> Result<()> {
 }
 
 /// `image` encoded as `path`'s extension says (JPEG at quality 95).
-fn encode(path: &Path, image: &Mat) -> Result<Vec<u8>> {
+pub(crate) fn encode(path: &Path, image: &Mat) -> Result<Vec<u8>> {
     let ext = path
         .extension()
         .map(|e| format!(".{}", e.to_string_lossy()))
