@@ -21,7 +21,7 @@ use anyhow::{Context, Result, bail};
 use posediff::estimate::geometric::{GeometricConfig, estimate_from_matches};
 use posediff_matching::{PairSelection, extract_all, match_pairs, select_pairs};
 use posediff_synth::scene::PathKind;
-use posediff_synth::{DatasetSpec, parse_size, write_dataset};
+use posediff_synth::{DatasetSpec, LensSpec, parse_size, write_dataset};
 use serde_json::{Value, json};
 
 /// The peak resident set of this process so far, MB (Linux `VmHWM`).
@@ -175,6 +175,7 @@ fn main() -> Result<()> {
                         sizes: vec![parse_size("640x480")?],
                         test_every: 0,
                         path: Some(kind),
+                        lens: LensSpec::default(),
                     },
                 )?;
                 eprintln!(

@@ -20,7 +20,10 @@ use std::io::Write as _;
 use std::path::{Path, PathBuf};
 
 use posediff_geometry::camera_json::{CameraRecord, Pytorch3dParams};
-use posediff_geometry::{Camera, ImageSize, Pytorch3dCamera};
+use posediff_geometry::lens::{CameraModel, LensCamera};
+use posediff_geometry::{Camera, ImageSize, Intrinsics, Pytorch3dCamera};
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
 use serde::Serialize;
 
@@ -168,6 +171,115 @@ pub struct DatasetSpec {
     /// The camera path of every sequence (`None`: drawn per sequence, a forward approach with
     /// probability 1/4).
     pub path: Option<PathKind>,
+    /// Real-camera effects: zoomed frames (a focal of their own) and lens distortion.
+    pub lens: LensSpec,
+}
+
+/// Real-camera effects of a dataset, with exact cameras: every `zoom_every`-th frame's focal
+/// multiplied by a factor drawn from `zoom` (a zoom lens: a camera of its own), and every frame
+/// seen through SIMPLE_RADIAL's `radial_k` (`x_d = x_u (1 + k r_u²)` in coordinates normalised
+/// by the frame's focal), written to cameras.json as `model`/`params`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LensSpec {
+    /// Zoom every N-th frame (the N-th, 2N-th, …; 0: none).
+    pub zoom_every: usize,
+    /// The zoom factors' range.
+    pub zoom: (f64, f64),
+    /// SIMPLE_RADIAL's `k` (0: pinhole). Distorted frames are resampled from the pinhole
+    /// rendering (bilinear), and the CO3D annotations, which carry no distortion, are not
+    /// written.
+    pub radial_k: f64,
+}
+
+impl Default for LensSpec {
+    fn default() -> Self {
+        Self {
+            zoom_every: 0,
+            zoom: (1.3, 1.6),
+            radial_k: 0.0,
+        }
+    }
+}
+
+impl LensSpec {
+    /// Frame `camera`'s lens (SIMPLE_RADIAL with its focal and principal point).
+    ///
+    /// # Errors
+    /// A non-finite coefficient.
+    pub fn lens(&self, camera: &Camera) -> Result<LensCamera> {
+        let k = &camera.intrinsics;
+        LensCamera::new(
+            CameraModel::SimpleRadial,
+            vec![k.fx(), k.cx(), k.cy(), self.radial_k],
+        )
+        .map_err(|e| SynthError::Invalid(format!("lens: {e}")))
+    }
+
+    /// # Errors
+    /// A zoom range that is not positive and ordered, a non-finite coefficient.
+    pub fn check(&self) -> Result<()> {
+        let (lo, hi) = self.zoom;
+        if self.zoom_every > 0 && !(lo > 0.0 && hi >= lo && hi.is_finite()) {
+            return Err(SynthError::Invalid(format!(
+                "zoom {lo}:{hi}: factors must be positive, the first not above the second"
+            )));
+        }
+        if !self.radial_k.is_finite() {
+            return Err(SynthError::Invalid(format!("radial k {}", self.radial_k)));
+        }
+        Ok(())
+    }
+
+    /// The zoomed frames' focals multiplied by their drawn factors (a spec that fails
+    /// [`Self::check`] zooms nothing).
+    fn zoomed(&self, cameras: &mut [Camera], seed: u64) {
+        if self.zoom_every == 0 || self.check().is_err() {
+            return;
+        }
+        let (lo, hi) = self.zoom;
+        let mut rng = StdRng::seed_from_u64(seed);
+        for (i, c) in cameras.iter_mut().enumerate() {
+            if i % self.zoom_every == self.zoom_every - 1 {
+                let z = if hi > lo {
+                    rng.random_range(lo..hi)
+                } else {
+                    lo
+                };
+                let k = &c.intrinsics;
+                if let Ok(zoomed) = Intrinsics::new(z * k.fx(), z * k.fy(), k.cx(), k.cy()) {
+                    c.intrinsics = zoomed;
+                }
+            }
+        }
+    }
+}
+
+/// `rgb` (pinhole, `w × h`) as `lens` images it: each pixel bilinearly sampled where the
+/// pinhole camera sees its ray (black where that is outside).
+fn distorted(rgb: &[u8], w: usize, h: usize, lens: &LensCamera) -> Result<Vec<u8>> {
+    let ((f, _), (cx, cy)) = (lens.focal(), lens.principal());
+    let mut out = vec![0u8; rgb.len()];
+    for y in 0..h {
+        for x in 0..w {
+            let ray = lens
+                .unproject(&nalgebra::Vector2::new(x as f64, y as f64))
+                .map_err(|e| SynthError::Invalid(format!("lens at ({x}, {y}): {e}")))?;
+            let (u, v) = (f * ray.x + cx, f * ray.y + cy);
+            let (x0, y0) = (u.floor(), v.floor());
+            if x0 < 0.0 || y0 < 0.0 || x0 + 1.0 >= w as f64 || y0 + 1.0 >= h as f64 {
+                continue;
+            }
+            let (ax, ay) = (u - x0, v - y0);
+            let (x0, y0) = (x0 as usize, y0 as usize);
+            for c in 0..3 {
+                let at = |xx: usize, yy: usize| f64::from(rgb[(yy * w + xx) * 3 + c]);
+                let top = at(x0, y0) * (1.0 - ax) + at(x0 + 1, y0) * ax;
+                let bottom = at(x0, y0 + 1) * (1.0 - ax) + at(x0 + 1, y0 + 1) * ax;
+                out[(y * w + x) * 3 + c] = (top * (1.0 - ay) + bottom * ay).round() as u8;
+            }
+        }
+    }
+    Ok(out)
 }
 
 /// A CO3D annotation frame (PyTorch3D conventions, NDC of the image's shorter half side).
@@ -234,7 +346,9 @@ pub fn sequence(spec: &DatasetSpec, k: usize) -> Sequence {
             Err(_) => unreachable!("a valid size"),
         },
     };
-    let cameras = trajectory_with(&scene, spec.frames.max(1), size, seed ^ 0x7A7A, spec.path);
+    let mut cameras = trajectory_with(&scene, spec.frames.max(1), size, seed ^ 0x7A7A, spec.path);
+    // Drawn after the path, from a seed of its own: the path is the same with or without zoom.
+    spec.lens.zoomed(&mut cameras, seed ^ 0x200E);
     Sequence {
         name: format!("{CATEGORY}_{k:04}"),
         seed,
@@ -255,6 +369,7 @@ pub fn write_dataset(out: &Path, spec: &DatasetSpec) -> Result<DatasetSummary> {
             "need at least one sequence, one frame and one image size".into(),
         ));
     }
+    spec.lens.check()?;
     let mut splits: [(String, serde_json::Map<String, serde_json::Value>); 2] = [
         ("train".into(), serde_json::Map::new()),
         ("test".into(), serde_json::Map::new()),
@@ -273,7 +388,11 @@ pub fn write_dataset(out: &Path, spec: &DatasetSpec) -> Result<DatasetSummary> {
             .par_iter()
             .enumerate()
             .map(|(i, cam)| -> Result<Co3dFrameOut> {
-                let frame = render_frame(&scene, cam);
+                let mut frame = render_frame(&scene, cam);
+                if spec.lens.radial_k != 0.0 {
+                    let (w, h) = (size.width() as usize, size.height() as usize);
+                    frame.rgb = distorted(&frame.rgb, w, h, &spec.lens.lens(cam)?)?;
+                }
                 let file = format!("images/frame{i:06}.png");
                 let path = dir.join(&file);
                 let img = image::RgbImage::from_raw(size.width(), size.height(), frame.rgb.clone())
@@ -299,8 +418,15 @@ pub fn write_dataset(out: &Path, spec: &DatasetSpec) -> Result<DatasetSummary> {
         let records: Vec<CameraRecord> = cameras
             .iter()
             .enumerate()
-            .map(|(i, c)| CameraRecord::from_camera(format!("images/frame{i:06}.png"), c))
-            .collect();
+            .map(|(i, c)| {
+                let name = format!("images/frame{i:06}.png");
+                if spec.lens.radial_k == 0.0 {
+                    return Ok(CameraRecord::from_camera(name, c));
+                }
+                CameraRecord::from_lens_camera(name, c, &spec.lens.lens(c)?)
+                    .map_err(|e| SynthError::Invalid(format!("lens: {e}")))
+            })
+            .collect::<Result<_>>()?;
         write_file(
             &dir.join("cameras.json"),
             serde_json::to_string_pretty(&records)?.as_bytes(),
@@ -322,7 +448,13 @@ pub fn write_dataset(out: &Path, spec: &DatasetSpec) -> Result<DatasetSummary> {
         names.push(format!("{CATEGORY}/{name}"));
     }
     let mut annotations = Vec::new();
-    for (split, map) in &splits {
+    // CO3D's annotations carry no distortion: not written for a distorted dataset.
+    let splits = if spec.lens.radial_k == 0.0 {
+        splits.as_slice()
+    } else {
+        &[]
+    };
+    for (split, map) in splits {
         let file = format!("{CATEGORY}_{split}.jgz");
         let json = serde_json::to_vec(map)?;
         let mut gz = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::default());

@@ -7,7 +7,7 @@ use std::time::Instant;
 use anyhow::Context;
 use clap::Parser;
 use posediff_synth::scene::PathKind;
-use posediff_synth::{DatasetSpec, parse_size, write_dataset};
+use posediff_synth::{DatasetSpec, LensSpec, parse_size, write_dataset};
 
 /// Render synthetic object-centric sequences with exact cameras.
 #[derive(Parser)]
@@ -35,6 +35,16 @@ struct Cli {
     /// sequence, forward with probability 1/4).
     #[arg(long, value_parser = parse_path)]
     path: Option<PathKind>,
+    /// Zoom every N-th frame (a focal of its own, drawn from --zoom; 0: none).
+    #[arg(long, default_value_t = 0)]
+    zoom_every: usize,
+    /// Zoom factors `LO:HI`.
+    #[arg(long, default_value = "1.3:1.6")]
+    zoom: String,
+    /// SIMPLE_RADIAL distortion `k` of every frame (cameras.json then carries the model; no
+    /// CO3D annotations are written).
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    radial: f64,
     /// Also write a PNG grid of the first, middle and last frame of up to four sequences.
     #[arg(long)]
     contact_sheet: Option<PathBuf>,
@@ -62,6 +72,15 @@ fn main() -> anyhow::Result<()> {
         sizes,
         test_every: cli.test_every,
         path: cli.path,
+        lens: LensSpec {
+            zoom_every: cli.zoom_every,
+            zoom: cli
+                .zoom
+                .split_once(':')
+                .and_then(|(a, b)| Some((a.parse().ok()?, b.parse().ok()?)))
+                .with_context(|| format!("--zoom {}: expected LO:HI", cli.zoom))?,
+            radial_k: cli.radial,
+        },
     };
     let start = Instant::now();
     let summary =

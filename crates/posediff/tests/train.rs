@@ -11,7 +11,7 @@ use posediff::train::{
 };
 use posediff::{EstimateConfig, EstimateInput, Estimator, Silent};
 use posediff_geometry::ImageSize;
-use posediff_synth::{DatasetSpec, write_dataset};
+use posediff_synth::{DatasetSpec, LensSpec, write_dataset};
 
 fn tiny_model() -> PathBuf {
     posediff_fixtures::shared_path("reference/tiny/model_tiny.safetensors")
@@ -103,6 +103,7 @@ fn a_resumed_run_repeats_the_uninterrupted_loss_curve_and_its_checkpoint_loads()
             sizes: vec![ImageSize::new(160, 120).unwrap()],
             test_every: 0,
             path: None,
+            lens: LensSpec::default(),
         },
     )
     .unwrap();
@@ -174,6 +175,7 @@ fn a_fresh_unfrozen_run_trains_the_backbone_on_augmented_batches() {
             sizes: vec![ImageSize::new(160, 120).unwrap()],
             test_every: 0,
             path: None,
+            lens: LensSpec::default(),
         },
     )
     .unwrap();

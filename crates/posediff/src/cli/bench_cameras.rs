@@ -13,7 +13,10 @@ use std::time::Instant;
 use anyhow::{Context, bail};
 use posediff::io::colmap::ColmapModel;
 use posediff::io::variants::{RadialVariant, ZoomVariant, radial_copy, zoom_copy};
+use posediff_geometry::ImageSize;
 use posediff_geometry::camera_json::CameraRecord;
+use posediff_synth::scene::PathKind;
+use posediff_synth::{DatasetSpec, LensSpec, write_dataset};
 use serde::Serialize;
 
 /// The real-cameras benchmark (JSON + Markdown).
@@ -37,6 +40,10 @@ pub struct Args {
     /// Output folder: variants, estimates, results.json, results.md.
     #[arg(long)]
     out: PathBuf,
+    /// Also render synthetic orbits (posediff-synth, 20 frames of 640×480) with exact cameras:
+    /// a pinhole one, a zoom lens and a SIMPLE_RADIAL lens.
+    #[arg(long)]
+    synthetic: bool,
 }
 
 /// One method on one set.
@@ -133,65 +140,44 @@ impl Args {
                 ("zoomed + EXIF", exif),
                 ("radial", radial),
             ] {
-                let truth = dir.join("cameras.json");
-                let k1_truth = truth_k1(&truth)?;
-                let tag = variant.replace(" + ", "-");
-                for mode in ["single", "auto"] {
-                    let out = self.out.join("runs").join(format!("{set}-{tag}-{mode}"));
-                    let start = Instant::now();
-                    let status = Command::new(&exe)
-                        .arg("estimate")
-                        .arg(dir.join("images"))
-                        .args(["--camera-mode", mode, "--no-view", "--quiet", "--out"])
-                        .arg(&out)
-                        .status()?;
-                    let seconds = start.elapsed().as_secs_f64();
-                    cells.push(cell(
-                        (set, variant, k1_truth),
-                        format!("posediff {mode}"),
-                        seconds,
-                        || {
-                            if !status.success() {
-                                bail!("posediff estimate failed ({status})");
-                            }
-                            let (m, r, f) = score(&out.join("cameras.json"), &truth)?;
-                            Ok((m, r, f, ours_k1(&out.join("cameras.json"))?))
-                        },
-                    ));
-                }
-                if let (Some(python), Some(script)) = (&self.colmap_python, &self.colmap_script) {
-                    let out = self.out.join("colmap").join(format!("{set}-{tag}"));
-                    let start = Instant::now();
-                    let output = Command::new(python)
-                        .arg(script)
-                        .arg(dir.join("images"))
-                        .arg(&out)
-                        .output()?;
-                    let text = String::from_utf8_lossy(&output.stdout);
-                    for mapper in ["incremental", "global"] {
-                        let seconds = seconds_of(&text, mapper)
-                            .unwrap_or_else(|| start.elapsed().as_secs_f64());
-                        cells.push(cell(
-                            (set, variant, k1_truth),
-                            format!("COLMAP 4.2 {mapper}"),
-                            seconds,
-                            || {
-                                if !output.status.success() {
-                                    bail!(
-                                        "pycolmap_run.py failed: {}",
-                                        String::from_utf8_lossy(&output.stderr)
-                                            .lines()
-                                            .last()
-                                            .unwrap_or("")
-                                    );
-                                }
-                                let (m, r, f) =
-                                    score(&out.join(mapper).join("cameras.json"), &truth)?;
-                                Ok((m, r, f, colmap_k1(&out.join(mapper))))
-                            },
-                        ));
-                    }
-                }
+                self.run_variant(&exe, (set, variant), &dir, &mut cells)?;
+            }
+        }
+        if self.synthetic {
+            // Rendered with exact cameras: a zoom lens (every second frame 1.3–1.6×) and a
+            // SIMPLE_RADIAL lens (k −0.1), so the truth's model is the one estimated.
+            for (variant, lens) in [
+                ("original", LensSpec::default()),
+                (
+                    "zoomed",
+                    LensSpec {
+                        zoom_every: 2,
+                        ..LensSpec::default()
+                    },
+                ),
+                (
+                    "radial",
+                    LensSpec {
+                        radial_k: -0.1,
+                        ..LensSpec::default()
+                    },
+                ),
+            ] {
+                let root = self.out.join("synthetic").join(variant);
+                write_dataset(
+                    &root,
+                    &DatasetSpec {
+                        sequences: 1,
+                        frames: 20,
+                        seed: 3,
+                        sizes: vec![ImageSize::new(640, 480)?],
+                        test_every: 0,
+                        path: Some(PathKind::Orbit),
+                        lens,
+                    },
+                )?;
+                let dir = root.join("synthetic").join("synthetic_0000");
+                self.run_variant(&exe, ("synthetic orbit", variant), &dir, &mut cells)?;
             }
         }
         let json = self.out.join("results.json");
@@ -199,6 +185,76 @@ impl Args {
         let md = markdown(&cells);
         std::fs::write(self.out.join("results.md"), &md)?;
         println!("{md}");
+        Ok(())
+    }
+
+    /// posediff `single` and `auto`, and COLMAP's two mappers when given, on the set in `dir`
+    /// (`images/`, `cameras.json`), scored against its truth.
+    fn run_variant(
+        &self,
+        exe: &Path,
+        (set, variant): (&str, &'static str),
+        dir: &Path,
+        cells: &mut Vec<Cell>,
+    ) -> anyhow::Result<()> {
+        let truth = dir.join("cameras.json");
+        let k1_truth = truth_k1(&truth)?;
+        let tag = variant.replace(" + ", "-");
+        for mode in ["single", "auto"] {
+            let out = self.out.join("runs").join(format!("{set}-{tag}-{mode}"));
+            let start = Instant::now();
+            let status = Command::new(exe)
+                .arg("estimate")
+                .arg(dir.join("images"))
+                .args(["--camera-mode", mode, "--no-view", "--quiet", "--out"])
+                .arg(&out)
+                .status()?;
+            let seconds = start.elapsed().as_secs_f64();
+            cells.push(cell(
+                (set, variant, k1_truth),
+                format!("posediff {mode}"),
+                seconds,
+                || {
+                    if !status.success() {
+                        bail!("posediff estimate failed ({status})");
+                    }
+                    let (m, r, f) = score(&out.join("cameras.json"), &truth)?;
+                    Ok((m, r, f, ours_k1(&out.join("cameras.json"))?))
+                },
+            ));
+        }
+        if let (Some(python), Some(script)) = (&self.colmap_python, &self.colmap_script) {
+            let out = self.out.join("colmap").join(format!("{set}-{tag}"));
+            let start = Instant::now();
+            let output = Command::new(python)
+                .arg(script)
+                .arg(dir.join("images"))
+                .arg(&out)
+                .output()?;
+            let text = String::from_utf8_lossy(&output.stdout);
+            for mapper in ["incremental", "global"] {
+                let seconds =
+                    seconds_of(&text, mapper).unwrap_or_else(|| start.elapsed().as_secs_f64());
+                cells.push(cell(
+                    (set, variant, k1_truth),
+                    format!("COLMAP 4.2 {mapper}"),
+                    seconds,
+                    || {
+                        if !output.status.success() {
+                            bail!(
+                                "pycolmap_run.py failed: {}",
+                                String::from_utf8_lossy(&output.stderr)
+                                    .lines()
+                                    .last()
+                                    .unwrap_or("")
+                            );
+                        }
+                        let (m, r, f) = score(&out.join(mapper).join("cameras.json"), &truth)?;
+                        Ok((m, r, f, colmap_k1(&out.join(mapper))))
+                    },
+                ));
+            }
+        }
         Ok(())
     }
 }
