@@ -7,8 +7,6 @@
 
 use std::path::{Path, PathBuf};
 
-use opencv::core::Mat;
-use opencv::prelude::*;
 use posediff_geometry::lens::LensCamera;
 use rayon::prelude::*;
 
@@ -77,30 +75,9 @@ pub fn write_undistorted(
 /// The photo `file` resampled onto the pinhole part of `lens`, encoded as `target`'s extension.
 fn undistorted_photo(file: &Path, lens: &LensCamera, target: &Path) -> Result<Vec<u8>> {
     let image = crate::reconstruction::read_colour(file)?;
-    let (w, h) = (image.cols(), image.rows());
-    let mut map_x = Mat::new_rows_cols_with_default(
-        h,
-        w,
-        opencv::core::CV_32FC1,
-        opencv::core::Scalar::all(0.0),
-    )?;
-    let mut map_y = map_x.try_clone()?;
-    for y in 0..h {
-        for x in 0..w {
-            let p = lens.distort_pixel(&nalgebra::Vector2::new(f64::from(x), f64::from(y)));
-            *map_x.at_2d_mut::<f32>(y, x)? = p.x as f32;
-            *map_y.at_2d_mut::<f32>(y, x)? = p.y as f32;
-        }
-    }
-    let mut out = Mat::default();
-    opencv::imgproc::remap(
-        &image,
-        &mut out,
-        &map_x,
-        &map_y,
-        opencv::imgproc::INTER_LINEAR,
-        opencv::core::BORDER_CONSTANT,
-        opencv::core::Scalar::all(0.0),
-    )?;
+    let out = crate::io::variants::resample(&image, |x, y| {
+        let p = lens.distort_pixel(&nalgebra::Vector2::new(f64::from(x), f64::from(y)));
+        Ok([p.x, p.y])
+    })?;
     crate::io::variants::encode(target, &out)
 }

@@ -85,6 +85,40 @@ fn write_bytes(path: &Path, bytes: &[u8]) -> Result<()> {
     })
 }
 
+/// `image` resampled: each output pixel `(x, y)` bilinearly from the pixel `source(x, y)` of
+/// `image` (black outside it).
+///
+/// # Errors
+/// `source`'s errors, OpenCV errors.
+pub(crate) fn resample(image: &Mat, source: impl Fn(i32, i32) -> Result<[f64; 2]>) -> Result<Mat> {
+    let (w, h) = (image.cols(), image.rows());
+    let mut map_x = Mat::new_rows_cols_with_default(
+        h,
+        w,
+        opencv::core::CV_32FC1,
+        opencv::core::Scalar::all(0.0),
+    )?;
+    let mut map_y = map_x.try_clone()?;
+    for y in 0..h {
+        for x in 0..w {
+            let [u, v] = source(x, y)?;
+            *map_x.at_2d_mut::<f32>(y, x)? = u as f32;
+            *map_y.at_2d_mut::<f32>(y, x)? = v as f32;
+        }
+    }
+    let mut out = Mat::default();
+    opencv::imgproc::remap(
+        image,
+        &mut out,
+        &map_x,
+        &map_y,
+        opencv::imgproc::INTER_LINEAR,
+        opencv::core::BORDER_CONSTANT,
+        opencv::core::Scalar::all(0.0),
+    )?;
+    Ok(out)
+}
+
 /// `image` encoded as `path`'s extension says (JPEG at quality 95).
 pub(crate) fn encode(path: &Path, image: &Mat) -> Result<Vec<u8>> {
     let ext = path
@@ -254,39 +288,22 @@ pub fn radial_copy(set: &Path, out: &Path, variant: &RadialVariant) -> Result<()
                 k[0][0], k[1][1], k[0][2], k[1][2], variant.k1, variant.k2, 0.0, 0.0,
             ],
         )?;
-        let mut map_x = Mat::new_rows_cols_with_default(
-            h,
-            w,
-            opencv::core::CV_32FC1,
-            opencv::core::Scalar::all(0.0),
-        )?;
-        let mut map_y = map_x.try_clone()?;
-        for y in 0..h {
-            for x in 0..w {
-                let ray = lens
-                    .unproject(&nalgebra::Vector2::new(f64::from(x), f64::from(y)))
-                    .map_err(|e| {
-                        PosediffError::InvalidArgument(format!(
-                            "radial variant k1 {} k2 {}: pixel ({x}, {y}) of {}: {e}",
-                            variant.k1,
-                            variant.k2,
-                            source.display()
-                        ))
-                    })?;
-                *map_x.at_2d_mut::<f32>(y, x)? = (original[0][0] * ray.x + k[0][2]) as f32;
-                *map_y.at_2d_mut::<f32>(y, x)? = (original[1][1] * ray.y + k[1][2]) as f32;
-            }
-        }
-        let mut distorted = Mat::default();
-        opencv::imgproc::remap(
-            &image,
-            &mut distorted,
-            &map_x,
-            &map_y,
-            opencv::imgproc::INTER_LINEAR,
-            opencv::core::BORDER_CONSTANT,
-            opencv::core::Scalar::all(0.0),
-        )?;
+        let distorted = resample(&image, |x, y| {
+            let ray = lens
+                .unproject(&nalgebra::Vector2::new(f64::from(x), f64::from(y)))
+                .map_err(|e| {
+                    PosediffError::InvalidArgument(format!(
+                        "radial variant k1 {} k2 {}: pixel ({x}, {y}) of {}: {e}",
+                        variant.k1,
+                        variant.k2,
+                        source.display()
+                    ))
+                })?;
+            Ok([
+                original[0][0] * ray.x + k[0][2],
+                original[1][1] * ray.y + k[1][2],
+            ])
+        })?;
         let target = out.join(&record.image);
         write_bytes(&target, &encode(&target, &distorted)?)?;
         let mut record = record.clone();
