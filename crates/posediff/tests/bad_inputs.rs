@@ -6,6 +6,7 @@
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 use std::ffi::OsString;
+use std::os::unix::ffi::OsStrExt as _;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Instant;
@@ -127,8 +128,26 @@ fn bad_images_are_named_before_any_work() {
         std::fs::create_dir_all(t).unwrap();
         std::fs::copy(&apple_files()[0], t.join("same.jpg")).unwrap();
     }
+    let dangling = folder_with(&dir, "dl", ("keep.txt", b""));
+    std::os::unix::fs::symlink(dir.join("moved-away.jpg"), dangling.join("zz.jpg")).unwrap();
+    let not_utf8 = folder_with(&dir, "nu", ("keep.txt", b""));
+    std::fs::copy(
+        &apple_files()[4],
+        not_utf8.join(std::ffi::OsStr::from_bytes(b"caf\xe9.jpg")),
+    )
+    .unwrap();
     let files = apple_files();
     let cases = vec![
+        case(
+            "dangling symbolic link",
+            &[&"estimate", &dangling, &"--out", &out],
+            "zz.jpg: a symbolic link to a missing file",
+        ),
+        case(
+            "name that is not UTF-8",
+            &[&"estimate", &not_utf8, &"--out", &out],
+            "is not valid UTF-8",
+        ),
         case(
             "missing path",
             &[&"estimate", &dir.join("nope"), &"--out", &out],
@@ -673,6 +692,13 @@ fn skipped_images_are_listed_and_the_rest_estimated() {
         std::fs::copy(p, set.join(p.file_name().unwrap())).unwrap();
     }
     write(&set.join("broken.jpg"), &jpeg[..jpeg.len() / 3]);
+    // A link whose file moved away and a name that is not UTF-8 are skipped and listed too.
+    std::os::unix::fs::symlink(dir.join("moved-away.jpg"), set.join("dangling.jpg")).unwrap();
+    std::fs::copy(
+        &apple_files()[9],
+        set.join(std::ffi::OsStr::from_bytes(b"caf\xe9.jpg")),
+    )
+    .unwrap();
     let out = dir.join("out");
     let r = Command::new(env!("CARGO_BIN_EXE_posediff"))
         .args([
@@ -697,19 +723,20 @@ fn skipped_images_are_listed_and_the_rest_estimated() {
     let run: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("run.json")).unwrap()).unwrap();
     let skipped = run["skipped_images"].as_array().unwrap();
-    assert_eq!(skipped.len(), 1);
-    assert!(
-        skipped[0]["image"]
-            .as_str()
-            .unwrap()
-            .ends_with("broken.jpg")
-    );
-    assert!(
-        skipped[0]["reason"]
-            .as_str()
-            .unwrap()
-            .contains("truncated JPEG")
-    );
+    assert_eq!(skipped.len(), 3, "{skipped:?}");
+    for (name, reason) in [
+        ("broken.jpg", "truncated JPEG"),
+        ("dangling.jpg", "a symbolic link to a missing file"),
+        ("caf\u{fffd}.jpg", "not valid UTF-8"),
+    ] {
+        assert!(
+            skipped.iter().any(|s| {
+                s["image"].as_str().unwrap().ends_with(name)
+                    && s["reason"].as_str().unwrap().contains(reason)
+            }),
+            "{name}: {skipped:?}"
+        );
+    }
     let cams: Vec<serde_json::Value> =
         serde_json::from_str(&std::fs::read_to_string(out.join("cameras.json")).unwrap()).unwrap();
     assert_eq!(cams.len(), 8);

@@ -100,10 +100,16 @@ pub struct PairCount {
     pub matches: usize,
 }
 
+/// `path` as text, invalid UTF-8 replaced by U+FFFD.
+fn lossy_path<S: serde::Serializer>(path: &std::path::Path, s: S) -> Result<S::Ok, S::Error> {
+    s.serialize_str(&path.to_string_lossy())
+}
+
 /// An input image left out (`--skip-bad-images`).
 #[derive(Debug, Clone, Serialize)]
 pub struct SkippedImage {
-    /// The file.
+    /// The file (a path that is not UTF-8 written lossily: JSON cannot carry it).
+    #[serde(serialize_with = "lossy_path")]
     pub image: PathBuf,
     /// Why.
     pub reason: String,

@@ -37,7 +37,9 @@ pub fn image_files(folder: &Path) -> Result<Vec<PathBuf>> {
     let mut files: Vec<PathBuf> = entries
         .filter_map(|e| e.ok().map(|e| e.path()))
         .filter(|p| {
-            p.is_file()
+            // A link to a missing file is listed too, so that the check names it (a broken
+            // image is an error, or skipped and listed, never dropped unsaid).
+            (p.is_file() || p.is_symlink())
                 && p.extension()
                     .and_then(|e| e.to_str())
                     .is_some_and(|e| EXTENSIONS.contains(&e.to_ascii_lowercase().as_str()))
@@ -163,6 +165,18 @@ pub fn check_images(files: &[PathBuf]) -> (Vec<PathBuf>, Vec<(PathBuf, String)>)
     let verdicts: Vec<Option<String>> = files
         .par_iter()
         .map(|f| match std::fs::read(f) {
+            // Checked first: the outputs name every image in JSON and COLMAP's text files.
+            _ if f.to_str().is_none() => Some(
+                "its path is not valid UTF-8, which the outputs (JSON, COLMAP's text) cannot \
+                 name: rename it"
+                    .into(),
+            ),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound && f.is_symlink() => {
+                Some(std::fs::read_link(f).map_or_else(
+                    |_| "a symbolic link to a missing file".into(),
+                    |to| format!("a symbolic link to a missing file ({})", to.display()),
+                ))
+            }
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
                 Some("no such file or directory".into())
             }
