@@ -191,3 +191,115 @@ fn an_earlier_runs_link_is_replaced_never_written_through() {
     }
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// The result files of an output folder, by name (those that exist).
+fn results(out: &Path) -> Vec<(String, Vec<u8>)> {
+    [
+        "run.json",
+        "cameras.json",
+        "sparse/0/cameras.txt",
+        "sparse/0/images.txt",
+        "sparse/0/points3D.txt",
+        "transforms.json",
+        "sparse_pc.ply",
+        "pytorch3d.json",
+        "view.html",
+    ]
+    .iter()
+    .filter_map(|f| std::fs::read(out.join(f)).ok().map(|b| (f.to_string(), b)))
+    .collect()
+}
+
+/// A write that fails part-way (the viewer's thumbnails cannot be made) leaves the previous
+/// results byte for byte and nothing staged; a write that succeeds replaces them whole (a
+/// viewer the new run does not write is not left behind).
+#[test]
+fn a_failed_write_leaves_the_previous_results() {
+    let dir = posediff_fixtures::temp_dir("outputs-failed-write");
+    let (inputs, recon) = three_frames(&dir);
+    let out = dir.join("out");
+    let with_view = OutputOptions {
+        view: true,
+        ..OutputOptions::default()
+    };
+    write_outputs(&out, &recon, &inputs, &report(), &with_view, None).unwrap();
+    let before = results(&out);
+    assert!(before.iter().any(|(f, _)| f == "view.html"));
+    let mut short = inputs.clone();
+    short.files.pop();
+    let failed = write_outputs(&out, &recon, &short, &report(), &with_view, None);
+    assert!(failed.is_err(), "the thumbnails need every image");
+    assert_eq!(results(&out), before);
+    assert!(!out.join(".posediff-staging").exists());
+    write(&out, &recon, &inputs, ImagesMode::Link);
+    let after = results(&out);
+    assert!(
+        after.iter().all(|(f, _)| f != "view.html"),
+        "a stale viewer is left"
+    );
+    assert!(after.iter().any(|(f, _)| f == "run.json"));
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// Runs killed while they write (from the moment their staging folder appears, 0 to 6 ms on:
+/// the whole write and the renames take about 4 ms here) leave, once the next run's recovery
+/// has looked at the folder, one run's whole results: the earlier run's or the killed one's,
+/// never a mix of the two.
+#[test]
+fn a_run_killed_while_writing_leaves_one_runs_results() {
+    let dir = posediff_fixtures::temp_dir("outputs-killed");
+    let (inputs, _) = three_frames(&dir);
+    let images = inputs.folder.unwrap();
+    let run = |out: &Path, focal: &str| {
+        let mut c = std::process::Command::new(env!("CARGO_BIN_EXE_posediff"));
+        c.arg("estimate")
+            .arg(&images)
+            .args(["--focal-px", focal, "--quiet", "--out"])
+            .arg(out)
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null());
+        c
+    };
+    // The two runs' results, each written alone.
+    let (ref_a, ref_b) = (dir.join("a"), dir.join("b"));
+    assert!(run(&ref_a, "900").status().unwrap().success());
+    assert!(run(&ref_b, "1400").status().unwrap().success());
+    let (a, b) = (results(&ref_a), results(&ref_b));
+    let same = |x: &[(String, Vec<u8>)], y: &[(String, Vec<u8>)]| {
+        // run.json has the run's times: present in both, the rest byte for byte.
+        x.len() == y.len()
+            && x.iter()
+                .zip(y)
+                .all(|(p, q)| p.0 == q.0 && (p.0 == "run.json" || p.1 == q.1))
+    };
+    assert!(!same(&a, &b), "the two runs must differ");
+    let out = dir.join("out");
+    assert!(run(&out, "900").status().unwrap().success());
+    let staging = out.join(".posediff-staging");
+    let mut caught = 0;
+    for k in 0..12 {
+        let mut child = run(&out, if k % 2 == 0 { "1400" } else { "900" })
+            .spawn()
+            .unwrap();
+        while !staging.exists() && child.try_wait().unwrap().is_none() {
+            std::thread::sleep(std::time::Duration::from_micros(100));
+        }
+        std::thread::sleep(std::time::Duration::from_micros(500 * k));
+        let _ = child.kill();
+        child.wait().unwrap();
+        caught += usize::from(staging.exists() || out.join(".posediff-previous").exists());
+        posediff::io::outputs::recover(&out).unwrap();
+        let now = results(&out);
+        assert!(
+            same(&now, &a) || same(&now, &b),
+            "kill {k}: {:?}",
+            now.iter().map(|(f, _)| f).collect::<Vec<_>>()
+        );
+    }
+    // The kills did land while the results were being written (the check could fail).
+    assert!(
+        caught >= 3,
+        "only {caught} of 12 kills caught a run writing"
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}

@@ -10,8 +10,15 @@
 //!   sparse_pc.ply         the points in transforms.json's world
 //!   pytorch3d.json        the official model's convention
 //!   view.html             the 3-D viewer
+//!   undistorted/          with --undistort: photos on pinhole cameras, a PINHOLE model
 //!   run.json              options, stage times, reports, warnings
 //! ```
+//!
+//! The results are written whole or not at all: into `out/.posediff-staging/` first, then
+//! moved into place by renames ([`RESULTS`]: the previous run's entries moved aside first,
+//! run.json last, so a folder with run.json holds one run's results). A run that fails or is
+//! killed while writing leaves the previous results; one killed between those renames
+//! (microseconds) is rolled back to them by the next run before it does any work.
 
 use std::path::{Path, PathBuf};
 
@@ -109,6 +116,8 @@ pub fn prepare_output_dir(out: &Path, inputs: &InputImages, mode: ImagesMode) ->
         path: out.to_owned(),
         source,
     })?;
+    // What an interrupted run left is undone before anything else.
+    recover(out)?;
     let probe = out.join(".posediff-write-test");
     std::fs::write(&probe, b"").map_err(|source| PosediffError::Write {
         path: probe.clone(),
@@ -273,12 +282,134 @@ pub fn write_outputs(
         path: out.to_owned(),
         source,
     })?;
+    recover(out)?;
+    let staging = out.join(STAGING);
+    std::fs::create_dir_all(&staging).map_err(|source| PosediffError::Write {
+        path: staging.clone(),
+        source,
+    })?;
+    let written = match write_results(out, &staging, r, inputs, run, options, thumbnails_made) {
+        Ok(w) => w,
+        Err(e) => {
+            let _ = std::fs::remove_dir_all(&staging);
+            return Err(e);
+        }
+    };
+    commit(out, &staging)?;
+    Ok(written)
+}
+
+/// Where a run's results are written before they are moved into `out`.
+const STAGING: &str = ".posediff-staging";
+/// Where the previous run's results wait while the new ones are moved in.
+const PREVIOUS: &str = ".posediff-previous";
+/// Every result entry a run may write (relative to `out`), in the order they are moved aside:
+/// run.json first (the folder then no longer claims a result), and moved in last. `images` is
+/// not among them: it is the input, made before the results.
+pub const RESULTS: [&str; 8] = [
+    "run.json",
+    "cameras.json",
+    "sparse/0",
+    "transforms.json",
+    "sparse_pc.ply",
+    "pytorch3d.json",
+    "view.html",
+    "undistorted",
+];
+
+fn rename(from: &Path, to: &Path) -> Result<()> {
+    if let Some(parent) = to.parent() {
+        std::fs::create_dir_all(parent).map_err(|source| PosediffError::Write {
+            path: parent.to_owned(),
+            source,
+        })?;
+    }
+    std::fs::rename(from, to).map_err(|source| PosediffError::Write {
+        path: to.to_owned(),
+        source,
+    })
+}
+
+fn remove(path: &Path) -> Result<()> {
+    let gone = match std::fs::symlink_metadata(path) {
+        Err(_) => Ok(()),
+        Ok(m) if m.is_dir() => std::fs::remove_dir_all(path),
+        Ok(_) => std::fs::remove_file(path),
+    };
+    gone.map_err(|source| PosediffError::Write {
+        path: path.to_owned(),
+        source,
+    })
+}
+
+fn exists(path: &Path) -> bool {
+    std::fs::symlink_metadata(path).is_ok()
+}
+
+/// Moves the staged results into `out`: the previous ones aside (run.json first), the new ones
+/// in (run.json last), then the previous ones and the staging folder removed.
+fn commit(out: &Path, staging: &Path) -> Result<()> {
+    let previous = out.join(PREVIOUS);
+    remove(&previous)?;
+    for entry in RESULTS {
+        if exists(&out.join(entry)) {
+            rename(&out.join(entry), &previous.join(entry))?;
+        }
+    }
+    for entry in RESULTS.iter().rev() {
+        if exists(&staging.join(entry)) {
+            rename(&staging.join(entry), &out.join(entry))?;
+        }
+    }
+    remove(&previous)?;
+    remove(staging)
+}
+
+/// Undoes what an interrupted run left in `out`: its staging folder, and, when it was killed
+/// while moving results in (no run.json in place), the new entries moved so far, the previous
+/// results put back.
+///
+/// # Errors
+/// I/O errors naming the path.
+pub fn recover(out: &Path) -> Result<()> {
+    remove(&out.join(STAGING))?;
+    let previous = out.join(PREVIOUS);
+    if !exists(&previous) {
+        return Ok(());
+    }
+    if !exists(&out.join("run.json")) {
+        log::warn!(
+            "{}: a run was interrupted while moving its results in; the previous results are \
+             put back",
+            out.display()
+        );
+        for entry in RESULTS {
+            remove(&out.join(entry))?;
+            if exists(&previous.join(entry)) {
+                rename(&previous.join(entry), &out.join(entry))?;
+            }
+        }
+    }
+    remove(&previous)
+}
+
+/// The results of `r` written into `stage` (and `out/images` made in `out`): what
+/// [`write_outputs`] then moves into `out`.
+fn write_results(
+    out: &Path,
+    stage: &Path,
+    r: &Reconstruction,
+    inputs: &InputImages,
+    run: &crate::estimate::run_report::RunReport,
+    options: &OutputOptions,
+    thumbnails_made: Option<&[Option<Vec<u8>>]>,
+) -> Result<Written> {
     let mut files = vec!["cameras.json".to_owned()];
     let entries: Vec<_> = r.images.iter().map(|i| i.camera.clone()).collect();
-    write_cameras_json_partial(&out.join("cameras.json"), &entries)?;
+    write_cameras_json_partial(&stage.join("cameras.json"), &entries)?;
     let model = ColmapModel::from_reconstruction(r)?;
     if options.colmap {
-        model.write(&out.join("sparse").join("0"), options.colmap_format)?;
+        model.write(&stage.join("sparse").join("0"), options.colmap_format)?;
         files.push("sparse/0".into());
     }
     if options.images != ImagesMode::None && (options.colmap || options.nerfstudio) {
@@ -287,7 +418,7 @@ pub fn write_outputs(
     }
     if options.nerfstudio {
         write_ply(
-            &out.join("sparse_pc.ply"),
+            &stage.join("sparse_pc.ply"),
             &r.points,
             &nerfstudio_applied_transform(),
         )?;
@@ -313,12 +444,12 @@ pub fn write_outputs(
                 })
             })
             .collect();
-        write_nerfstudio(&out.join("transforms.json"), &nerf, Some("sparse_pc.ply"))?;
+        write_nerfstudio(&stage.join("transforms.json"), &nerf, Some("sparse_pc.ply"))?;
         files.push("transforms.json".into());
     }
     if options.undistort && r.images.iter().any(|i| i.camera.lens.is_some()) {
         crate::io::undistort::write_undistorted(
-            &out.join("undistorted"),
+            &stage.join("undistorted"),
             r,
             &inputs.files,
             options.colmap_format,
@@ -326,7 +457,7 @@ pub fn write_outputs(
         files.push("undistorted".into());
     }
     if options.pytorch3d {
-        write_pytorch3d(&out.join("pytorch3d.json"), &entries)?;
+        write_pytorch3d(&stage.join("pytorch3d.json"), &entries)?;
         files.push("pytorch3d.json".into());
     }
     if options.view {
@@ -336,7 +467,7 @@ pub fn write_outputs(
         };
         let title = set_title(inputs.folder.as_deref());
         let html = crate::io::viewer::render(&title, r, &thumbs, None)?;
-        let path = out.join("view.html");
+        let path = stage.join("view.html");
         std::fs::write(&path, html).map_err(|source| PosediffError::Write { path, source })?;
         files.push("view.html".into());
     }
@@ -349,7 +480,7 @@ pub fn write_outputs(
     };
     let mut run = run.clone();
     run.outputs = Some(written.clone());
-    let path = out.join("run.json");
+    let path = stage.join("run.json");
     std::fs::write(&path, serde_json::to_string_pretty(&run)?)
         .map_err(|source| PosediffError::Write { path, source })?;
     Ok(written)
