@@ -129,6 +129,34 @@ pub struct ImageFeatures {
     pub half_turned: bool,
 }
 
+impl ImageFeatures {
+    /// Keeps the keypoints (and their descriptors) for which `keep` holds; returns how many
+    /// were dropped.
+    pub fn retain(&mut self, keep: impl Fn([f64; 2]) -> bool) -> usize {
+        let flags: Vec<bool> = self.keypoints.iter().map(|p| keep(*p)).collect();
+        let before = self.keypoints.len();
+        let mut k = 0;
+        self.keypoints.retain(|_| {
+            k += 1;
+            flags[k - 1]
+        });
+        match &mut self.descriptors {
+            Descriptors::Float { data, dim } => keep_rows(data, *dim, &flags),
+            Descriptors::Binary { data, words } => keep_rows(data, *words, &flags),
+        }
+        before - self.keypoints.len()
+    }
+}
+
+/// Keeps the rows (of `width` values) of `data` whose flag is set.
+fn keep_rows<T: Copy>(data: &mut Vec<T>, width: usize, flags: &[bool]) {
+    let mut out = Vec::with_capacity(data.len());
+    for (row, _) in flags.iter().enumerate().filter(|(_, f)| **f) {
+        out.extend_from_slice(&data[row * width..(row + 1) * width]);
+    }
+    *data = out;
+}
+
 /// Maps a keypoint of an image resized by `scale = (sx, sy)` back to the original image: pixel
 /// centres, not pixel corners, scale, so `x ↦ (x + 0.5)/s − 0.5`.
 pub fn to_original_pixels(kp: [f64; 2], scale: [f64; 2]) -> [f64; 2] {

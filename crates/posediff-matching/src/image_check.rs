@@ -141,6 +141,39 @@ fn png_problem(b: &[u8], offset: usize) -> Option<String> {
     }
 }
 
+/// The `(width, height)` a JPEG's frame header or a PNG's IHDR states, from the bytes alone
+/// (before any EXIF orientation); `None` for anything else or a header that is not whole.
+pub fn header_size(b: &[u8]) -> Option<(u32, u32)> {
+    if b.starts_with(b"\x89PNG\r\n\x1a\n") && b.get(12..16) == Some(b"IHDR") {
+        let be = |at: usize| Some(u32::from_be_bytes(b.get(at..at + 4)?.try_into().ok()?));
+        return Some((be(16)?, be(20)?));
+    }
+    if !b.starts_with(&[0xFF, 0xD8]) {
+        return None;
+    }
+    let mut at = 2;
+    loop {
+        while *b.get(at)? == 0xFF {
+            at += 1;
+        }
+        let code = *b.get(at)?;
+        at += 1;
+        if matches!(code, 0x01 | 0xD0..=0xD7) {
+            continue;
+        }
+        if matches!(code, 0xD9 | 0xDA) {
+            return None;
+        }
+        let len = usize::from(u16::from_be_bytes([*b.get(at)?, *b.get(at + 1)?]));
+        if matches!(code, 0xC0..=0xCF) && !matches!(code, 0xC4 | 0xC8 | 0xCC) {
+            let h = u16::from_be_bytes([*b.get(at + 3)?, *b.get(at + 4)?]);
+            let w = u16::from_be_bytes([*b.get(at + 5)?, *b.get(at + 6)?]);
+            return Some((u32::from(w), u32::from(h)));
+        }
+        at += len;
+    }
+}
+
 /// Whether the file starts like a JPEG or a PNG.
 pub fn is_jpeg_or_png(path: &Path) -> bool {
     use std::io::Read;

@@ -559,6 +559,68 @@ impl Correspondences for LearnedCorrespondences<'_> {
     }
 }
 
+/// A matcher whose features leave out the keypoints on masked pixels
+/// ([`posediff_matching::mask::apply_mask`]); matching itself is the inner matcher's.
+pub struct Masked<'a> {
+    /// The matcher.
+    pub inner: Box<dyn Correspondences + 'a>,
+    /// Each masked image's mask, by the image's path.
+    pub masks: &'a std::collections::HashMap<PathBuf, PathBuf>,
+}
+
+impl Masked<'_> {
+    fn mask<'p>(
+        &self,
+        images: impl IntoIterator<Item = &'p Path>,
+        features: &mut [ImageFeatures],
+    ) -> Result<()> {
+        use rayon::prelude::*;
+        let paths: Vec<&Path> = images.into_iter().collect();
+        features
+            .par_iter_mut()
+            .zip(paths)
+            .try_for_each(|(f, path)| match self.masks.get(path) {
+                Some(mask) => posediff_matching::mask::apply_mask(f, mask).map(|_| ()),
+                None => Ok(()),
+            })?;
+        Ok(())
+    }
+}
+
+impl Correspondences for Masked<'_> {
+    fn extract(&self, images: &[PathBuf], counter: &dyn StepCounter) -> Result<Vec<ImageFeatures>> {
+        let mut features = self.inner.extract(images, counter)?;
+        self.mask(images.iter().map(PathBuf::as_path), &mut features)?;
+        Ok(features)
+    }
+
+    fn match_pairs(
+        &self,
+        features: &[ImageFeatures],
+        pairs: &[(usize, usize)],
+        stage: (&dyn StepCounter, &str),
+    ) -> Result<Vec<PairMatches>> {
+        self.inner.match_pairs(features, pairs, stage)
+    }
+
+    fn depends_on_orientation(&self) -> bool {
+        self.inner.depends_on_orientation()
+    }
+
+    fn extract_turned(
+        &self,
+        images: &[&Path],
+        counter: &dyn StepCounter,
+    ) -> Result<Option<Vec<ImageFeatures>>> {
+        let Some(mut features) = self.inner.extract_turned(images, counter)? else {
+            return Ok(None);
+        };
+        // Turned features keep their keypoints in the image's own pixels: the mask applies.
+        self.mask(images.iter().copied(), &mut features)?;
+        Ok(Some(features))
+    }
+}
+
 /// The matcher the options ask for: `learned` when given, else OpenCV's with `config`.
 pub fn correspondences<'a>(
     config: &'a MatchConfig,

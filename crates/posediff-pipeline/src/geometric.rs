@@ -64,6 +64,9 @@ pub struct GeometricConfig {
     /// What the files say of each image's camera (EXIF, folder), one per image; empty when
     /// nothing is known. They decide the camera groups and focal priors of `cameras.mode`.
     pub hints: Vec<CameraHint>,
+    /// Each masked image's mask file (COLMAP's: zero = ignore), by the image's path: its
+    /// keypoints on masked pixels are dropped after every extraction, before any matching.
+    pub masks: HashMap<PathBuf, PathBuf>,
 }
 
 /// The second matching pass as it runs ([`crate::options::DensifyOptions`] has
@@ -96,6 +99,7 @@ impl Default for GeometricConfig {
             intrinsics: KnownIntrinsics::Unknown,
             learned: None,
             hints: Vec::new(),
+            masks: HashMap::new(),
         }
     }
 }
@@ -137,7 +141,16 @@ impl GeometricConfig {
 
     /// The matcher the options ask for ([`crate::correspondences::correspondences`]).
     pub fn correspondences(&self) -> Box<dyn Correspondences + '_> {
-        crate::correspondences::correspondences(&self.options.matching, self.learned.as_ref())
+        let inner =
+            crate::correspondences::correspondences(&self.options.matching, self.learned.as_ref());
+        if self.masks.is_empty() {
+            inner
+        } else {
+            Box::new(crate::correspondences::Masked {
+                inner,
+                masks: &self.masks,
+            })
+        }
     }
 
     /// The mapper's options for this refinement.

@@ -611,7 +611,7 @@ struct Call {
 }
 
 /// The options `estimate` takes as keywords (the CLI's flags).
-const OPTION_NAMES: [&str; 15] = [
+const OPTION_NAMES: [&str; 16] = [
     "config",
     "options",
     "focal_px",
@@ -627,6 +627,7 @@ const OPTION_NAMES: [&str; 15] = [
     "ggs",
     "skip_bad_images",
     "names",
+    "masks",
 ];
 
 /// One keyword of `options`, or its default.
@@ -773,6 +774,7 @@ fn call_options(options: Option<&Bound<'_, PyDict>>) -> PyResult<Call> {
         samples,
         ggs,
         thumbnail_side: None,
+        masks: option::<Option<PathBuf>>(options, "masks", None)?,
     };
     options.check().map_err(py_err)?;
     Ok(Call {

@@ -928,3 +928,142 @@ fn a_synthetic_wide_angle_lens_is_recovered() {
     }
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// `--masks` (COLMAP's naming, zero = ignore), with SIFT and ORB: no keypoint of a masked image
+/// lies on its masked left third (COLMAP's 2-D points: every keypoint in a verified match),
+/// where without masks there are many; the image without a mask is listed in run.json; a mask
+/// of the wrong size is an error that names it before any work.
+#[test]
+fn masked_pixels_give_no_keypoints() {
+    let dir = posediff_fixtures::temp_dir("geometric-masks");
+    let (images, _) = set("co3d_apple_posediffusion");
+    let input = dir.join("in");
+    let masks = dir.join("masks");
+    std::fs::create_dir_all(&input).unwrap();
+    std::fs::create_dir_all(&masks).unwrap();
+    let mut width = 0;
+    for (k, image) in images.iter().take(8).enumerate() {
+        let name = image.file_name().unwrap().to_string_lossy().into_owned();
+        std::fs::copy(image, input.join(&name)).unwrap();
+        let img =
+            opencv::imgcodecs::imread(image.to_str().unwrap(), opencv::imgcodecs::IMREAD_GRAYSCALE)
+                .unwrap();
+        width = img.cols();
+        if k == 7 {
+            continue; // no mask: used whole
+        }
+        let mut mask = Mat::new_rows_cols_with_default(
+            img.rows(),
+            img.cols(),
+            opencv::core::CV_8UC1,
+            opencv::core::Scalar::all(255.0),
+        )
+        .unwrap();
+        let third = opencv::core::Rect::new(0, 0, img.cols() / 3, img.rows());
+        Mat::roi_mut(&mut mask, third)
+            .unwrap()
+            .set_to_def(&opencv::core::Scalar::all(0.0))
+            .unwrap();
+        let path = masks.join(format!("{name}.png"));
+        opencv::imgcodecs::imwrite_def(path.to_str().unwrap(), &mask).unwrap();
+    }
+    let edge = f64::from(width / 3) - 0.5;
+    let unmasked = images[7]
+        .file_name()
+        .unwrap()
+        .to_string_lossy()
+        .into_owned();
+    // Keypoints on the left third of the images that get masks, per run.
+    let left_of_masked = |out: &Path| -> Vec<usize> {
+        let model = posediff::io::colmap::ColmapModel::read(&out.join("sparse/0")).unwrap();
+        model
+            .images
+            .iter()
+            .filter(|im| im.name != unmasked)
+            .map(|im| {
+                im.points2d
+                    .iter()
+                    .filter(|(xy, _)| xy[0] - 0.5 < edge)
+                    .count()
+            })
+            .collect()
+    };
+    for matcher in ["sift", "orb"] {
+        let out = dir.join(format!("out-{matcher}"));
+        let args = |masked: bool, out: &Path| -> Vec<OsString> {
+            let mut a: Vec<OsString> = vec![
+                "estimate".into(),
+                input.clone().into(),
+                "--matcher".into(),
+                matcher.into(),
+                "--no-view".into(),
+                "--quiet".into(),
+                "--out".into(),
+                out.into(),
+            ];
+            if masked {
+                a.extend(["--masks".into(), masks.clone().into()]);
+            }
+            a
+        };
+        let plain = dir.join(format!("plain-{matcher}"));
+        let r = Command::new(env!("CARGO_BIN_EXE_posediff"))
+            .args(args(false, &plain))
+            .output()
+            .unwrap();
+        assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+        let without: usize = left_of_masked(&plain).iter().sum();
+        assert!(
+            without > 50,
+            "{matcher}: only {without} keypoints there without masks"
+        );
+        let r = Command::new(env!("CARGO_BIN_EXE_posediff"))
+            .args(args(true, &out))
+            .output()
+            .unwrap();
+        assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+        let run: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("run.json")).unwrap()).unwrap();
+        assert_eq!(run["masks"]["masked"], 7, "{matcher}");
+        assert_eq!(run["masks"]["missing"], serde_json::json!([unmasked]));
+        let with: Vec<usize> = left_of_masked(&out);
+        assert!(
+            with.iter().all(|n| *n == 0),
+            "{matcher}: masked keypoints {with:?}"
+        );
+    }
+    // A mask of another size: named before any work.
+    let small = Mat::new_rows_cols_with_default(
+        10,
+        10,
+        opencv::core::CV_8UC1,
+        opencv::core::Scalar::all(255.0),
+    )
+    .unwrap();
+    let name = images[7]
+        .file_name()
+        .unwrap()
+        .to_string_lossy()
+        .into_owned();
+    let wrong = masks.join(format!("{name}.png"));
+    opencv::imgcodecs::imwrite_def(wrong.to_str().unwrap(), &small).unwrap();
+    let run = posediff(
+        [
+            "estimate".into(),
+            input.into(),
+            "--masks".into(),
+            masks.into(),
+            "--out".into(),
+            dir.join("out-wrong").into(),
+        ],
+        false,
+    );
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert!(!run.status.success());
+    assert!(
+        stderr.contains("the mask is 10x10") && stderr.contains(&name),
+        "{stderr}"
+    );
+    assert!(!dir.join("out-wrong/cameras.json").exists());
+    std::fs::remove_dir_all(&dir).unwrap();
+}

@@ -77,6 +77,7 @@ class EstimateOptions(TypedDict, total=False):
     ggs: bool
     skip_bad_images: bool
     names: Sequence[str]
+    masks: "Union[str, PathLike[str]]"
 
 
 class _Bars:
@@ -127,7 +128,8 @@ def estimate(images: Any, *, weights: Any = None, device: str = "cpu",
     ``"disk-lightglue"``), ``weights_dir`` (the learned matcher's
     weights, from ``cargo xtask weights``), ``pairs`` (``"auto"``, ``"exhaustive"``, ``"sequential:K"``,
     ``"retrieval:K"``), ``samples``, ``seed``, ``ggs``, ``device`` (``"cpu"``, ``"cuda"``),
-    ``skip_bad_images``; the pipeline's options tree (run.json's ``options``) from ``config``
+    ``skip_bad_images``, ``masks`` (a folder of COLMAP-named masks, ``<image name>.png``, zero =
+    ignore); the pipeline's options tree (run.json's ``options``) from ``config``
     (a TOML or JSON file, the CLI's ``--config``) and ``options`` (``{"orientation.strong_pair":
     100}``, the CLI's ``--set``). ``progress``: ``True`` for tqdm bars when tqdm is installed, ``False``,
     or a callable ``(stage, done, total, finished)``.

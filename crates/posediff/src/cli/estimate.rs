@@ -136,6 +136,10 @@ pub struct Args {
     /// instead of stopping.
     #[arg(long)]
     skip_bad_images: bool,
+    /// A folder of masks named as COLMAP's (`<image name>.png`, zero = ignore): keypoints on
+    /// masked pixels are dropped before matching; an image without a mask is used whole.
+    #[arg(long)]
+    masks: Option<PathBuf>,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -258,6 +262,7 @@ impl Args {
             pipeline,
             matcher: self.matcher.into(),
             weights_dir: self.weights_dir.clone(),
+            masks: self.masks.clone(),
             seed: self.seed,
             samples: self.samples,
             ggs: !self.no_ggs,

@@ -25,8 +25,8 @@ use crate::estimate::geometric::{
 };
 use crate::estimate::options::PipelineOptions;
 use crate::estimate::run_report::{
-    MethodReport, NetworkReport, NetworkSeconds, PairCount, PointsSummary, RunReport, SampleSpread,
-    SkippedImage, Warning,
+    MasksReport, MethodReport, NetworkReport, NetworkSeconds, PairCount, PointsSummary, RunReport,
+    SampleSpread, SkippedImage, Warning,
 };
 use crate::io::exif::{ExifCamera, read_exif};
 use crate::io::export::{ImageCamera, read_cameras_json_partial};
@@ -214,6 +214,8 @@ pub struct RunOptions {
     /// Longer side of the viewer's thumbnails, made from the same decode as the colours
     /// (`None`: no thumbnails now; the writer makes them when it needs them).
     pub thumbnail_side: Option<u32>,
+    /// `--masks`: a folder of masks named as COLMAP's (`<image name>.png`, zero = ignore).
+    pub masks: Option<PathBuf>,
 }
 
 impl Default for RunOptions {
@@ -230,6 +232,7 @@ impl Default for RunOptions {
             samples: 1,
             ggs: true,
             thumbnail_side: None,
+            masks: None,
         }
     }
 }
@@ -274,6 +277,14 @@ impl RunOptions {
         }
         if let Some(extractor) = self.matcher.extractor_weights() {
             learned_weight_files(&self.learned_weights_dir(), extractor)?;
+        }
+        if let Some(dir) = &self.masks
+            && !dir.is_dir()
+        {
+            return Err(PosediffError::InvalidArgument(format!(
+                "--masks {}: not a folder (give the folder of <image name>.png masks)",
+                dir.display()
+            )));
         }
         Ok(())
     }
@@ -321,8 +332,67 @@ impl RunOptions {
             options,
             learned: None,
             hints: Vec::new(),
+            masks: HashMap::new(),
         }
     }
+}
+
+/// The mask of each image in `dir` (COLMAP's naming: `<image name>.png`), checked before any
+/// work: each one a whole JPEG or PNG of its image's size. Images without one are listed (used
+/// whole, as COLMAP does).
+///
+/// # Errors
+/// A broken or unreadable mask, or one of another size than its image (both named).
+pub fn mask_files(
+    dir: &Path,
+    files: &[PathBuf],
+    names: &[String],
+) -> Result<(HashMap<PathBuf, PathBuf>, MasksReport)> {
+    use posediff_matching::image_check::{header_size, image_problem};
+    let mut masks = HashMap::new();
+    let mut missing = Vec::new();
+    for (file, name) in files.iter().zip(names) {
+        let mask = dir.join(format!("{name}.png"));
+        if !mask.exists() {
+            missing.push(name.clone());
+            continue;
+        }
+        let bytes = std::fs::read(&mask).map_err(|source| PosediffError::Read {
+            path: mask.clone(),
+            source,
+        })?;
+        if let Some(why) = image_problem(&bytes) {
+            return Err(PosediffError::invalid(
+                &mask,
+                format!("unusable mask: {why}"),
+            ));
+        }
+        let image = std::fs::read(file).map_err(|source| PosediffError::Read {
+            path: file.clone(),
+            source,
+        })?;
+        let (m, i) = (header_size(&bytes), header_size(&image));
+        // An EXIF-turned photo decodes with its sides swapped: either way round is checked
+        // here, the decoded sizes again when the mask is applied.
+        if m.is_none() || i.is_none() || (m != i && m != i.map(|(w, h)| (h, w))) {
+            return Err(PosediffError::invalid(
+                &mask,
+                format!(
+                    "the mask is {} but {} is {}: a mask has its image's size",
+                    m.map_or("of unknown size".into(), |(w, h)| format!("{w}x{h}")),
+                    file.display(),
+                    i.map_or("of unknown size".into(), |(w, h)| format!("{w}x{h}")),
+                ),
+            ));
+        }
+        masks.insert(file.clone(), mask);
+    }
+    let report = MasksReport {
+        folder: dir.to_owned(),
+        masked: masks.len(),
+        missing,
+    };
+    Ok((masks, report))
 }
 
 /// A loaded checkpoint for [`run`], with what run.json says of it.
@@ -452,6 +522,21 @@ pub fn run(
         }
     };
     let mut geometric = options.geometric_config(&known);
+    let masks = match &options.masks {
+        Some(dir) => {
+            if network.is_some() {
+                return Err(PosediffError::InvalidArgument(
+                    "--masks is not applied with --weights yet (GGS's matching ignores it): \
+                     run without --weights, or without --masks"
+                        .into(),
+                ));
+            }
+            let (masks, report) = mask_files(dir, files, names)?;
+            geometric.masks = masks;
+            Some(report)
+        }
+        None => None,
+    };
     if matches!(known, KnownIntrinsics::Unknown) {
         geometric.hints = camera_hints(files, names)?;
     }
@@ -518,6 +603,7 @@ pub fn run(
     report.init = options.init.as_ref().map(ToString::to_string);
     report.matcher = needs_matches.then(|| options.matcher.as_str());
     report.skipped_images = inputs.skipped.clone();
+    report.masks = masks;
     report.warnings = warnings;
     let point_options = PointOptions::default();
     let (mut reconstruction, points) =

@@ -190,8 +190,23 @@ pub struct RunReport {
     pub points: Option<PointsSummary>,
     /// Things the user should know.
     pub warnings: Vec<Warning>,
+    /// `--masks`: the folder, how many images it masks, those it has no mask for.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub masks: Option<MasksReport>,
     /// What was written (filled by [`crate::io::outputs::write_outputs`]).
     pub outputs: Option<Written>,
+}
+
+/// run.json's `masks`.
+#[derive(Debug, Clone, Serialize)]
+pub struct MasksReport {
+    /// The mask folder.
+    #[serde(serialize_with = "lossy_path")]
+    pub folder: PathBuf,
+    /// Images with a mask.
+    pub masked: usize,
+    /// Images without one (as COLMAP: used whole).
+    pub missing: Vec<String>,
 }
 
 impl RunReport {
@@ -209,6 +224,7 @@ impl RunReport {
             matches_per_pair: Vec::new(),
             points: None,
             warnings: Vec::new(),
+            masks: None,
             outputs: None,
         }
     }
