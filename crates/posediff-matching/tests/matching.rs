@@ -179,3 +179,32 @@ fn a_featureless_image_has_no_matches_and_bad_input_is_named() {
     ));
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// The size a JPEG's or PNG's header states is the size OpenCV decodes, on every shared image
+/// (JPEG and PNG), and anything else has none.
+#[test]
+fn header_sizes_are_the_decoded_sizes() {
+    use opencv::prelude::*;
+    use posediff_matching::image_check::{decode, header_size};
+    let mut checked = 0;
+    for set in [
+        "strecha_fountainP11",
+        "middlebury_templeSR",
+        "co3d_apple_posediffusion",
+    ] {
+        for (path, _) in dataset(set).0.iter().zip(0..3) {
+            let bytes = std::fs::read(path).unwrap();
+            let m = decode(path, opencv::imgcodecs::IMREAD_COLOR).unwrap();
+            assert_eq!(
+                header_size(&bytes),
+                Some((m.cols() as u32, m.rows() as u32)),
+                "{}",
+                path.display()
+            );
+            checked += 1;
+        }
+    }
+    assert_eq!(checked, 9);
+    assert_eq!(header_size(b"GIF89a"), None);
+    assert_eq!(header_size(&[0xFF, 0xD8, 0xFF, 0xD9]), None);
+}
