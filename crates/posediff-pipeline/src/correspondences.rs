@@ -559,38 +559,33 @@ impl Correspondences for LearnedCorrespondences<'_> {
     }
 }
 
-/// A matcher whose features leave out the keypoints on masked pixels
-/// ([`posediff_matching::mask::apply_mask`]); matching itself is the inner matcher's.
-pub struct Masked<'a> {
+/// A change made to one image's features (found by the image's path) after every extraction.
+pub type AdjustFeatures<'a> = dyn Fn(&Path, &mut ImageFeatures) -> Result<()> + Sync + 'a;
+
+/// A matcher whose features, upright and turned, pass through `adjust` after every extraction
+/// (masks: [`posediff_matching::mask::apply_mask`]; the lens's undistortion); matching itself
+/// is the inner matcher's.
+pub struct Adjusted<'a> {
     /// The matcher.
     pub inner: Box<dyn Correspondences + 'a>,
-    /// Each masked image's mask, by the image's path.
-    pub masks: &'a std::collections::HashMap<PathBuf, PathBuf>,
+    /// The change, per image.
+    pub adjust: Box<AdjustFeatures<'a>>,
 }
 
-impl Masked<'_> {
-    fn mask<'p>(
-        &self,
-        images: impl IntoIterator<Item = &'p Path>,
-        features: &mut [ImageFeatures],
-    ) -> Result<()> {
+impl Adjusted<'_> {
+    fn apply(&self, paths: Vec<&Path>, features: &mut [ImageFeatures]) -> Result<()> {
         use rayon::prelude::*;
-        let paths: Vec<&Path> = images.into_iter().collect();
         features
             .par_iter_mut()
             .zip(paths)
-            .try_for_each(|(f, path)| match self.masks.get(path) {
-                Some(mask) => posediff_matching::mask::apply_mask(f, mask).map(|_| ()),
-                None => Ok(()),
-            })?;
-        Ok(())
+            .try_for_each(|(f, path)| (self.adjust)(path, f))
     }
 }
 
-impl Correspondences for Masked<'_> {
+impl Correspondences for Adjusted<'_> {
     fn extract(&self, images: &[PathBuf], counter: &dyn StepCounter) -> Result<Vec<ImageFeatures>> {
         let mut features = self.inner.extract(images, counter)?;
-        self.mask(images.iter().map(PathBuf::as_path), &mut features)?;
+        self.apply(images.iter().map(PathBuf::as_path).collect(), &mut features)?;
         Ok(features)
     }
 
@@ -615,9 +610,37 @@ impl Correspondences for Masked<'_> {
         let Some(mut features) = self.inner.extract_turned(images, counter)? else {
             return Ok(None);
         };
-        // Turned features keep their keypoints in the image's own pixels: the mask applies.
-        self.mask(images.iter().copied(), &mut features)?;
+        // Turned features keep their keypoints in the image's own pixels.
+        self.apply(images.to_vec(), &mut features)?;
         Ok(Some(features))
+    }
+}
+
+/// A borrowed matcher is a matcher (to wrap one without owning it).
+impl<T: Correspondences + ?Sized> Correspondences for &T {
+    fn extract(&self, images: &[PathBuf], counter: &dyn StepCounter) -> Result<Vec<ImageFeatures>> {
+        (**self).extract(images, counter)
+    }
+
+    fn match_pairs(
+        &self,
+        features: &[ImageFeatures],
+        pairs: &[(usize, usize)],
+        stage: (&dyn StepCounter, &str),
+    ) -> Result<Vec<PairMatches>> {
+        (**self).match_pairs(features, pairs, stage)
+    }
+
+    fn depends_on_orientation(&self) -> bool {
+        (**self).depends_on_orientation()
+    }
+
+    fn extract_turned(
+        &self,
+        images: &[&Path],
+        counter: &dyn StepCounter,
+    ) -> Result<Option<Vec<ImageFeatures>>> {
+        (**self).extract_turned(images, counter)
     }
 }
 

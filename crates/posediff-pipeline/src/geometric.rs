@@ -22,7 +22,7 @@ use posediff_sfm::{CameraPose, GlobalMapper, ImageIntrinsics, MapperOptions, Sfm
 
 pub use crate::bundle_refine::{BundleRefinement, bundle_refine_cameras};
 use crate::correspondences::{
-    Correspondences, NoCounter, SharedLearned, StepCounter, descriptor_support,
+    Adjusted, Correspondences, NoCounter, SharedLearned, StepCounter, descriptor_support,
 };
 use crate::error::{PosediffError, Result};
 pub use crate::ggs::{model_frame_matches, official_ggs};
@@ -144,13 +144,15 @@ impl GeometricConfig {
         let inner =
             crate::correspondences::correspondences(&self.options.matching, self.learned.as_ref());
         if self.masks.is_empty() {
-            inner
-        } else {
-            Box::new(crate::correspondences::Masked {
-                inner,
-                masks: &self.masks,
-            })
+            return inner;
         }
+        Box::new(crate::correspondences::Adjusted {
+            inner,
+            adjust: Box::new(|path, features| match self.masks.get(path) {
+                Some(mask) => Ok(posediff_matching::mask::apply_mask(features, mask).map(|_| ())?),
+                None => Ok(()),
+            }),
+        })
     }
 
     /// The mapper's options for this refinement.
@@ -309,64 +311,6 @@ impl RadialLens {
     }
 }
 
-/// A matcher whose new features come undistorted (the turned retry's, made after the lens
-/// calibration); matching itself is the inner matcher's.
-struct Undistorting<'a> {
-    inner: &'a dyn Correspondences,
-    lens: &'a RadialLens,
-    /// The estimate's images, to find a turned image's lens by its path.
-    images: &'a [PathBuf],
-}
-
-impl Correspondences for Undistorting<'_> {
-    fn extract(&self, images: &[PathBuf], counter: &dyn StepCounter) -> Result<Vec<ImageFeatures>> {
-        let mut features = self.inner.extract(images, counter)?;
-        self.lens.undistort_features(&mut features);
-        Ok(features)
-    }
-
-    fn match_pairs(
-        &self,
-        features: &[ImageFeatures],
-        pairs: &[(usize, usize)],
-        stage: (&dyn StepCounter, &str),
-    ) -> Result<Vec<PairMatches>> {
-        self.inner.match_pairs(features, pairs, stage)
-    }
-
-    fn depends_on_orientation(&self) -> bool {
-        self.inner.depends_on_orientation()
-    }
-
-    fn extract_turned(
-        &self,
-        images: &[&std::path::Path],
-        counter: &dyn StepCounter,
-    ) -> Result<Option<Vec<ImageFeatures>>> {
-        let Some(mut features) = self.inner.extract_turned(images, counter)? else {
-            return Ok(None);
-        };
-        for (path, f) in images.iter().zip(&mut features) {
-            let i = self
-                .images
-                .iter()
-                .position(|p| p.as_path() == *path)
-                .ok_or_else(|| {
-                    PosediffError::InvalidArgument(format!(
-                        "{} is not an image of this estimate",
-                        path.display()
-                    ))
-                })?;
-            for p in &mut f.keypoints {
-                if let Some(u) = self.lens.undistort_pixel(i, *p) {
-                    *p = u;
-                }
-            }
-        }
-        Ok(Some(features))
-    }
-}
-
 /// The lens calibration before the mapper: with unknown intrinsics and `cameras.distortion`
 /// on, each camera group's radial coefficient from the verified matches; `None` when off,
 /// given intrinsics, or no distortion measured (then the report says which).
@@ -509,10 +453,27 @@ pub fn estimate_geometric_counted(
         lens.undistort_pairs(&mut pairs);
     }
     let distortion_seconds = clock.elapsed().as_secs_f64();
-    let undistorting = lens.as_ref().map(|lens| Undistorting {
-        inner: matcher.as_ref(),
-        lens,
-        images,
+    // Features extracted from here on (the turned retry's) come undistorted: their image's
+    // lens, found by its path.
+    let undistorting = lens.as_ref().map(|lens| Adjusted {
+        inner: Box::new(matcher.as_ref()),
+        adjust: Box::new(move |path, features| {
+            let i = images
+                .iter()
+                .position(|p| p.as_path() == path)
+                .ok_or_else(|| {
+                    PosediffError::InvalidArgument(format!(
+                        "{} is not an image of this estimate",
+                        path.display()
+                    ))
+                })?;
+            for p in &mut features.keypoints {
+                if let Some(u) = lens.undistort_pixel(i, *p) {
+                    *p = u;
+                }
+            }
+            Ok(())
+        }),
     });
     let matcher: &dyn Correspondences = match &undistorting {
         Some(u) => u,
@@ -590,6 +551,8 @@ pub fn estimate_geometric_counted(
         }
     }
     estimate.report.turned_images = turned_images;
+    // The matching is over: the lens is the estimate's now.
+    drop(undistorting);
     let mut distortion = distortion;
     if let Some(lens) = &lens {
         // Each camera's COLMAP k at its focal, from its first estimated image.
