@@ -174,6 +174,23 @@ pub fn header_size(b: &[u8]) -> Option<(u32, u32)> {
     }
 }
 
+/// [`header_size`] of the file at `path`, from its first MiB (the whole file only when the
+/// frame header lies beyond it).
+///
+/// # Errors
+/// The file cannot be read.
+pub fn header_size_of(path: &Path) -> std::io::Result<Option<(u32, u32)>> {
+    use std::io::Read;
+    let mut head = Vec::new();
+    std::fs::File::open(path)?
+        .take(1 << 20)
+        .read_to_end(&mut head)?;
+    match header_size(&head) {
+        Some(size) => Ok(Some(size)),
+        None => Ok(header_size(&std::fs::read(path)?)),
+    }
+}
+
 /// Whether the file starts like a JPEG or a PNG.
 pub fn is_jpeg_or_png(path: &Path) -> bool {
     use std::io::Read;

@@ -185,7 +185,7 @@ fn a_featureless_image_has_no_matches_and_bad_input_is_named() {
 #[test]
 fn header_sizes_are_the_decoded_sizes() {
     use opencv::prelude::*;
-    use posediff_matching::image_check::{decode, header_size};
+    use posediff_matching::image_check::{decode, header_size, header_size_of};
     let mut checked = 0;
     for set in [
         "strecha_fountainP11",
@@ -201,6 +201,7 @@ fn header_sizes_are_the_decoded_sizes() {
                 "{}",
                 path.display()
             );
+            assert_eq!(header_size_of(path).unwrap(), header_size(&bytes));
             checked += 1;
         }
     }

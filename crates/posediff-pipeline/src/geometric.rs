@@ -197,88 +197,62 @@ pub struct GeometricEstimate {
     pub warnings: Vec<Warning>,
     /// The lens distortion calibrated before the mapper (`cameras.distortion`), when one was
     /// measured: `pairs` and `points` are then in undistorted pixels, the cameras pinhole on
-    /// them, and [`RadialLens::distort_pixel`] maps back to the photos' pixels.
+    /// them, and each image's lens ([`RadialLens::lens_camera`]) maps back to the photos'
+    /// pixels.
     pub lens: Option<RadialLens>,
 }
 
-/// Each image's radial distortion as calibrated before the mapper: SIMPLE_RADIAL's
-/// `x_d = x_u (1 + k r_u²)` in coordinates normalised as `x = (p − centre) / scale`
+/// Each image's radial distortion as calibrated before the mapper
 /// ([`posediff_sfm::distortion_calibration`]).
 #[derive(Debug, Clone, PartialEq)]
 pub struct RadialLens {
-    /// Per image, the centre of the normalisation (its principal point), pixels.
-    pub centre: Vec<[f64; 2]>,
-    /// Per image, the normalisation's scale, pixels.
-    pub scale: Vec<f64>,
-    /// Per image, the coefficient in the normalised coordinates.
-    pub k: Vec<f64>,
+    /// Per image, its SIMPLE_RADIAL lens `[s, cx, cy, k]` around the focal guess `s` the
+    /// calibration normalised by, at the image's principal point.
+    pub lenses: Vec<LensCamera>,
 }
 
 impl RadialLens {
     /// The undistorted pixel of image `i`'s pixel `p`; `None` beyond the model's fold.
     pub fn undistort_pixel(&self, i: usize, p: [f64; 2]) -> Option<[f64; 2]> {
-        let (c, s) = (self.centre[i], self.scale[i]);
-        let x = posediff_sfm::distortion_calibration::undistort(
-            [(p[0] - c[0]) / s, (p[1] - c[1]) / s],
-            self.k[i],
-        )?;
-        Some([c[0] + s * x[0], c[1] + s * x[1]])
-    }
-
-    /// The photo's pixel of image `i`'s undistorted pixel `p`.
-    pub fn distort_pixel(&self, i: usize, p: [f64; 2]) -> [f64; 2] {
-        let (c, s) = (self.centre[i], self.scale[i]);
-        let x = posediff_sfm::distortion_calibration::distort(
-            [(p[0] - c[0]) / s, (p[1] - c[1]) / s],
-            self.k[i],
-        );
-        [c[0] + s * x[0], c[1] + s * x[1]]
+        self.lenses[i]
+            .undistort_pixel(&nalgebra::Vector2::from(p))
+            .ok()
+            .map(Into::into)
     }
 
     /// COLMAP's SIMPLE_RADIAL `k` of image `i` at its estimated focal `focal` (pixels).
     pub fn coefficient(&self, i: usize, focal: f64) -> f64 {
-        posediff_sfm::distortion_calibration::coefficient_at(self.k[i], self.scale[i], focal)
+        let lens = &self.lenses[i];
+        posediff_sfm::distortion_calibration::coefficient_at(
+            lens.distortion()[0],
+            lens.focal().0,
+            focal,
+        )
     }
 
-    /// Image `i`'s lens around its pinhole intrinsics `k`: SIMPLE_RADIAL `[f, cx, cy, k]` at its
-    /// focal (OPENCV `[fx, fy, cx, cy, k, 0, 0, 0]` if the two focals differ).
+    /// Image `i`'s lens around its estimated pinhole intrinsics `k`: SIMPLE_RADIAL
+    /// `[f, cx, cy, k]` at its focal.
     ///
     /// # Errors
-    /// A principal point other than the calibration's centre (the model would not be exact).
+    /// Two focals, or a principal point other than the calibration's (SIMPLE_RADIAL would then
+    /// not be the lens calibrated).
     pub fn lens_camera(&self, i: usize, k: &Intrinsics) -> Result<LensCamera> {
-        let c = self.centre[i];
-        let off = (k.cx() - c[0]).hypot(k.cy() - c[1]);
-        if off > 1e-6 * k.fx() {
+        let (cx, cy) = self.lenses[i].principal();
+        let off = (k.cx() - cx).hypot(k.cy() - cy);
+        if off > 1e-6 * k.fx() || k.fx() != k.fy() {
             return Err(PosediffError::InvalidArgument(format!(
-                "image {i}: principal point ({}, {}) moved {off:.3} px from the distortion's \
-                 centre; its SIMPLE_RADIAL model would not be exact",
+                "image {i}: focal ({}, {}) and principal point ({}, {}) are not the distortion's \
+                 one focal and centre ({cx}, {cy}); its SIMPLE_RADIAL model would not be exact",
+                k.fx(),
+                k.fy(),
                 k.cx(),
                 k.cy()
             )));
         }
-        let lens = if k.fx() == k.fy() {
-            LensCamera::new(
-                CameraModel::SimpleRadial,
-                vec![k.fx(), k.cx(), k.cy(), self.coefficient(i, k.fx())],
-            )
-        } else {
-            // Normalised by fx; OpenCV's k1 is in coordinates normalised per axis, which
-            // coincide only for equal focals: the rare anisotropic camera is approximated.
-            LensCamera::new(
-                CameraModel::OpenCv,
-                vec![
-                    k.fx(),
-                    k.fy(),
-                    k.cx(),
-                    k.cy(),
-                    self.coefficient(i, k.fx()),
-                    0.0,
-                    0.0,
-                    0.0,
-                ],
-            )
-        };
-        Ok(lens?)
+        Ok(LensCamera::new(
+            CameraModel::SimpleRadial,
+            vec![k.fx(), k.cx(), k.cy(), self.coefficient(i, k.fx())],
+        )?)
     }
 
     /// Undistorts every keypoint of `features` (in place; once: the caller's invariant).
@@ -368,12 +342,19 @@ fn calibrate_lens(
     if !outcome.measured {
         return Ok((None, outcome));
     }
-    let lens = RadialLens {
-        k: layout.group.iter().map(|g| calibration.k[*g]).collect(),
-        centre: layout.principal,
-        scale,
-    };
-    Ok((Some(lens), outcome))
+    let lenses = layout
+        .group
+        .iter()
+        .zip(&layout.principal)
+        .zip(&scale)
+        .map(|((g, c), s)| {
+            LensCamera::new(
+                CameraModel::SimpleRadial,
+                vec![*s, c[0], c[1], calibration.k[*g]],
+            )
+        })
+        .collect::<std::result::Result<_, _>>()?;
+    Ok((Some(RadialLens { lenses }), outcome))
 }
 
 impl From<SfmError> for PosediffError {
@@ -445,7 +426,7 @@ pub fn estimate_geometric_counted(
     }
     // The lens: with a distortion measured, every keypoint is undistorted here, once (the
     // features for the later passes, the pairs made so far), and the turned retry's new
-    // features through `Undistorting`.
+    // features through `Adjusted`.
     let clock = Instant::now();
     let (lens, distortion) = calibrate_lens(&sizes, &pairs, config)?;
     if let Some(lens) = &lens {

@@ -14,8 +14,10 @@
 //! kept only when it lowers the cost by `min_improvement` against no distortion: a pinhole set
 //! stays pinhole.
 
-use nalgebra::{Matrix3, SMatrix, SymmetricEigen, Vector3};
+use nalgebra::{Matrix3, Point2, SMatrix, SymmetricEigen, Vector2};
 use posediff_geometry::PairMatches;
+use posediff_geometry::epipolar::sampson_error;
+use posediff_geometry::lens::{CameraModel, LensCamera};
 use rayon::prelude::*;
 
 /// Settings of [`calibrate_distortion`]; the defaults were chosen on the shared sets and their
@@ -82,35 +84,11 @@ pub struct DistortionCalibration {
     pub pairs: usize,
 }
 
-/// The undistorted normalised point of distorted `x` under `x_d = x_u (1 + k r_u²)`; `None`
-/// beyond the model's fold (where `r_d` stops growing with `r_u`) or without convergence.
-pub fn undistort(x: [f64; 2], k: f64) -> Option<[f64; 2]> {
-    let rd = x[0].hypot(x[1]);
-    if k == 0.0 || rd == 0.0 {
-        return Some(x);
-    }
-    // Newton on g(r) = r (1 + k r²) − r_d from r_d; g' = 1 + 3 k r² must stay positive.
-    let mut r = rd;
-    for _ in 0..50 {
-        let g = r * (1.0 + k * r * r) - rd;
-        let dg = 1.0 + 3.0 * k * r * r;
-        if dg <= 0.0 {
-            return None;
-        }
-        let step = g / dg;
-        r -= step;
-        if step.abs() < 1e-14 * (1.0 + r.abs()) {
-            let folded = 1.0 + 3.0 * k * r * r <= 0.0 || r <= 0.0;
-            return (!folded).then_some([x[0] * r / rd, x[1] * r / rd]);
-        }
-    }
-    None
-}
-
-/// The distorted normalised point of undistorted `x`.
-pub fn distort(x: [f64; 2], k: f64) -> [f64; 2] {
-    let f = 1.0 + k * (x[0] * x[0] + x[1] * x[1]);
-    [x[0] * f, x[1] * f]
+/// SIMPLE_RADIAL's `x_d = x_u (1 + k r_u²)` on coordinates already normalised: the lens of
+/// [`posediff_geometry::lens`] (the one place lens models are computed) with a unit focal at
+/// the origin; `None` for a coefficient that is not finite.
+pub fn normalised_lens(k: f64) -> Option<LensCamera> {
+    LensCamera::new(CameraModel::SimpleRadial, vec![1.0, 0.0, 0.0, k]).ok()
 }
 
 /// COLMAP's SIMPLE_RADIAL coefficient (coordinates normalised by the focal `f`) of `k` found in
@@ -202,11 +180,8 @@ fn fit_cost(xa: &[[f64; 2]], xb: &[[f64; 2]], cauchy: f64) -> Option<f64> {
         let f = tb.transpose() * u * Matrix3::from_diagonal(&sigma) * vt * ta;
         cost = 0.0;
         for ((p, q), w) in xa.iter().zip(xb).zip(weights.iter_mut()) {
-            let (pa, pb) = (Vector3::new(p[0], p[1], 1.0), Vector3::new(q[0], q[1], 1.0));
-            let (fa, fb) = (f * pa, f.transpose() * pb);
-            let num = pb.dot(&fa);
-            let den = fa.x * fa.x + fa.y * fa.y + fb.x * fb.x + fb.y * fb.y;
-            let e2 = if den > 0.0 { num * num / den } else { 0.0 };
+            // A match whose epipolar lines vanish contributes nothing.
+            let e2 = sampson_error(&f, &Point2::from(*p), &Point2::from(*q)).unwrap_or(0.0);
             cost += 0.5 * c2 * (1.0 + e2 / c2).ln();
             *w = 1.0 / (1.0 + e2 / c2);
         }
@@ -218,8 +193,14 @@ impl PairPoints {
     /// The pair's robust cost with the groups' coefficients `ka`, `kb` (in pixels², through
     /// `pixels`); `None` where a point cannot be undistorted.
     fn cost(&self, ka: f64, kb: f64, cauchy_px: f64) -> Option<f64> {
-        let ua: Option<Vec<[f64; 2]>> = self.xa.iter().map(|x| undistort(*x, ka)).collect();
-        let ub: Option<Vec<[f64; 2]>> = self.xb.iter().map(|x| undistort(*x, kb)).collect();
+        let undistorted = |points: &[[f64; 2]], k: f64| -> Option<Vec<[f64; 2]>> {
+            let lens = normalised_lens(k)?;
+            points
+                .iter()
+                .map(|x| lens.unproject(&Vector2::from(*x)).ok().map(Into::into))
+                .collect()
+        };
+        let (ua, ub) = (undistorted(&self.xa, ka), undistorted(&self.xb, kb));
         let cauchy = cauchy_px / self.pixels;
         fit_cost(&ua?, &ub?, cauchy).map(|c| c * self.pixels * self.pixels)
     }
@@ -335,21 +316,25 @@ pub fn calibrate_distortion(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use nalgebra::{Rotation3, Vector2};
+    use nalgebra::{Rotation3, Vector3};
 
+    /// The normalised lens the calibration undistorts with: its undistortion inverts its
+    /// distortion, refuses the fold, and its coefficient converts between normalisations.
     #[test]
     fn undistortion_inverts_distortion_and_refuses_the_fold() {
         for k in [-0.3, -0.12, 0.0, 0.2] {
+            let lens = normalised_lens(k).unwrap();
             for x in [[0.3, -0.2], [0.6, 0.4], [0.0, 0.0]] {
-                let u = undistort(distort(x, k), k).unwrap_or([f64::NAN; 2]);
-                assert!(
-                    Vector2::from(u).metric_distance(&Vector2::from(x)) < 1e-12,
-                    "{k} {x:?}"
-                );
+                let x = Vector2::from(x);
+                let u = lens
+                    .unproject(&lens.distort_pixel(&x))
+                    .unwrap_or(Vector2::repeat(f64::NAN));
+                assert!(u.metric_distance(&x) < 1e-12, "{k} {x:?}");
             }
         }
         // k = −0.5: r_d peaks at 0.544 (r_u = 0.816); r_d = 0.6 has no preimage.
-        assert!(undistort([0.6, 0.0], -0.5).is_none());
+        let folded = normalised_lens(-0.5).unwrap();
+        assert!(folded.unproject(&Vector2::new(0.6, 0.0)).is_err());
         assert!((coefficient_at(-0.1, 1000.0, 1200.0) + 0.144).abs() < 1e-12);
     }
 
@@ -381,12 +366,12 @@ mod tests {
             .collect();
         let pairs = |k_true: f64| -> Vec<PairMatches> {
             let mut out = Vec::new();
-            let k_f = coefficient_at(k_true, s, f);
+            let lens = normalised_lens(coefficient_at(k_true, s, f)).unwrap();
             let pixel = |c: usize, x: &Vector3<f64>| {
                 let (r, t) = cameras[c];
                 let xc = r * x + t;
-                let d = distort([xc.x / xc.z, xc.y / xc.z], k_f);
-                [f * d[0] + centre[0], f * d[1] + centre[1]]
+                let d = lens.distort_pixel(&Vector2::new(xc.x / xc.z, xc.y / xc.z));
+                [f * d.x + centre[0], f * d.y + centre[1]]
             };
             for a in 0..4 {
                 for b in a + 1..4 {

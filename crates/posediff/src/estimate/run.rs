@@ -348,7 +348,7 @@ pub fn mask_files(
     files: &[PathBuf],
     names: &[String],
 ) -> Result<(HashMap<PathBuf, PathBuf>, MasksReport)> {
-    use posediff_matching::image_check::{header_size, image_problem};
+    use posediff_matching::image_check::{header_size, header_size_of, image_problem};
     let mut masks = HashMap::new();
     let mut missing = Vec::new();
     for (file, name) in files.iter().zip(names) {
@@ -367,11 +367,12 @@ pub fn mask_files(
                 format!("unusable mask: {why}"),
             ));
         }
-        let image = std::fs::read(file).map_err(|source| PosediffError::Read {
+        // The image's size from its header alone (it was read whole by the input check).
+        let image = header_size_of(file).map_err(|source| PosediffError::Read {
             path: file.clone(),
             source,
         })?;
-        let (m, i) = (header_size(&bytes), header_size(&image));
+        let (m, i) = (header_size(&bytes), image);
         // An EXIF-turned photo decodes with its sides swapped: either way round is checked
         // here, the decoded sizes again when the mask is applied.
         if m.is_none() || i.is_none() || (m != i && m != i.map(|(w, h)| (h, w))) {
