@@ -9,7 +9,7 @@
 //!   `libcuda.so.1`, like the CUDA toolkit's own `lib64/stubs/libcuda.so`) made from the
 //!   driver functions cudarc binds; at run time the real driver is loaded by that name.
 //! - `opencv`: OpenCV 4.6.0 (Debian's source, the version of the system bindings) built as
-//!   static libraries with the six modules posediff uses and no optional codec or back end
+//!   static libraries with the eight modules posediff uses and no optional codec or back end
 //!   (JPEG and PNG from the static system libraries), so the binary needs no OpenCV, GDAL or
 //!   codec libraries where it runs: only glibc, libstdc++ and the CUDA libraries.
 //! - `cargo`: the cargo target folder of this build (the workspace's own stays untouched).
@@ -32,10 +32,14 @@ const OPENCV_URL: &str =
 const OPENCV_SHA256: &str = "40a59ba7e5c18a43652de0a08733c9843a39bba619b1f3e26a5fac4a6f041423";
 const OPENCV_DIR: &str = "opencv-4.6.0";
 /// The modules posediff uses (and their dependencies among them), in static-link order.
-const OPENCV_MODULES: [&str; 6] = [
+/// `videoio` is built without FFmpeg here (no optional back end), so the CUDA binary reads
+/// OpenCV's own MJPEG AVI only; `video` is the optical flow of the keyframe selection.
+const OPENCV_MODULES: [&str; 8] = [
+    "video",
     "calib3d",
     "features2d",
     "flann",
+    "videoio",
     "imgcodecs",
     "imgproc",
     "core",

@@ -40,6 +40,10 @@ pub enum MatchingError {
     /// An invalid configuration value.
     #[error("invalid matching configuration: {0}")]
     InvalidConfig(&'static str),
+    /// A frame stream (video keyframe selection) that cannot go on: an empty frame, frames of
+    /// two sizes, a mask of another size, options out of range.
+    #[error("{0}")]
+    Frames(String),
     /// OpenCV reported an error.
     #[error("OpenCV: {0}")]
     OpenCv(#[from] opencv::Error),

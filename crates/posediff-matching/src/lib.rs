@@ -17,6 +17,7 @@
 pub mod error;
 pub mod features;
 pub mod image_check;
+pub mod keyframes;
 pub mod mask;
 pub mod mnn;
 pub mod pairs;
