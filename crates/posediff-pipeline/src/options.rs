@@ -101,6 +101,8 @@ pub struct PipelineOptions {
     /// `--refine converge|bundle` runs, and with a learned matcher `score_dropped_as_missing`
     /// is on whatever it says here).
     pub mapper: MapperOptions,
+    /// Video input: which frames are decoded and kept as keyframes.
+    pub video: VideoOptions,
 }
 
 impl Default for PipelineOptions {
@@ -118,6 +120,7 @@ impl Default for PipelineOptions {
             support: SupportOptions::default(),
             cameras: CameraOptions::default(),
             mapper: MapperOptions::default(),
+            video: VideoOptions::default(),
         }
     }
 }
@@ -364,6 +367,39 @@ impl Default for CameraOptions {
     }
 }
 
+/// Video input (`posediff estimate capture.mp4`): which decoded frames become keyframes, and
+/// how the keyframes are paired.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct VideoOptions {
+    /// Frames looked at per second of video (`--fps`); `null`: every decoded frame. Frames in
+    /// between are decoded (a video decodes in order) but neither scored nor tracked.
+    pub fps: Option<f64>,
+    /// At most this many keyframes per video (`--max-frames`); more are thinned evenly (and
+    /// run.json says the overlap bound no longer holds). `null`: no cap.
+    pub max_frames: Option<usize>,
+    /// The keyframe selection's thresholds.
+    pub keyframes: posediff_matching::keyframes::KeyframeOptions,
+    /// The pairs matched when the input is a video and `pairs.selection` is `auto`: sequential
+    /// neighbours (consecutive keyframes overlap by construction) plus retrieval for loop
+    /// closure. 8 neighbours span 8 × `keyframes.max_displacement` of motion at most.
+    pub pairs: PairSelection,
+    /// JPEG quality of the keyframes written to `out/images` (OpenCV's 0-100).
+    pub jpeg_quality: u8,
+}
+
+impl Default for VideoOptions {
+    fn default() -> Self {
+        Self {
+            fps: None,
+            max_frames: None,
+            keyframes: posediff_matching::keyframes::KeyframeOptions::default(),
+            pairs: PairSelection::Rules(vec![PairRule::Sequential(8), PairRule::Retrieval(8)]),
+            jpeg_quality: 95,
+        }
+    }
+}
+
 /// When the second matching pass runs.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -559,6 +595,24 @@ impl PipelineOptions {
         if !(0.0..=1.0).contains(&self.two_view.homography_fraction) {
             return bad("two_view.homography_fraction must be within 0-1");
         }
+        if let Some(fps) = self.video.fps
+            && !(fps.is_finite() && fps > 0.0)
+        {
+            return bad("video.fps (--fps) must be a positive number of frames per second");
+        }
+        if self.video.max_frames.is_some_and(|n| n < 2) {
+            return bad("video.max_frames (--max-frames) must be at least 2");
+        }
+        if self.video.pairs == PairSelection::Auto {
+            return bad("video.pairs must name rules, not auto");
+        }
+        if self.video.jpeg_quality > 100 {
+            return bad("video.jpeg_quality must be within 0-100");
+        }
+        self.video
+            .keyframes
+            .check()
+            .map_err(|e| PosediffError::InvalidArgument(e.to_string()))?;
         Ok(())
     }
 }

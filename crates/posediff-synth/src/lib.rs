@@ -15,6 +15,7 @@
 pub mod noise;
 pub mod render;
 pub mod scene;
+pub mod video;
 
 use std::io::Write as _;
 use std::path::{Path, PathBuf};

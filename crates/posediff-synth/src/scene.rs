@@ -61,7 +61,8 @@ pub struct Material {
 }
 
 impl Material {
-    fn random(rng: &mut StdRng, frequency: f64) -> Self {
+    /// A material drawn from `rng`: pattern, colours and noise at `frequency`.
+    pub fn random(rng: &mut StdRng, frequency: f64) -> Self {
         let colour = |rng: &mut StdRng| [0, 1, 2].map(|_| rng.random_range(0.1..0.95));
         let pattern = match rng.random_range(0..4) {
             0 => Pattern::Noise,

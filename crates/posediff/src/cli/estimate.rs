@@ -12,8 +12,9 @@ use posediff::estimate::run::{
 };
 use posediff::io::colmap::ColmapFormat;
 use posediff::io::outputs::{
-    ImagesMode, OutputOptions, Written, prepare_output_dir, thumbnail_side,
+    FRAMES, ImagesMode, OutputOptions, Written, prepare_output_dir, thumbnail_side,
 };
+use posediff::io::video::{check_masks, extract_keyframes, is_video, probe};
 use posediff::reconstruction::Reconstruction;
 use posediff::{Progress, Silent};
 
@@ -37,9 +38,20 @@ enum RefineArg {
 /// The arguments of `posediff estimate`.
 #[derive(clap::Args)]
 pub struct Args {
-    /// A folder (its .png/.jpg/.jpeg files, sorted) or image files (in the order given).
+    /// A folder (its .png/.jpg/.jpeg files, sorted), image files (in the order given), or
+    /// videos (.mp4, .mov, .mkv, .avi, …): each decoded once, its keyframes chosen (sharp,
+    /// overlapping, not near duplicates) and written to out/images as
+    /// `<video>_f<frame>_t<seconds>s.jpg`, one camera per video.
     #[arg(required = true)]
     inputs: Vec<PathBuf>,
+    /// Video input: frames looked at per second of video (default: every frame). (Sets the
+    /// options tree's `video.fps`.)
+    #[arg(long)]
+    fps: Option<f64>,
+    /// Video input: at most this many keyframes per video, thinned evenly. (Sets the options
+    /// tree's `video.max_frames`.)
+    #[arg(long)]
+    max_frames: Option<usize>,
     /// Official PoseDiffusion checkpoint (.pth or safetensors). Without it the cameras come
     /// from the images' geometry alone (matching, averaging, refinement).
     #[arg(long)]
@@ -192,6 +204,13 @@ impl Args {
         {
             bail!("--weights: no such file: {}", w.display());
         }
+        let videos: Vec<&PathBuf> = self.inputs.iter().filter(|p| is_video(p)).collect();
+        if !videos.is_empty() {
+            if videos.len() != self.inputs.len() {
+                bail!("give videos or images, not both (each video's keyframes become the images)");
+            }
+            return self.run_video(options);
+        }
         let inputs = Inputs::resolve(&self.inputs, self.skip_bad_images)?;
         options.thumbnail_side = (!self.no_view).then(|| thumbnail_side(inputs.names.len()));
         if matches!(self.device, DeviceArg::Cuda) && self.weights.is_none() {
@@ -230,6 +249,73 @@ impl Args {
         Ok(())
     }
 
+    /// Videos: each probed, the masks checked and the output folder prepared before any
+    /// decoding; then one decoding pass per video writing its keyframes into
+    /// `out/.posediff-frames`, the run on them, and the keyframes moved into `out/images` with
+    /// the results.
+    fn run_video(self, mut options: RunOptions) -> anyhow::Result<()> {
+        if self.weights.is_some() {
+            bail!(
+                "video input runs the checkpoint-free path: extract keyframes with a first run, \
+                 then give out/images to --weights"
+            );
+        }
+        if matches!(self.images, ImagesArg::None) {
+            bail!("--images none: a video's keyframes are written to out/images (they are the images the outputs name)");
+        }
+        let infos = probe(&self.inputs)?;
+        if let Some(dir) = &self.masks {
+            check_masks(dir, &infos)?;
+        }
+        let mut output_options = self.output_options();
+        output_options.images = ImagesMode::Move;
+        let none = posediff::io::outputs::InputImages {
+            files: Vec::new(),
+            folder: None,
+            folder_given: false,
+        };
+        prepare_output_dir(&self.out, &none, ImagesMode::Move)?;
+        let work = self.out.join(FRAMES);
+        let mut bars = Bars::default();
+        let progress: &mut dyn Progress = if self.quiet { &mut Silent } else { &mut bars };
+        let frames = work.join("images");
+        let mask_out = work.join("masks");
+        let result = (|| -> anyhow::Result<Written> {
+            let capture = extract_keyframes(
+                &infos,
+                &frames,
+                &options.pipeline.video,
+                self.masks.as_deref().map(|m| (m, mask_out.as_path())),
+                progress,
+            )?;
+            if !self.quiet {
+                let (per_second, per_key) = capture.costs();
+                eprintln!(
+                    "{} keyframes of {} decoded frames ({per_second:.0} frames/s, {per_key:.2} s per keyframe)",
+                    capture.keyframes.len(),
+                    capture.videos.iter().map(|v| v.frames_decoded).sum::<usize>()
+                );
+            }
+            options.masks = capture.masks.clone();
+            let inputs = Inputs::from_capture(capture);
+            options.thumbnail_side = (!self.no_view).then(|| thumbnail_side(inputs.names.len()));
+            let mut run = run(&inputs, &options, None, progress)?;
+            // run.json names the images where they will be.
+            run.report.images = inputs
+                .names
+                .iter()
+                .map(|n| self.out.join("images").join(n))
+                .collect();
+            let written = run.write(&self.out, &output_options)?;
+            if !self.quiet {
+                print_cameras(&run.reconstruction, &written, &self.out);
+            }
+            Ok(written)
+        })();
+        let _ = std::fs::remove_dir_all(&work);
+        result.map(|_| ())
+    }
+
     fn run_options(&self) -> posediff::Result<RunOptions> {
         let mut pipeline = PipelineOptions::default();
         if let Some(path) = &self.config {
@@ -240,6 +326,12 @@ impl Args {
         }
         if let Some(mode) = self.camera_mode {
             pipeline.cameras.mode = mode;
+        }
+        if let Some(fps) = self.fps {
+            pipeline.video.fps = Some(fps);
+        }
+        if let Some(n) = self.max_frames {
+            pipeline.video.max_frames = Some(n);
         }
         for assignment in &self.set {
             pipeline = pipeline.with_assignment(assignment)?;

@@ -34,6 +34,8 @@ use crate::io::loader::relative_name;
 use crate::io::loader::{check_images, image_files};
 use crate::io::outputs::{InputImages, OutputOptions, Written, write_outputs};
 use crate::io::records::{Matched, match_by_name};
+use crate::io::video::Capture;
+use posediff_matching::PairSelection;
 use crate::reconstruction::Reconstruction;
 
 /// The input images, checked and named: the files in use, the folder their names are relative
@@ -46,6 +48,8 @@ pub struct Inputs {
     pub names: Vec<String>,
     /// Images left out as unusable (only with `skip_bad_images`).
     pub skipped: Vec<SkippedImage>,
+    /// The videos the images are keyframes of ([`Inputs::from_capture`]).
+    pub video: Option<Capture>,
 }
 
 impl Inputs {
@@ -131,7 +135,45 @@ impl Inputs {
                 .into_iter()
                 .map(|(image, reason)| SkippedImage { image, reason })
                 .collect(),
+            video: None,
         })
+    }
+
+    /// The keyframes of videos ([`crate::io::video::extract_keyframes`]) as the run's images:
+    /// named as written, one camera per video (the camera hints), the account in run.json's
+    /// `video`.
+    pub fn from_capture(capture: Capture) -> Self {
+        Self {
+            images: InputImages {
+                files: capture.files(),
+                folder: Some(capture.folder.clone()),
+                folder_given: true,
+            },
+            names: capture.keyframes.iter().map(|k| k.image.clone()).collect(),
+            skipped: Vec::new(),
+            video: Some(capture),
+        }
+    }
+
+    /// Each image's camera hint when the inputs say more than EXIF can: a video's frames share
+    /// its camera (grouped as one EXIF device would be, so `cameras.mode = auto` gives one
+    /// camera per video).
+    fn camera_hints(&self) -> Option<Vec<CameraHint>> {
+        let capture = self.video.as_ref()?;
+        Some(
+            capture
+                .keyframes
+                .iter()
+                .map(|k| {
+                    let v = &capture.videos[k.video].info;
+                    CameraHint {
+                        folder: v.stem.clone(),
+                        device: Some(format!("video {} ({})", v.stem, v.codec)),
+                        focal: Default::default(),
+                    }
+                })
+                .collect(),
+        )
     }
 }
 
@@ -539,7 +581,14 @@ pub fn run(
         None => None,
     };
     if matches!(known, KnownIntrinsics::Unknown) {
-        geometric.hints = camera_hints(files, names)?;
+        geometric.hints = match inputs.camera_hints() {
+            Some(h) => h,
+            None => camera_hints(files, names)?,
+        };
+    }
+    if inputs.video.is_some() && geometric.options.pairs.selection == PairSelection::Auto {
+        // A video's keyframes overlap their neighbours by construction.
+        geometric.options.pairs.selection = geometric.options.video.pairs.clone();
     }
     let needs_matches = network.is_none() || options.ggs;
     if needs_matches {
@@ -605,6 +654,7 @@ pub fn run(
     report.matcher = needs_matches.then(|| options.matcher.as_str());
     report.skipped_images = inputs.skipped.clone();
     report.masks = masks;
+    report.video = inputs.video.clone();
     report.warnings = warnings;
     let point_options = PointOptions::default();
     let (mut reconstruction, points) =

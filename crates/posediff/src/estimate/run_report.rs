@@ -193,6 +193,10 @@ pub struct RunReport {
     /// `--masks`: the folder, how many images it masks, those it has no mask for.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub masks: Option<MasksReport>,
+    /// Video input: each video's container, codec, frames decoded and skipped by reason, and
+    /// the keyframes with their frame index, timestamp, sharpness and displacement.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub video: Option<crate::io::video::Capture>,
     /// What was written (filled by [`crate::io::outputs::write_outputs`]).
     pub outputs: Option<Written>,
 }
@@ -225,6 +229,7 @@ impl RunReport {
             points: None,
             warnings: Vec::new(),
             masks: None,
+            video: None,
             outputs: None,
         }
     }

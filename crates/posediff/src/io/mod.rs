@@ -11,6 +11,7 @@
 //! - [`exif`]: the camera and focal prior an image's EXIF gives (COLMAP's rules), and writing
 //!   EXIF into copies.
 //! - [`variants`]: harder copies of a set (zoomed photos) with their ground truth transformed.
+//! - [`video`]: video input: probing, one decoding pass, keyframes written with their account.
 
 pub mod co3d;
 pub mod colmap;
@@ -21,4 +22,5 @@ pub mod outputs;
 pub mod records;
 pub mod undistort;
 pub mod variants;
+pub mod video;
 pub mod viewer;

@@ -42,6 +42,9 @@ pub enum ImagesMode {
     Copy,
     /// Nothing: `transforms.json` names the images by absolute path.
     None,
+    /// The images are the run's own (a video's keyframes, in a work folder: the input
+    /// folder): moved into `out/images` with the results, replacing what was there.
+    Move,
 }
 
 /// What [`write_outputs`] writes.
@@ -118,13 +121,14 @@ pub fn prepare_output_dir(out: &Path, inputs: &InputImages, mode: ImagesMode) ->
     })?;
     // What an interrupted run left is undone before anything else.
     recover(out)?;
+    remove(&out.join(FRAMES))?;
     let probe = out.join(".posediff-write-test");
     std::fs::write(&probe, b"").map_err(|source| PosediffError::Write {
         path: probe.clone(),
         source,
     })?;
     let _ = std::fs::remove_file(&probe);
-    if mode != ImagesMode::None {
+    if !matches!(mode, ImagesMode::None | ImagesMode::Move) {
         images_plan(out, inputs, mode)?;
     }
     Ok(())
@@ -351,12 +355,13 @@ fn exists(path: &Path) -> bool {
 fn commit(out: &Path, staging: &Path) -> Result<()> {
     let previous = out.join(PREVIOUS);
     remove(&previous)?;
-    for entry in RESULTS {
+    let entries = entries_of(staging);
+    for entry in &entries {
         if exists(&out.join(entry)) {
             rename(&out.join(entry), &previous.join(entry))?;
         }
     }
-    for entry in RESULTS.iter().rev() {
+    for entry in entries.iter().rev() {
         if exists(&staging.join(entry)) {
             rename(&staging.join(entry), &out.join(entry))?;
         }
@@ -364,6 +369,20 @@ fn commit(out: &Path, staging: &Path) -> Result<()> {
     remove(&previous)?;
     remove(staging)
 }
+
+/// [`RESULTS`], and `images` after run.json when `folder` holds images of the run's own
+/// ([`ImagesMode::Move`]).
+fn entries_of(folder: &Path) -> Vec<&'static str> {
+    let mut entries = RESULTS.to_vec();
+    if exists(&folder.join("images")) {
+        entries.insert(1, "images");
+    }
+    entries
+}
+
+/// Where a video's keyframes are written before the run's results are (an interrupted run's
+/// are removed by [`recover`]).
+pub const FRAMES: &str = ".posediff-frames";
 
 /// Undoes what an interrupted run left in `out`: its staging folder, and, when it was killed
 /// while moving results in (no run.json in place), the new entries moved so far, the previous
@@ -383,7 +402,7 @@ pub fn recover(out: &Path) -> Result<()> {
              put back",
             out.display()
         );
-        for entry in RESULTS {
+        for entry in entries_of(&previous) {
             remove(&out.join(entry))?;
             if exists(&previous.join(entry)) {
                 rename(&previous.join(entry), &out.join(entry))?;
@@ -412,7 +431,9 @@ fn write_results(
         model.write(&stage.join("sparse").join("0"), options.colmap_format)?;
         files.push("sparse/0".into());
     }
-    if options.images != ImagesMode::None && (options.colmap || options.nerfstudio) {
+    if !matches!(options.images, ImagesMode::None | ImagesMode::Move)
+        && (options.colmap || options.nerfstudio)
+    {
         make_images(out, inputs, options.images)?;
         files.push("images".into());
     }
@@ -470,6 +491,15 @@ fn write_results(
         let path = stage.join("view.html");
         std::fs::write(&path, html).map_err(|source| PosediffError::Write { path, source })?;
         files.push("view.html".into());
+    }
+    if options.images == ImagesMode::Move {
+        // Last, once nothing reads the images any more: the run's own images join the
+        // results.
+        let folder = inputs.folder.as_deref().ok_or_else(|| {
+            PosediffError::InvalidArgument("--images move needs the images' folder".into())
+        })?;
+        rename(folder, &stage.join("images"))?;
+        files.push("images".into());
     }
     files.push("run.json".into());
     let written = Written {
