@@ -130,7 +130,10 @@ fn keyframes_are_sharp_and_within_the_overlap_and_duplicate_bounds() {
             reported += usize::from(s.reason == SkipReason::Blurred);
         }
     }
-    assert!(blurred >= 10 && reported * 5 >= blurred * 4, "{reported} of {blurred}");
+    assert!(
+        blurred >= 10 && reported * 5 >= blurred * 4,
+        "{reported} of {blurred}"
+    );
     // The end of the video is covered: the last keyframe is within the overlap bound of the
     // last frame.
     let last = *keys.last().unwrap();

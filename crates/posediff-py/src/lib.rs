@@ -603,6 +603,67 @@ fn resolve_images(
     Ok((inputs, Some(dir)))
 }
 
+/// The videos `images` names (a path or a list of paths ending in a video extension); `None`
+/// when it names no video.
+fn video_paths(images: &Bound<'_, PyAny>) -> PyResult<Option<Vec<PathBuf>>> {
+    let paths: Vec<PathBuf> = if let Ok(one) = images.extract::<PathBuf>() {
+        vec![one]
+    } else if let Ok(list) = images.extract::<Vec<PathBuf>>() {
+        list
+    } else {
+        return Ok(None);
+    };
+    let videos = paths
+        .iter()
+        .filter(|p| posediff::io::video::is_video(p))
+        .count();
+    match videos {
+        0 => Ok(None),
+        n if n == paths.len() => Ok(Some(paths)),
+        _ => Err(value_err(
+            "give videos or images, not both (each video's keyframes become the images)",
+        )),
+    }
+}
+
+/// Each video probed, its masks checked, then decoded once into a temporary folder of
+/// keyframes that lives as long as the result (written with images="copy").
+fn keyframes(
+    py: Python<'_>,
+    videos: &[PathBuf],
+    options: &mut RunOptions,
+    progress: &mut PyProgress,
+) -> PyResult<(Inputs, ArrayDir)> {
+    use posediff::io::video::{check_masks, extract_keyframes, probe};
+    options.check().map_err(py_err)?;
+    let dir = ArrayDir::new()
+        .map_err(|e| Error::new_err(format!("a temporary folder for the keyframes: {e}")))?;
+    let frames = dir.path().join("images");
+    let mask_out = dir.path().join("masks");
+    let user_masks = options.masks.clone();
+    let video_options = options.pipeline.video.clone();
+    let capture = py
+        .detach(|| -> posediff::Result<_> {
+            let infos = probe(videos)?;
+            if let Some(m) = &user_masks {
+                check_masks(m, &infos)?;
+            }
+            extract_keyframes(
+                &infos,
+                &frames,
+                &video_options,
+                user_masks.as_deref().map(|m| (m, mask_out.as_path())),
+                progress,
+            )
+        })
+        .map_err(py_err)?;
+    if let Some(e) = progress.take_error() {
+        return Err(e);
+    }
+    options.masks = capture.masks.clone();
+    Ok((Inputs::from_capture(capture), dir))
+}
+
 /// The keyword arguments of an estimation.
 struct Call {
     options: RunOptions,
@@ -611,7 +672,9 @@ struct Call {
 }
 
 /// The options `estimate` takes as keywords (the CLI's flags).
-const OPTION_NAMES: [&str; 16] = [
+const OPTION_NAMES: [&str; 18] = [
+    "fps",
+    "max_frames",
     "config",
     "options",
     "focal_px",
@@ -655,6 +718,12 @@ fn pipeline_options(
     let mut pipeline = posediff::estimate::options::PipelineOptions::default();
     if let Some(path) = option::<Option<PathBuf>>(options, "config", None)? {
         pipeline = pipeline.with_file(&path).map_err(py_err)?;
+    }
+    if let Some(fps) = option::<Option<f64>>(options, "fps", None)? {
+        pipeline.video.fps = Some(fps);
+    }
+    if let Some(n) = option::<Option<usize>>(options, "max_frames", None)? {
+        pipeline.video.max_frames = Some(n);
     }
     if let Some(pairs) = pairs {
         pipeline.pairs.selection = pairs
@@ -867,9 +936,21 @@ fn estimate_with(
     network: Option<Network<'_>>,
     progress: Option<Py<PyAny>>,
 ) -> PyResult<PyReconstruction> {
-    let (inputs, arrays) = resolve_images(images, call.names, call.skip_bad_images)?;
     let mut progress = PyProgress::new(progress);
-    let options = call.options;
+    let mut options = call.options;
+    let (inputs, arrays) = match video_paths(images)? {
+        Some(videos) => {
+            if network.is_some() {
+                return Err(value_err(
+                    "videos run the checkpoint-free path: estimate without weights, then give \
+                     the keyframes (reconstruction.write(..., images=\"copy\")) to the estimator",
+                ));
+            }
+            let (inputs, dir) = keyframes(py, &videos, &mut options, &mut progress)?;
+            (inputs, Some(dir))
+        }
+        None => resolve_images(images, call.names, call.skip_bad_images)?,
+    };
     let result = py.detach(|| run(&inputs, &options, network, &mut progress));
     if let Some(e) = progress.take_error() {
         return Err(e);

@@ -196,6 +196,33 @@ def test_bad_inputs_raise_the_right_exceptions(tmp_path: Path) -> None:
     assert issubclass(posediff.Error, Exception)
 
 
+def test_a_video_gives_keyframes_and_cameras(synth: Path, cli: Path, tmp_path: Path) -> None:
+    """A video in, as the CLI takes it: keyframes named by frame and time, one camera for the
+    video, the masks applied, the keyframes written with the results."""
+    run_cli(synth, "--video", "--out", tmp_path / "v", "--size", "320x240", "--fps", "15",
+            "--seconds", "3", "--distractor", "--seed", "3")
+    video = next((tmp_path / "v").glob("capture.*"))
+    rec = posediff.estimate(video, masks=tmp_path / "v" / "masks", max_frames=40, progress=False)
+    report = rec.report
+    frames = report["video"]["keyframes"]
+    assert 8 <= len(frames) <= 40
+    assert report["options"]["video"]["max_frames"] == 40
+    assert report["video"]["videos"][0]["masked_keyframes"] == len(frames)
+    assert [c.name for c in rec.cameras] == [f["image"] for f in frames]
+    assert all(c.estimated for c in rec.cameras)
+    assert len({round(float(c.K[0, 0]), 6) for c in rec.cameras}) == 1
+    rec.write(tmp_path / "out")
+    for f in frames:
+        assert (tmp_path / "out" / "images" / f["image"]).is_file()
+    with pytest.raises(ValueError, match="videos or images"):
+        posediff.estimate([video, images_of("middlebury_templeSR") / "templeSR0001.png"],
+                          progress=False)
+    empty = tmp_path / "empty.mp4"
+    empty.write_bytes(b"")
+    with pytest.raises(ValueError, match="empty"):
+        posediff.estimate(empty, progress=False)
+
+
 def test_the_options_tree_from_python_is_the_clis(cli: Path, tmp_path: Path) -> None:
     """``config=`` and ``options=`` set the tree as ``--config`` and ``--set`` do: the same
     decision (the pair plan), the same files, the tree in the report; a misspelt key is a

@@ -146,11 +146,15 @@ fn writer(out: &Path, spec: &VideoSpec) -> Result<(VideoWriter, PathBuf, String)
 /// A size or rate out of range; the writer cannot be opened; a write fails.
 pub fn write_video(out: &Path, spec: &VideoSpec) -> Result<VideoSummary> {
     if !(spec.fps > 0.0 && spec.seconds > 0.0) {
-        return Err(SynthError::Invalid("fps and seconds must be positive".into()));
+        return Err(SynthError::Invalid(
+            "fps and seconds must be positive".into(),
+        ));
     }
     let n = (spec.fps * spec.seconds).round() as usize;
     if n < 2 {
-        return Err(SynthError::Invalid("the video needs at least 2 frames".into()));
+        return Err(SynthError::Invalid(
+            "the video needs at least 2 frames".into(),
+        ));
     }
     std::fs::create_dir_all(out).map_err(|source| SynthError::Write {
         path: out.to_owned(),
@@ -191,7 +195,11 @@ pub fn write_video(out: &Path, spec: &VideoSpec) -> Result<VideoSummary> {
                             }
                         }
                         let flat = Mat::from_slice(&m).map_err(cv)?;
-                        let m = flat.reshape(1, h as i32).map_err(cv)?.try_clone().map_err(cv)?;
+                        let m = flat
+                            .reshape(1, h as i32)
+                            .map_err(cv)?
+                            .try_clone()
+                            .map_err(cv)?;
                         let mut eroded = Mat::default();
                         let kernel = opencv::imgproc::get_structuring_element_def(
                             opencv::imgproc::MORPH_RECT,
@@ -211,7 +219,10 @@ pub fn write_video(out: &Path, spec: &VideoSpec) -> Result<VideoSummary> {
                 let path = dir.join(format!("{i:06}.png"));
                 let ok = opencv::imgcodecs::imwrite_def(&path, &m).map_err(cv)?;
                 if !ok {
-                    return Err(SynthError::Invalid(format!("cannot write {}", path.display())));
+                    return Err(SynthError::Invalid(format!(
+                        "cannot write {}",
+                        path.display()
+                    )));
                 }
             }
         }

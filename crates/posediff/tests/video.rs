@@ -49,7 +49,15 @@ fn a_video_gives_its_keyframes_cameras_with_masks() {
     let video: VideoSummary = write_video(&dir.join("capture"), &spec(false)).unwrap();
     let masks = video.masks.clone().unwrap();
     let out = dir.join("out");
-    let r = posediff(&[&"estimate", &video.video, &"--masks", &masks, &"--out", &out, &"--quiet"]);
+    let r = posediff(&[
+        &"estimate",
+        &video.video,
+        &"--masks",
+        &masks,
+        &"--out",
+        &out,
+        &"--quiet",
+    ]);
     let stderr = String::from_utf8_lossy(&r.stderr);
     assert!(r.status.success(), "{stderr}");
     let run = run_json(&out);
@@ -57,7 +65,10 @@ fn a_video_gives_its_keyframes_cameras_with_masks() {
     let keyframes = v["keyframes"].as_array().unwrap();
     let report = &v["videos"][0];
     assert_eq!(report["frames_decoded"], video.frames);
-    assert_eq!(report["keyframes"].as_u64().unwrap() as usize, keyframes.len());
+    assert_eq!(
+        report["keyframes"].as_u64().unwrap() as usize,
+        keyframes.len()
+    );
     assert!(keyframes.len() >= 8, "{} keyframes", keyframes.len());
     // Every frame is accounted for: keyframes plus skipped runs.
     let skipped: u64 = report["skipped"]
@@ -67,8 +78,14 @@ fn a_video_gives_its_keyframes_cameras_with_masks() {
         .map(|n| n.as_u64().unwrap())
         .sum();
     assert_eq!(skipped as usize + keyframes.len(), video.frames);
-    assert_eq!(report["masked_keyframes"].as_u64().unwrap() as usize, keyframes.len());
-    assert_eq!(run["masks"]["masked"].as_u64().unwrap() as usize, keyframes.len());
+    assert_eq!(
+        report["masked_keyframes"].as_u64().unwrap() as usize,
+        keyframes.len()
+    );
+    assert_eq!(
+        run["masks"]["masked"].as_u64().unwrap() as usize,
+        keyframes.len()
+    );
     // The keyframes are real files in out/images, named by frame and time, and nothing else
     // is there; the work folder is gone.
     let mut listed: Vec<String> = std::fs::read_dir(out.join("images"))
@@ -85,7 +102,10 @@ fn a_video_gives_its_keyframes_cameras_with_masks() {
     for k in keyframes {
         let frame = k["frame"].as_u64().unwrap();
         let name = k["image"].as_str().unwrap();
-        assert!(name.starts_with(&format!("capture_f{frame:06}_t")), "{name}");
+        assert!(
+            name.starts_with(&format!("capture_f{frame:06}_t")),
+            "{name}"
+        );
         let t = k["time_s"].as_f64().unwrap();
         assert!((t - frame as f64 / 15.0).abs() < 1e-3, "{name}: {t}");
     }
@@ -109,17 +129,26 @@ fn a_video_gives_its_keyframes_cameras_with_masks() {
     let mut focals = Vec::new();
     for (e, k) in est.iter().zip(keyframes) {
         let frame = k["frame"].as_u64().unwrap() as usize;
-        let c = e.camera.unwrap_or_else(|| panic!("{} not estimated", e.image));
+        let c = e
+            .camera
+            .unwrap_or_else(|| panic!("{} not estimated", e.image));
         pairs_gt.push(gt[frame].cam_from_world);
         pairs_est.push(c.cam_from_world);
         focals.push(c.intrinsics.fx());
     }
-    assert!(focals.iter().all(|f| (f - focals[0]).abs() < 1e-6), "{focals:?}");
+    assert!(
+        focals.iter().all(|f| (f - focals[0]).abs() < 1e-6),
+        "{focals:?}"
+    );
     let errors = relative_pose_errors(&pairs_gt, &pairs_est).unwrap();
     let rra5 = errors.iter().filter(|e| e.rotation_deg < 5.0).count() as f64 / errors.len() as f64;
     assert!(rra5 >= 0.98, "RRA@5 {rra5}");
     let f_gt = gt[0].intrinsics.fx();
-    assert!((focals[0] / f_gt - 1.0).abs() < 0.05, "focal {} vs {f_gt}", focals[0]);
+    assert!(
+        (focals[0] / f_gt - 1.0).abs() < 0.05,
+        "focal {} vs {f_gt}",
+        focals[0]
+    );
 }
 
 /// A WAV file: audio only.
@@ -171,7 +200,14 @@ fn bad_videos_are_named_before_any_work() {
         ..spec(false)
     };
     let mp4 = write_video(&dir.join("mp4"), &small).unwrap();
-    let avi = write_video(&dir.join("avi"), &VideoSpec { mjpeg: true, ..small.clone() }).unwrap();
+    let avi = write_video(
+        &dir.join("avi"),
+        &VideoSpec {
+            mjpeg: true,
+            ..small.clone()
+        },
+    )
+    .unwrap();
     assert_eq!(avi.codec, "MJPG");
     let put = |name: &str, bytes: &[u8]| -> PathBuf {
         let p = dir.join(name);
@@ -199,7 +235,10 @@ fn bad_videos_are_named_before_any_work() {
         eprintln!("no H.264 encoder here: the truncated-MP4 case is skipped");
     }
     for (file, message) in &cases {
-        let out = dir.join(format!("out-{}", file.file_name().unwrap().to_string_lossy()));
+        let out = dir.join(format!(
+            "out-{}",
+            file.file_name().unwrap().to_string_lossy()
+        ));
         let r = posediff(&[&"estimate", file, &"--out", &out]);
         let stderr = String::from_utf8_lossy(&r.stderr);
         assert!(!r.status.success(), "{}: succeeded", file.display());
@@ -209,30 +248,39 @@ fn bad_videos_are_named_before_any_work() {
             "{}: {stderr}",
             file.display()
         );
-        assert!(!stderr.contains(posediff::estimate::run::WORK_STARTS), "{stderr}");
-        assert!(!out.exists(), "{}: the output folder was made", file.display());
+        assert!(
+            !stderr.contains(posediff::estimate::run::WORK_STARTS),
+            "{stderr}"
+        );
+        assert!(
+            !out.exists(),
+            "{}: the output folder was made",
+            file.display()
+        );
     }
     // A mask of the wrong size, and videos mixed with images: errors before any work.
     let masks = dir.join("masks");
     std::fs::create_dir_all(&masks).unwrap();
-    let wrong = opencv::core::Mat::new_rows_cols_with_default(
-        100,
-        100,
-        opencv::core::CV_8UC1,
-        255.into(),
-    )
-    .unwrap();
+    let wrong =
+        opencv::core::Mat::new_rows_cols_with_default(100, 100, opencv::core::CV_8UC1, 255.into())
+            .unwrap();
     assert!(opencv::imgcodecs::imwrite_def(masks.join("0.png"), &wrong).unwrap());
     let out = dir.join("out-mask");
     let r = posediff(&[&"estimate", &mp4.video, &"--masks", &masks, &"--out", &out]);
     let stderr = String::from_utf8_lossy(&r.stderr);
-    assert!(!r.status.success() && stderr.contains("0.png") && stderr.contains("100x100"), "{stderr}");
+    assert!(
+        !r.status.success() && stderr.contains("0.png") && stderr.contains("100x100"),
+        "{stderr}"
+    );
     assert!(!out.exists());
     let image = dir.join("frame.png");
     assert!(opencv::imgcodecs::imwrite_def(&image, &wrong).unwrap());
     let r = posediff(&[&"estimate", &mp4.video, &image, &"--out", &out]);
     let stderr = String::from_utf8_lossy(&r.stderr);
-    assert!(!r.status.success() && stderr.contains("videos or images"), "{stderr}");
+    assert!(
+        !r.status.success() && stderr.contains("videos or images"),
+        "{stderr}"
+    );
 }
 
 #[test]
@@ -252,13 +300,25 @@ fn a_truncated_video_uses_what_decodes_and_says_so() {
     let cut = dir.join("cut.avi");
     std::fs::write(&cut, &bytes[..bytes.len() * 6 / 10]).unwrap();
     let out = dir.join("out");
-    let r = posediff(&[&"estimate", &cut, &"--max-frames", &"6", &"--out", &out, &"--quiet"]);
+    let r = posediff(&[
+        &"estimate",
+        &cut,
+        &"--max-frames",
+        &"6",
+        &"--out",
+        &out,
+        &"--quiet",
+    ]);
     let stderr = String::from_utf8_lossy(&r.stderr);
     assert!(r.status.success(), "{stderr}");
     let run = run_json(&out);
     let report = &run["video"]["videos"][0];
     let decoded = report["frames_decoded"].as_u64().unwrap() as usize;
-    assert!(decoded < avi.frames && decoded > avi.frames / 3, "{decoded} of {}", avi.frames);
+    assert!(
+        decoded < avi.frames && decoded > avi.frames / 3,
+        "{decoded} of {}",
+        avi.frames
+    );
     assert_eq!(report["truncated"], true);
     assert!(stderr.contains("truncated"), "{stderr}");
     // --max-frames thins the keyframes, and says which were dropped.

@@ -78,6 +78,8 @@ class EstimateOptions(TypedDict, total=False):
     skip_bad_images: bool
     names: Sequence[str]
     masks: "Union[str, PathLike[str]]"
+    fps: float
+    max_frames: int
 
 
 class _Bars:
@@ -119,8 +121,12 @@ def estimate(images: Any, *, weights: Any = None, device: str = "cpu",
     """Cameras (and points) for ``images``.
 
     ``images``: a folder (its .png/.jpg/.jpeg files, sorted), a list of image paths (in that
-    order) or a list of HxWx3 uint8 RGB arrays (named by ``names``, default ``image_000.png``,
-    ...). ``weights``: an official PoseDiffusion checkpoint; without it the mapper estimates the
+    order), a list of HxWx3 uint8 RGB arrays (named by ``names``, default ``image_000.png``,
+    ...), or a video path or list of video paths (.mp4, .mov, .mkv, .avi, ...: each decoded
+    once, its keyframes chosen and named ``<video>_f<frame>_t<seconds>s.jpg``; ``fps`` frames
+    looked at per second, ``max_frames`` keyframes per video at most; ``masks`` then holds
+    ``<frame index>.png`` per frame; ``rec.write(out)`` copies the keyframes to
+    ``out/images``). ``weights``: an official PoseDiffusion checkpoint; without it the mapper estimates the
     cameras. Options, as the CLI's flags: ``focal_px``, ``intrinsics`` (a cameras.json path or
     an (N, 3, 3) array), ``init`` (``"geometric"`` or a cameras.json), ``start_step``,
     ``refine`` (``"converge"``, ``"bundle"``, ``"official"``, ``"none"``), ``matcher``

@@ -261,7 +261,9 @@ impl Args {
             );
         }
         if matches!(self.images, ImagesArg::None) {
-            bail!("--images none: a video's keyframes are written to out/images (they are the images the outputs name)");
+            bail!(
+                "--images none: a video's keyframes are written to out/images (they are the images the outputs name)"
+            );
         }
         let infos = probe(&self.inputs)?;
         if let Some(dir) = &self.masks {
@@ -293,7 +295,11 @@ impl Args {
                 eprintln!(
                     "{} keyframes of {} decoded frames ({per_second:.0} frames/s, {per_key:.2} s per keyframe)",
                     capture.keyframes.len(),
-                    capture.videos.iter().map(|v| v.frames_decoded).sum::<usize>()
+                    capture
+                        .videos
+                        .iter()
+                        .map(|v| v.frames_decoded)
+                        .sum::<usize>()
                 );
             }
             options.masks = capture.masks.clone();

@@ -35,8 +35,8 @@ use crate::io::loader::{check_images, image_files};
 use crate::io::outputs::{InputImages, OutputOptions, Written, write_outputs};
 use crate::io::records::{Matched, match_by_name};
 use crate::io::video::Capture;
-use posediff_matching::PairSelection;
 use crate::reconstruction::Reconstruction;
+use posediff_matching::PairSelection;
 
 /// The input images, checked and named: the files in use, the folder their names are relative
 /// to, and the files left out.

@@ -57,9 +57,8 @@ pub struct VideoInfo {
 
 /// Opens `path` as OpenCV's FFmpeg back end reads it.
 fn open(path: &Path) -> Result<VideoCapture> {
-    let cap = VideoCapture::from_file(path, videoio::CAP_FFMPEG).map_err(|e| {
-        PosediffError::invalid(path, format!("cannot open the video: {e}"))
-    })?;
+    let cap = VideoCapture::from_file(path, videoio::CAP_FFMPEG)
+        .map_err(|e| PosediffError::invalid(path, format!("cannot open the video: {e}")))?;
     if !cap.is_opened()? {
         return Err(PosediffError::invalid(
             path,
@@ -299,13 +298,11 @@ fn frame_masks(dir: &Path, stem: &str) -> Result<HashMap<usize, PathBuf>> {
 
 /// Writes `frame` as a JPEG.
 fn write_jpeg(path: &Path, frame: &Mat, quality: u8) -> Result<()> {
-    let params = Vector::<i32>::from_slice(&[
-        opencv::imgcodecs::IMWRITE_JPEG_QUALITY,
-        i32::from(quality),
-    ]);
-    let name = path.to_str().ok_or_else(|| {
-        PosediffError::invalid(path, "the keyframe folder's path is not UTF-8")
-    })?;
+    let params =
+        Vector::<i32>::from_slice(&[opencv::imgcodecs::IMWRITE_JPEG_QUALITY, i32::from(quality)]);
+    let name = path
+        .to_str()
+        .ok_or_else(|| PosediffError::invalid(path, "the keyframe folder's path is not UTF-8"))?;
     if !opencv::imgcodecs::imwrite(name, frame, &params)? {
         return Err(PosediffError::Write {
             path: path.to_owned(),
@@ -393,7 +390,15 @@ pub fn extract_keyframes(
         options: options.clone(),
     };
     for (v, info) in videos.iter().enumerate() {
-        let report = extract_one(v, info, folder, options, masks, &mut capture.keyframes, progress)?;
+        let report = extract_one(
+            v,
+            info,
+            folder,
+            options,
+            masks,
+            &mut capture.keyframes,
+            progress,
+        )?;
         capture.videos.push(report);
     }
     if capture.keyframes.len() < 2 {
@@ -433,13 +438,12 @@ fn extract_one(
     // settled: the selector settles frames in the order it was given them.
     let mut pending: VecDeque<(usize, f64)> = VecDeque::new();
     let mut verdicts: Vec<(usize, FrameSkip)> = Vec::new();
-    let mut masked = 0;
     let mut decoded = 0usize;
     let mut last_bucket: Option<i64> = None;
-    let mut settle = |vs: Vec<Verdict>,
-                      pending: &mut VecDeque<(usize, f64)>,
-                      keyframes: &mut Vec<KeyframeRecord>,
-                      verdicts: &mut Vec<(usize, FrameSkip)>|
+    let settle = |vs: Vec<Verdict>,
+                  pending: &mut VecDeque<(usize, f64)>,
+                  keyframes: &mut Vec<KeyframeRecord>,
+                  verdicts: &mut Vec<(usize, FrameSkip)>|
      -> Result<()> {
         for verdict in vs {
             let Some((frame, time_s)) = pending.pop_front() else {
@@ -454,11 +458,8 @@ fn extract_one(
                     write_jpeg(&folder.join(&image), &k.frame, options.jpeg_quality)?;
                     if let (Some((_, out)), Some(mask)) = (masks, mask_files.get(&frame)) {
                         let dest = out.join(format!("{image}.png"));
-                        std::fs::copy(mask, &dest).map_err(|source| PosediffError::Write {
-                            path: dest,
-                            source,
-                        })?;
-                        masked += 1;
+                        std::fs::copy(mask, &dest)
+                            .map_err(|source| PosediffError::Write { path: dest, source })?;
                     }
                     keyframes.push(KeyframeRecord {
                         image,
@@ -571,6 +572,12 @@ fn extract_one(
         beyond_overlap: mine.iter().filter(|k| k.beyond_overlap).count(),
         truncated,
         seconds: start.elapsed().as_secs_f64(),
-        masked_keyframes: masked,
+        masked_keyframes: if masks.is_some() {
+            mine.iter()
+                .filter(|k| mask_files.contains_key(&k.frame))
+                .count()
+        } else {
+            0
+        },
     })
 }
