@@ -39,6 +39,9 @@
 //!   --colmap-script ../shared/tools/pycolmap_run.py]`: real cameras (`posediff bench-cameras`):
 //!   each set and its zoomed copy with `--camera-mode single` and `auto`, COLMAP 4.2's mappers
 //!   in the same run (JSON + Markdown).
+//! - `bench-video --out DIR [--seconds 20] [--no-streaming]`: capture (`posediff bench-video`):
+//!   a synthetic orbit video with a moving distractor, estimated with and without its masks
+//!   against the exact cameras, and the 1280×720 streaming cost (JSON + Markdown).
 //! - `train --co3d-dir D --annotation-dir A --categories C --out DIR --init W --freeze-backbone
 //!   [--config tiny|official] [--resume] [--iterations N]`: training (`posediff train`).
 //! - `weights [--dir D]`: the released ALIKED, DISK and LightGlue weights (`posediff-learned`): the
@@ -170,7 +173,7 @@ fn main() -> Result<()> {
             &["-p", "posediff", "--example", "bench_matching"],
             &caller_args()?,
         ),
-        "bench-co3d" | "bench-real" | "bench-cameras" | "train" => {
+        "bench-co3d" | "bench-real" | "bench-cameras" | "bench-video" | "train" => {
             let mut rest = vec![task.clone()];
             rest.extend(caller_args()?);
             cargo_run(&["-p", "posediff"], &rest)

@@ -1,6 +1,7 @@
 //! `posediff estimate`: cameras (and points) for a folder of images or a list of files.
 
 use std::path::{Path, PathBuf};
+use std::time::Instant;
 
 use anyhow::{Context, bail};
 use candle_core::Device;
@@ -10,6 +11,7 @@ use posediff::estimate::run::{
     DEFAULT_START_STEP, InitSource, Inputs, IntrinsicsSource, Network, RefineMode, RunOptions,
     load_estimator, run,
 };
+use posediff::estimate::run_report::Resources;
 use posediff::io::colmap::ColmapFormat;
 use posediff::io::outputs::{
     FRAMES, ImagesMode, OutputOptions, Written, prepare_output_dir, thumbnail_side,
@@ -189,6 +191,7 @@ impl Args {
 impl Args {
     /// Runs the command.
     pub fn run(self) -> anyhow::Result<()> {
+        let start = Instant::now();
         // Every cheap check first: options, paths, files that name the images, the output
         // folder, the images' headers, the checkpoint's keys and shapes; only then features and
         // matching.
@@ -209,7 +212,7 @@ impl Args {
             if videos.len() != self.inputs.len() {
                 bail!("give videos or images, not both (each video's keyframes become the images)");
             }
-            return self.run_video(options);
+            return self.run_video(options, start);
         }
         let inputs = Inputs::resolve(&self.inputs, self.skip_bad_images)?;
         options.thumbnail_side = (!self.no_view).then(|| thumbnail_side(inputs.names.len()));
@@ -241,7 +244,8 @@ impl Args {
         };
         let mut bars = Bars::default();
         let progress: &mut dyn Progress = if self.quiet { &mut Silent } else { &mut bars };
-        let result = run(&inputs, &options, network, progress)?;
+        let mut result = run(&inputs, &options, network, progress)?;
+        result.report.resources = Some(Resources::since(start));
         let written = result.write(&self.out, &output_options)?;
         if !self.quiet {
             print_cameras(&result.reconstruction, &written, &self.out);
@@ -253,7 +257,7 @@ impl Args {
     /// decoding; then one decoding pass per video writing its keyframes into
     /// `out/.posediff-frames`, the run on them, and the keyframes moved into `out/images` with
     /// the results.
-    fn run_video(self, mut options: RunOptions) -> anyhow::Result<()> {
+    fn run_video(self, mut options: RunOptions, start: Instant) -> anyhow::Result<()> {
         if self.weights.is_some() {
             bail!(
                 "video input runs the checkpoint-free path: extract keyframes with a first run, \
@@ -312,6 +316,7 @@ impl Args {
                 .iter()
                 .map(|n| self.out.join("images").join(n))
                 .collect();
+            run.report.resources = Some(Resources::since(start));
             let written = run.write(&self.out, &output_options)?;
             if !self.quiet {
                 print_cameras(&run.reconstruction, &written, &self.out);

@@ -4,6 +4,7 @@
 
 pub mod bench;
 pub mod bench_cameras;
+pub mod bench_video;
 pub mod device_check;
 pub mod estimate;
 pub mod import_colmap;
@@ -31,6 +32,10 @@ pub enum Command {
     /// The real-cameras benchmark: each set and its zoomed copy, camera modes single and auto,
     /// and COLMAP 4.2's mappers side by side with `--colmap-python` (JSON + Markdown report).
     BenchCameras(bench_cameras::Args),
+    /// The capture benchmark: a synthetic orbit video with a moving distractor, estimated with
+    /// and without its masks against the exact cameras, and the streaming cost at 1280×720
+    /// (JSON + Markdown report).
+    BenchVideo(bench_video::Args),
     /// The official CO3Dv2 test protocol (JSON + Markdown report).
     BenchCo3d(bench::Co3dArgs),
     /// Train on CO3D-layout data (e.g. `cargo xtask synth` output): the official recipe with a
@@ -63,6 +68,7 @@ impl Command {
             Self::Estimate(a) => a.run(),
             Self::BenchReal(a) => a.run(),
             Self::BenchCameras(a) => a.run(),
+            Self::BenchVideo(a) => a.run(),
             Self::BenchCo3d(a) => a.run(),
             Self::Train(a) => a.run(),
             Self::ImportColmap(a) => a.run(),

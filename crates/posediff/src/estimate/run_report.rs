@@ -197,8 +197,38 @@ pub struct RunReport {
     /// the keyframes with their frame index, timestamp, sharpness and displacement.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub video: Option<crate::io::video::Capture>,
+    /// The command's wall time and peak memory (filled by the CLI before writing).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub resources: Option<Resources>,
     /// What was written (filled by [`crate::io::outputs::write_outputs`]).
     pub outputs: Option<Written>,
+}
+
+/// run.json's `resources`: what the run cost.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct Resources {
+    /// Seconds from the command's start to its results written (all but the final renames).
+    pub seconds: f64,
+    /// The process's peak resident memory, MiB (Linux's `VmHWM`; `None` elsewhere).
+    pub peak_rss_mib: Option<f64>,
+}
+
+impl Resources {
+    /// The resources of this process since `start`.
+    pub fn since(start: std::time::Instant) -> Self {
+        Self {
+            seconds: start.elapsed().as_secs_f64(),
+            peak_rss_mib: peak_rss_mib(),
+        }
+    }
+}
+
+/// The process's peak resident memory in MiB, from `/proc/self/status` (`VmHWM`).
+pub fn peak_rss_mib() -> Option<f64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kib: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib / 1024.0)
 }
 
 /// run.json's `masks`.
@@ -230,6 +260,7 @@ impl RunReport {
             warnings: Vec::new(),
             masks: None,
             video: None,
+            resources: None,
             outputs: None,
         }
     }
