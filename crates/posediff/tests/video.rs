@@ -149,6 +149,38 @@ fn a_video_gives_its_keyframes_cameras_with_masks() {
         "focal {} vs {f_gt}",
         focals[0]
     );
+
+    // A second run into the same folder that fails after decoding (a still video gives one
+    // keyframe) leaves the first run's results and keyframes whole, and no work folder.
+    let still = dir.join("still.avi");
+    {
+        use opencv::prelude::*;
+        let first = opencv::imgcodecs::imread_def(&out.join("images").join(&names[0])).unwrap();
+        let fourcc = opencv::videoio::VideoWriter::fourcc('M', 'J', 'P', 'G').unwrap();
+        let mut w =
+            opencv::videoio::VideoWriter::new(&still, fourcc, 15.0, first.size().unwrap(), true)
+                .unwrap();
+        assert!(w.is_opened().unwrap());
+        for _ in 0..30 {
+            w.write(&first).unwrap();
+        }
+        w.release().unwrap();
+    }
+    let before = std::fs::read(out.join("run.json")).unwrap();
+    let r = posediff(&[&"estimate", &still, &"--out", &out, &"--quiet"]);
+    let stderr = String::from_utf8_lossy(&r.stderr);
+    assert!(
+        !r.status.success() && stderr.contains("keyframe"),
+        "{stderr}"
+    );
+    assert_eq!(std::fs::read(out.join("run.json")).unwrap(), before);
+    let mut after: Vec<String> = std::fs::read_dir(out.join("images"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .collect();
+    after.sort();
+    assert_eq!(after, names);
+    assert!(!out.join(".posediff-frames").exists());
 }
 
 /// A WAV file: audio only.

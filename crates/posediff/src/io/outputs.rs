@@ -5,7 +5,8 @@
 //! out/
 //!   cameras.json          every image (OpenCV), "estimated": false where none
 //!   sparse/0/             COLMAP model with points (text or binary)
-//!   images/               the input images (a link to the folder, per-file links, or copies)
+//!   images/               the input images (a link to the folder, per-file links, or copies),
+//!                         or a video's keyframes (moved in with the results)
 //!   transforms.json       nerfstudio (file paths relative to out/, ply_file_path)
 //!   sparse_pc.ply         the points in transforms.json's world
 //!   pytorch3d.json        the official model's convention
