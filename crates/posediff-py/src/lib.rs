@@ -425,6 +425,7 @@ impl PyReconstruction {
             nerfstudio: false,
             pytorch3d: false,
             undistort: false,
+            database: false,
         };
         for f in &formats {
             match f.as_str() {
@@ -434,9 +435,10 @@ impl PyReconstruction {
                 "pytorch3d" => options.pytorch3d = true,
                 "view" => options.view = true,
                 "undistorted" => options.undistort = true,
+                "database" => options.database = true,
                 other => {
                     return Err(value_err(format!(
-                        "unknown format {other:?}: give any of \"cameras\", \"colmap\", \"nerfstudio\", \"pytorch3d\", \"view\", \"undistorted\""
+                        "unknown format {other:?}: give any of \"cameras\", \"colmap\", \"nerfstudio\", \"pytorch3d\", \"view\", \"undistorted\", \"database\""
                     )));
                 }
             }

@@ -421,3 +421,49 @@ fn an_empty_page_draws_nothing_so_the_screenshot_check_can_fail() {
     assert!(drawn < 0.001, "{drawn}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// `--database`: pycolmap 4.2.1 opens our database.db (its counts are run.json's) and both
+/// its mappers, GLOMAP's global one and the incremental one, reconstruct the fountain from it
+/// with the right rotations.
+#[test]
+fn pycolmap_maps_the_database_we_write() {
+    let dir = posediff_fixtures::temp_dir("clients-database");
+    let out = dir.join("out");
+    let images = shared_path("data/strecha_fountainP11/images");
+    posediff(&[
+        "estimate".as_ref(),
+        images.as_os_str(),
+        "--out".as_ref(),
+        out.as_os_str(),
+        "--database".as_ref(),
+        "--quiet".as_ref(),
+    ]);
+    let r = Command::new(python())
+        .arg(workspace().join("scripts/check_database.py"))
+        .arg(&out)
+        .arg("--gt")
+        .arg(shared_path("data/strecha_fountainP11/cameras.json"))
+        .output()
+        .unwrap();
+    assert!(
+        r.status.success(),
+        "check_database.py: {}",
+        String::from_utf8_lossy(&r.stderr)
+    );
+    let found: serde_json::Value = serde_json::from_slice(&r.stdout).unwrap();
+    assert_eq!(found["images"], 11);
+    for mapper in ["global", "incremental"] {
+        assert_eq!(found[mapper]["registered"], 11, "{found}");
+        assert!(found[mapper]["rra_5"].as_f64().unwrap() >= 0.95, "{found}");
+    }
+    // A database is written new: a second write into the same file is refused.
+    let e = posediff::io::database::write_database(
+        &out.join("database.db"),
+        &posediff::reconstruction::Reconstruction::default(),
+        &[],
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(e.contains("exists"), "{e}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}

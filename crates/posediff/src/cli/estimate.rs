@@ -146,6 +146,11 @@ pub struct Args {
     /// for 3DGS and gsplat).
     #[arg(long)]
     undistort: bool,
+    /// Also write out/database.db: COLMAP 4.2's database of the keypoints in verified matches,
+    /// the matches and their two-view geometries, which COLMAP's and GLOMAP's mappers (and
+    /// pycolmap) map as it is.
+    #[arg(long)]
+    database: bool,
     /// Go on without images that are corrupt, truncated or unreadable (listed in run.json)
     /// instead of stopping.
     #[arg(long)]
@@ -183,6 +188,7 @@ impl Args {
             },
             view: !self.no_view,
             undistort: self.undistort,
+            database: self.database,
             ..OutputOptions::default()
         }
     }

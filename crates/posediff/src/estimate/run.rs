@@ -32,7 +32,7 @@ use crate::io::exif::{ExifCamera, read_exif};
 use crate::io::export::{ImageCamera, read_cameras_json_partial};
 use crate::io::loader::relative_name;
 use crate::io::loader::{check_images, image_files};
-use crate::io::outputs::{InputImages, OutputOptions, Written, write_outputs};
+use crate::io::outputs::{InputImages, OutputOptions, Written, write_outputs_with_pairs};
 use crate::io::records::{Matched, match_by_name};
 use crate::io::video::Capture;
 use crate::reconstruction::Reconstruction;
@@ -462,6 +462,8 @@ pub struct Run {
     pub inputs: InputImages,
     /// The viewer's thumbnails when [`RunOptions::thumbnail_side`] asked for them.
     pub thumbnails: Option<Vec<Option<Vec<u8>>>>,
+    /// The verified matches the cameras and points come from (for `database.db`).
+    pub pairs: Vec<PairMatches>,
 }
 
 impl Run {
@@ -471,9 +473,10 @@ impl Run {
     /// # Errors
     /// As [`write_outputs`].
     pub fn write(&self, out: &Path, options: &OutputOptions) -> Result<Written> {
-        write_outputs(
+        write_outputs_with_pairs(
             out,
             &self.reconstruction,
+            &self.pairs,
             &self.inputs,
             &self.report,
             options,
@@ -667,6 +670,7 @@ pub fn run(
         report,
         inputs: inputs.images.clone(),
         thumbnails: options.thumbnail_side.map(|_| thumbnails),
+        pairs,
     })
 }
 

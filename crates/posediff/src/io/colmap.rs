@@ -103,6 +103,18 @@ const MODELS: [(&str, i32, usize); 6] = [
     ("OPENCV_FISHEYE", 5, 8),
 ];
 
+/// COLMAP's numeric id of the camera model `name` (`SIMPLE_RADIAL` → 2).
+///
+/// # Errors
+/// A model this crate does not write.
+pub fn model_id_of(name: &str) -> Result<i64> {
+    MODELS
+        .iter()
+        .find(|(n, _, _)| *n == name)
+        .map(|(_, id, _)| i64::from(*id))
+        .ok_or_else(|| PosediffError::InvalidArgument(format!("camera model {name}")))
+}
+
 /// The index of the principal point's `x` among `model`'s parameters.
 fn principal_index(model: CameraModel) -> usize {
     match model {

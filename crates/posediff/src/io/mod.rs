@@ -5,6 +5,7 @@
 //! - [`records`]: per-image records matched to the images by name, never by position.
 //! - [`export`]: cameras.json, nerfstudio (+ PLY) and PyTorch3D writers and readers.
 //! - [`colmap`]: COLMAP sparse models, text and binary, with points.
+//! - [`database`]: COLMAP 4.2's `database.db` (keypoints, verified matches, two-view geometries).
 //! - [`co3d`]: CO3Dv2 annotations and the official test protocol's frame choice.
 //! - [`outputs`]: the output folder (COLMAP sparse/0, images, nerfstudio, PLY, viewer).
 //! - [`viewer`]: view.html, a self-contained three.js page.
@@ -15,6 +16,7 @@
 
 pub mod co3d;
 pub mod colmap;
+pub mod database;
 pub mod exif;
 pub mod export;
 pub mod loader;

@@ -66,6 +66,9 @@ pub struct OutputOptions {
     /// `undistorted/` (images resampled onto their pinhole cameras and a PINHOLE model,
     /// [`crate::io::undistort`]), when some camera has a lens.
     pub undistort: bool,
+    /// `database.db`: COLMAP's database of the keypoints and verified matches
+    /// ([`crate::io::database`]).
+    pub database: bool,
 }
 
 impl Default for OutputOptions {
@@ -78,6 +81,7 @@ impl Default for OutputOptions {
             nerfstudio: true,
             pytorch3d: true,
             undistort: false,
+            database: false,
         }
     }
 }
@@ -283,6 +287,22 @@ pub fn write_outputs(
     options: &OutputOptions,
     thumbnails_made: Option<&[Option<Vec<u8>>]>,
 ) -> Result<Written> {
+    write_outputs_with_pairs(out, r, &[], inputs, run, options, thumbnails_made)
+}
+
+/// [`write_outputs`] with the run's verified pairs (for `database.db`).
+///
+/// # Errors
+/// As [`write_outputs`]; a database that cannot be written.
+pub fn write_outputs_with_pairs(
+    out: &Path,
+    r: &Reconstruction,
+    pairs: &[posediff_geometry::PairMatches],
+    inputs: &InputImages,
+    run: &crate::estimate::run_report::RunReport,
+    options: &OutputOptions,
+    thumbnails_made: Option<&[Option<Vec<u8>>]>,
+) -> Result<Written> {
     std::fs::create_dir_all(out).map_err(|source| PosediffError::Write {
         path: out.to_owned(),
         source,
@@ -293,7 +313,15 @@ pub fn write_outputs(
         path: staging.clone(),
         source,
     })?;
-    let written = match write_results(out, &staging, r, inputs, run, options, thumbnails_made) {
+    let written = match write_results(
+        out,
+        &staging,
+        (r, pairs),
+        inputs,
+        run,
+        options,
+        thumbnails_made,
+    ) {
         Ok(w) => w,
         Err(e) => {
             let _ = std::fs::remove_dir_all(&staging);
@@ -311,8 +339,9 @@ const PREVIOUS: &str = ".posediff-previous";
 /// Every result entry a run may write (relative to `out`), in the order they are moved aside:
 /// run.json first (the folder then no longer claims a result), and moved in last. `images` is
 /// not among them: it is the input, made before the results.
-pub const RESULTS: [&str; 8] = [
+pub const RESULTS: [&str; 9] = [
     "run.json",
+    "database.db",
     "cameras.json",
     "sparse/0",
     "transforms.json",
@@ -418,7 +447,7 @@ pub fn recover(out: &Path) -> Result<()> {
 fn write_results(
     out: &Path,
     stage: &Path,
-    r: &Reconstruction,
+    (r, pairs): (&Reconstruction, &[posediff_geometry::PairMatches]),
     inputs: &InputImages,
     run: &crate::estimate::run_report::RunReport,
     options: &OutputOptions,
@@ -477,6 +506,10 @@ fn write_results(
             options.colmap_format,
         )?;
         files.push("undistorted".into());
+    }
+    if options.database {
+        crate::io::database::write_database(&stage.join("database.db"), r, pairs)?;
+        files.push("database.db".into());
     }
     if options.pytorch3d {
         write_pytorch3d(&stage.join("pytorch3d.json"), &entries)?;

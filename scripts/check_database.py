@@ -1,0 +1,89 @@
+#!/usr/bin/env python3
+"""Maps a `posediff estimate --database` output's database.db with pycolmap 4.2.1.
+
+- pycolmap opens out/database.db: its images, cameras and verified pairs must be run.json's
+  (every image; every pair run.json lists with matches); every match's keypoints must lie
+  inside their images;
+- pycolmap's global mapper (GLOMAP's) and incremental mapper reconstruct from it with the
+  images of out/images, and each registered camera's relative rotations are scored against
+  --gt (a cameras.json, OpenCV x_cam = R x_world + t): the fraction of pairs within 5°.
+
+Prints one JSON line of what it found; exits non-zero with the reason on any mismatch.
+"""
+import argparse
+import json
+import pathlib
+import sys
+
+import numpy as np
+import pycolmap
+
+
+def fail(msg):
+    print(f"check_database: {msg}", file=sys.stderr)
+    sys.exit(1)
+
+
+def rra5(rec, gt):
+    names = {img.name: img for img in rec.images.values() if img.has_pose}
+    common = [n for n in gt if n in names]
+    rot = {n: names[n].cam_from_world().rotation.matrix() for n in common}
+    ok = total = 0
+    for i, a in enumerate(common):
+        for b in common[i + 1:]:
+            rel_gt = gt[b] @ gt[a].T
+            rel = rot[b] @ rot[a].T
+            c = (np.trace(rel_gt @ rel.T) - 1) / 2
+            ok += np.degrees(np.arccos(np.clip(c, -1, 1))) < 5
+            total += 1
+    return len(common), ok / max(total, 1)
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("out", type=pathlib.Path)
+    ap.add_argument("--gt", type=pathlib.Path, required=True)
+    args = ap.parse_args()
+    run = json.loads((args.out / "run.json").read_text())
+    db_path = args.out / "database.db"
+    db = pycolmap.Database.open(str(db_path))
+    images = db.read_all_images()
+    cameras = db.read_all_cameras()
+    if len(images) != len(run["images"]):
+        fail(f"{len(images)} images in the database, run.json has {len(run['images'])}")
+    pairs = [p for p in run["matches_per_pair"] if p["matches"] > 0]
+    verified = db.num_verified_image_pairs()
+    if verified != len(pairs):
+        fail(f"{verified} verified pairs in the database, run.json has {len(pairs)} with matches")
+    size = {c.camera_id: (c.width, c.height) for c in cameras}
+    for image in images:
+        kp = db.read_keypoints(image.image_id)
+        w, h = size[image.camera_id]
+        if len(kp) and (kp[:, 0].min() < 0 or kp[:, 0].max() > w or kp[:, 1].min() < 0
+                        or kp[:, 1].max() > h):
+            fail(f"{image.name}: keypoints outside the image")
+    matches = sum(db.read_two_view_geometry(image_id1=p["first"] + 1,
+                                            image_id2=p["second"] + 1).inlier_matches.shape[0]
+                  for p in pairs)
+    if matches != sum(p["matches"] for p in pairs):
+        fail(f"{matches} inlier matches in the database, run.json has "
+             f"{sum(p['matches'] for p in pairs)}")
+    db.close()
+    gt = {r["image"].split("/")[-1]: np.array(r["R"]) for r in json.loads(args.gt.read_text())}
+    result = {"images": len(images), "cameras": len(cameras), "pairs": verified,
+              "matches": matches}
+    for name, mapper in [("global", pycolmap.global_mapping),
+                         ("incremental", pycolmap.incremental_mapping)]:
+        out = args.out / f"pycolmap-{name}"
+        out.mkdir(exist_ok=True)
+        recs = mapper(str(db_path), str(args.out / "images"), str(out))
+        if not recs:
+            fail(f"pycolmap's {name} mapper reconstructed nothing from our database")
+        best = max(recs.values(), key=lambda r: r.num_reg_images())
+        registered, rra = rra5(best, gt)
+        result[name] = {"registered": registered, "rra_5": rra, "points": best.num_points3D()}
+    print(json.dumps(result))
+
+
+if __name__ == "__main__":
+    main()
