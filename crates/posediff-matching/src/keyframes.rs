@@ -299,7 +299,6 @@ impl KeyframeSelector {
         } else if displacement >= self.options.max_displacement
             || tracked < self.options.min_tracked
             || live < MIN_CORNERS
-            || tracked < self.options.min_tracked
         {
             // The newest frame is past the bound: the sharpest earlier held frame that moved
             // enough, else the newest itself.

@@ -155,7 +155,7 @@ fn a_video_gives_its_keyframes_cameras_with_masks() {
     let still = dir.join("still.avi");
     {
         use opencv::prelude::*;
-        let first = opencv::imgcodecs::imread_def(&out.join("images").join(&names[0])).unwrap();
+        let first = opencv::imgcodecs::imread_def(out.join("images").join(&names[0])).unwrap();
         let fourcc = opencv::videoio::VideoWriter::fourcc('M', 'J', 'P', 'G').unwrap();
         let mut w =
             opencv::videoio::VideoWriter::new(&still, fourcc, 15.0, first.size().unwrap(), true)
