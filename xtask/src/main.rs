@@ -1064,20 +1064,10 @@ fn py_test(profile: &str) -> Result<()> {
         )?;
     }
     let binary = binary.to_string_lossy().into_owned();
-    // The synthetic capture video of the video test.
-    let synth = profile_dir(profile).join("posediff-synth");
-    if !synth.is_file() {
-        run(
-            "cargo",
-            &["build", "-p", "posediff-synth", "--profile", profile],
-            &[],
-        )?;
-    }
-    let synth = synth.to_string_lossy().into_owned();
     run(
         &py,
         &["-m", "pytest", "-q", "crates/posediff-py/tests"],
-        &[("POSEDIFF_BIN", &binary), ("POSEDIFF_SYNTH_BIN", &synth)],
+        &[("POSEDIFF_BIN", &binary)],
     )
 }
 

@@ -44,7 +44,7 @@ pub struct KeyframeOptions {
     pub min_displacement: f64,
     /// Consecutive keyframes are at most this fraction of the diagonal apart (the overlap
     /// bound). 0.05, with `min_tracked` 0.8, measured on an orbit video
-    /// (`posediff-synth --video --seed 3`, 640×480, 30 fps, 3 s): keyframes 4–11° apart, all
+    /// (`posediff synth-video --seed 3`, 640×480, 30 fps, 3 s): keyframes 4–11° apart, all
     /// 25 estimated, 200–1400 verified matches between neighbours; at 0.10 and 0.5 they were
     /// 25–34° apart and 4 of 7 were left unmatched (an orbit fixating the object moves the
     /// image little for a large change of view).

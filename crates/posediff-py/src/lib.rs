@@ -655,7 +655,7 @@ fn keyframes(
                 &frames,
                 &video_options,
                 user_masks.as_deref().map(|m| (m, mask_out.as_path())),
-                progress,
+                progress.counter(),
             )
         })
         .map_err(py_err)?;

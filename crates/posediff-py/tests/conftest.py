@@ -27,16 +27,6 @@ def cli() -> Path:
     return binary
 
 
-@pytest.fixture(scope="session")
-def synth() -> Path:
-    """The posediff-synth binary of the same build (`POSEDIFF_SYNTH_BIN`)."""
-    path = os.environ.get("POSEDIFF_SYNTH_BIN")
-    assert path, "set POSEDIFF_SYNTH_BIN to the posediff-synth binary (cargo xtask py-test does)"
-    binary = Path(path)
-    assert binary.is_file(), f"POSEDIFF_SYNTH_BIN={binary} is not a file"
-    return binary
-
-
 def run_cli(binary: Path, *args: object) -> subprocess.CompletedProcess[str]:
     r = subprocess.run([str(binary), *map(str, args)], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr

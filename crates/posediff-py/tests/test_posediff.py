@@ -196,10 +196,10 @@ def test_bad_inputs_raise_the_right_exceptions(tmp_path: Path) -> None:
     assert issubclass(posediff.Error, Exception)
 
 
-def test_a_video_gives_keyframes_and_cameras(synth: Path, cli: Path, tmp_path: Path) -> None:
+def test_a_video_gives_keyframes_and_cameras(cli: Path, tmp_path: Path) -> None:
     """A video in, as the CLI takes it: keyframes named by frame and time, one camera for the
     video, the masks applied, the keyframes written with the results."""
-    run_cli(synth, "--video", "--out", tmp_path / "v", "--size", "320x240", "--fps", "15",
+    run_cli(cli, "synth-video", "--out", tmp_path / "v", "--size", "320x240", "--fps", "15",
             "--seconds", "3", "--distractor", "--seed", "3")
     video = next((tmp_path / "v").glob("capture.*"))
     rec = posediff.estimate(video, masks=tmp_path / "v" / "masks", max_frames=40, progress=False)

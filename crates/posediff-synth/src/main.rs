@@ -7,7 +7,6 @@ use std::time::Instant;
 use anyhow::Context;
 use clap::Parser;
 use posediff_synth::scene::PathKind;
-use posediff_synth::video::{VideoSpec, write_video};
 use posediff_synth::{DatasetSpec, LensSpec, parse_size, write_dataset};
 
 /// Render synthetic object-centric sequences with exact cameras.
@@ -46,22 +45,6 @@ struct Cli {
     /// CO3D annotations are written).
     #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
     radial: f64,
-    /// Write one capture video into --out instead of sequences: an orbit of --seconds at
-    /// --fps, size the first of --size, seed --seed (cameras.json for every frame, video.json).
-    #[arg(long)]
-    video: bool,
-    /// With --video: frames per second.
-    #[arg(long, default_value_t = 30.0)]
-    fps: f64,
-    /// With --video: length in seconds.
-    #[arg(long, default_value_t = 20.0)]
-    seconds: f64,
-    /// With --video: a moving distractor object, and its masks in --out/masks.
-    #[arg(long)]
-    distractor: bool,
-    /// With --video: Motion JPEG (AVI) even where H.264 can be encoded.
-    #[arg(long)]
-    mjpeg: bool,
     /// Also write a PNG grid of the first, middle and last frame of up to four sequences.
     #[arg(long)]
     contact_sheet: Option<PathBuf>,
@@ -82,27 +65,6 @@ fn main() -> anyhow::Result<()> {
         .split(',')
         .map(parse_size)
         .collect::<Result<Vec<_>, _>>()?;
-    if cli.video {
-        let spec = VideoSpec {
-            seed: cli.seed,
-            size: sizes[0],
-            fps: cli.fps,
-            seconds: cli.seconds,
-            distractor: cli.distractor,
-            mjpeg: cli.mjpeg,
-        };
-        let start = Instant::now();
-        let summary = write_video(&cli.out, &spec)
-            .with_context(|| format!("writing {}", cli.out.display()))?;
-        println!(
-            "{} frames ({}) in {:.1} s: {}",
-            summary.frames,
-            summary.codec,
-            start.elapsed().as_secs_f64(),
-            summary.video.display()
-        );
-        return Ok(());
-    }
     let spec = DatasetSpec {
         sequences: cli.sequences,
         frames: cli.frames,

@@ -1,27 +1,16 @@
-//! A synthetic capture video with exact cameras: a scene orbited at a frame rate, encoded by
-//! OpenCV's video writer (H.264 in MP4 through FFmpeg where the system's FFmpeg has an H.264
-//! encoder, else Motion JPEG in AVI, which OpenCV writes itself), optionally with a moving
-//! distractor (a textured figure walking around the objects) and its masks.
-//!
-//! Written: `capture.mp4` or `capture.avi`, `cameras.json` (every frame, named
-//! `frame_<index:06>`), `masks/<index:06>.png` (zero on the distractor, dilated 3 px) when
-//! there is one, `video.json` (codec, fps, frames, size, seed).
-
-use std::f64::consts::TAU;
-use std::path::{Path, PathBuf};
+//! The frames of a synthetic capture video with exact cameras: a scene orbited at a frame
+//! rate, optionally with a moving distractor (a textured figure walking around the objects)
+//! and its masks. Rendering only: the umbrella's `posediff::io::synthetic_video` encodes the
+//! frames (this crate stays free of OpenCV).
 
 use nalgebra::{Rotation3, Vector3};
-use opencv::core::{Mat, Size};
-use opencv::prelude::*;
-use opencv::videoio::VideoWriter;
-use posediff_geometry::camera_json::CameraRecord;
 use posediff_geometry::{Camera, ImageSize};
 use rayon::prelude::*;
-use serde::Serialize;
+use std::f64::consts::TAU;
 
 use crate::render::Triangle;
 use crate::scene::{Material, Object, PathKind, Scene, Shape, trajectory_with};
-use crate::{Result, SynthError, render_frame, write_file};
+use crate::{Result, SynthError, render_frame};
 
 /// What to render.
 #[derive(Debug, Clone, PartialEq)]
@@ -36,23 +25,6 @@ pub struct VideoSpec {
     pub seconds: f64,
     /// A moving distractor object (and its masks).
     pub distractor: bool,
-    /// Motion JPEG even where H.264 is available.
-    pub mjpeg: bool,
-}
-
-/// What was written.
-#[derive(Debug, Clone, Serialize)]
-pub struct VideoSummary {
-    /// The video file.
-    pub video: PathBuf,
-    /// `H264` or `MJPG`.
-    pub codec: String,
-    /// Frames.
-    pub frames: usize,
-    /// Frames per second.
-    pub fps: f64,
-    /// The masks folder, with a distractor.
-    pub masks: Option<PathBuf>,
 }
 
 /// The scene of frame `i` of `n`: the objects, and the distractor (object index
@@ -101,50 +73,22 @@ fn distractor(scene: &Scene, seed: u64) -> Object {
     }
 }
 
-fn bgr(rgb: &[u8], size: ImageSize) -> Result<Mat> {
-    let cv = |e: opencv::Error| SynthError::Invalid(format!("OpenCV: {e}"));
-    let flat = Mat::from_slice(rgb).map_err(cv)?;
-    let img = flat
-        .reshape(3, size.height() as i32)
-        .map_err(cv)?
-        .try_clone()
-        .map_err(cv)?;
-    let mut out = Mat::default();
-    opencv::imgproc::cvt_color_def(&img, &mut out, opencv::imgproc::COLOR_RGB2BGR).map_err(cv)?;
-    Ok(out)
+/// One rendered frame of the video.
+#[derive(Debug, Clone)]
+pub struct VideoFrame {
+    /// Its index.
+    pub index: usize,
+    /// 8-bit RGB, row-major.
+    pub rgb: Vec<u8>,
+    /// With a distractor: 0 on it (grown by [`MASK_MARGIN`] px), 255 elsewhere, row-major.
+    pub mask: Option<Vec<u8>>,
 }
 
-/// Opens the writer: H.264 in MP4 where FFmpeg can encode it (unless `mjpeg`), else Motion
-/// JPEG in AVI.
-fn writer(out: &Path, spec: &VideoSpec) -> Result<(VideoWriter, PathBuf, String)> {
-    let cv = |e: opencv::Error| SynthError::Invalid(format!("OpenCV: {e}"));
-    let size = Size::new(spec.size.width() as i32, spec.size.height() as i32);
-    let mut tries = Vec::new();
-    if !spec.mjpeg {
-        tries.push(("capture.mp4", ['a', 'v', 'c', '1'], "H264"));
-    }
-    tries.push(("capture.avi", ['M', 'J', 'P', 'G'], "MJPG"));
-    for (name, c, codec) in tries {
-        let path = out.join(name);
-        let fourcc = VideoWriter::fourcc(c[0], c[1], c[2], c[3]).map_err(cv)?;
-        let w = VideoWriter::new(&path, fourcc, spec.fps, size, true);
-        if let Ok(w) = w
-            && w.is_opened().unwrap_or(false)
-        {
-            return Ok((w, path, codec.to_owned()));
-        }
-        let _ = std::fs::remove_file(&path);
-    }
-    Err(SynthError::Invalid(
-        "OpenCV's video writer opens neither H.264 (MP4) nor Motion JPEG (AVI)".into(),
-    ))
-}
+/// Pixels the distractor's mask reaches beyond it (users' masks are generous).
+pub const MASK_MARGIN: usize = 3;
 
-/// Renders and encodes the video into `out` (created).
-///
-/// # Errors
-/// A size or rate out of range; the writer cannot be opened; a write fails.
-pub fn write_video(out: &Path, spec: &VideoSpec) -> Result<VideoSummary> {
+/// Frames of `n` frames per second × seconds.
+pub fn frame_count(spec: &VideoSpec) -> Result<usize> {
     if !(spec.fps > 0.0 && spec.seconds > 0.0) {
         return Err(SynthError::Invalid(
             "fps and seconds must be positive".into(),
@@ -156,108 +100,115 @@ pub fn write_video(out: &Path, spec: &VideoSpec) -> Result<VideoSummary> {
             "the video needs at least 2 frames".into(),
         ));
     }
-    std::fs::create_dir_all(out).map_err(|source| SynthError::Write {
-        path: out.to_owned(),
-        source,
-    })?;
+    Ok(n)
+}
+
+/// `mask` (0 = masked) with every masked pixel grown by `r` px (a square window), by a
+/// separable minimum filter.
+fn grow_masked(mask: &[u8], w: usize, h: usize, r: usize) -> Vec<u8> {
+    let mut rows = vec![255u8; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            let (a, b) = (x.saturating_sub(r), (x + r).min(w - 1));
+            rows[y * w + x] = mask[y * w + a..=y * w + b]
+                .iter()
+                .copied()
+                .min()
+                .unwrap_or(255);
+        }
+    }
+    let mut out = vec![255u8; w * h];
+    for y in 0..h {
+        let (a, b) = (y.saturating_sub(r), (y + r).min(h - 1));
+        for x in 0..w {
+            out[y * w + x] = (a..=b).map(|yy| rows[yy * w + x]).min().unwrap_or(255);
+        }
+    }
+    out
+}
+
+/// Renders the video: the cameras of every frame, and each frame handed to `sink` in order
+/// (rendered in parallel a chunk at a time).
+///
+/// # Errors
+/// A rate or length out of range; whatever `sink` returns.
+pub fn render_video(
+    spec: &VideoSpec,
+    mut sink: impl FnMut(VideoFrame) -> Result<()>,
+) -> Result<Vec<Camera>> {
+    let n = frame_count(spec)?;
     let scene = Scene::random(spec.seed);
     let cameras: Vec<Camera> =
         trajectory_with(&scene, n, spec.size, spec.seed, Some(PathKind::Orbit));
     let extra = spec.distractor.then(|| distractor(&scene, spec.seed));
-    let masks = spec.distractor.then(|| out.join("masks"));
-    if let Some(m) = &masks {
-        std::fs::create_dir_all(m).map_err(|source| SynthError::Write {
-            path: m.clone(),
-            source,
-        })?;
-    }
-    let (mut w, video, codec) = writer(out, spec)?;
-    let cv = |e: opencv::Error| SynthError::Invalid(format!("OpenCV: {e}"));
     let id = scene.objects.len() as u32;
-    // Rendered in parallel a chunk at a time, encoded in order.
     for chunk in (0..n).collect::<Vec<_>>().chunks(16) {
-        let frames: Vec<(Mat, Option<Mat>)> = chunk
+        let frames: Vec<VideoFrame> = chunk
             .par_iter()
             .map(|&i| {
                 let s = scene_at(&scene, extra.as_ref(), i, n);
                 let f = render_frame(&s, &cameras[i]);
-                let img = bgr(&f.rgb, spec.size)?;
-                let mask = match extra {
-                    None => None,
-                    Some(_) => {
-                        let (w, h) = (f.buffers.width, f.buffers.height);
-                        let mut m = vec![255u8; w * h];
-                        for y in 0..h {
-                            for x in 0..w {
-                                if f.buffers.at(x, y).is_some_and(|hit| hit.object == id) {
-                                    m[y * w + x] = 0;
-                                }
+                let mask = extra.as_ref().map(|_| {
+                    let (w, h) = (f.buffers.width, f.buffers.height);
+                    let mut m = vec![255u8; w * h];
+                    for y in 0..h {
+                        for x in 0..w {
+                            if f.buffers.at(x, y).is_some_and(|hit| hit.object == id) {
+                                m[y * w + x] = 0;
                             }
                         }
-                        let flat = Mat::from_slice(&m).map_err(cv)?;
-                        let m = flat
-                            .reshape(1, h as i32)
-                            .map_err(cv)?
-                            .try_clone()
-                            .map_err(cv)?;
-                        let mut eroded = Mat::default();
-                        let kernel = opencv::imgproc::get_structuring_element_def(
-                            opencv::imgproc::MORPH_RECT,
-                            Size::new(7, 7),
-                        )
-                        .map_err(cv)?;
-                        opencv::imgproc::erode_def(&m, &mut eroded, &kernel).map_err(cv)?;
-                        Some(eroded)
                     }
-                };
-                Ok((img, mask))
-            })
-            .collect::<Result<_>>()?;
-        for (&i, (img, mask)) in chunk.iter().zip(frames) {
-            w.write(&img).map_err(cv)?;
-            if let (Some(dir), Some(m)) = (&masks, mask) {
-                let path = dir.join(format!("{i:06}.png"));
-                let ok = opencv::imgcodecs::imwrite_def(&path, &m).map_err(cv)?;
-                if !ok {
-                    return Err(SynthError::Invalid(format!(
-                        "cannot write {}",
-                        path.display()
-                    )));
+                    grow_masked(&m, w, h, MASK_MARGIN)
+                });
+                VideoFrame {
+                    index: i,
+                    rgb: f.rgb,
+                    mask,
                 }
+            })
+            .collect();
+        for f in frames {
+            sink(f)?;
+        }
+    }
+    Ok(cameras)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_masked_pixel_grows_into_a_square() {
+        let (w, h) = (9, 7);
+        let mut m = vec![255u8; w * h];
+        m[3 * w + 4] = 0;
+        let g = grow_masked(&m, w, h, 2);
+        for y in 0..h {
+            for x in 0..w {
+                let inside = (2..=6).contains(&x) && (1..=5).contains(&y);
+                assert_eq!(g[y * w + x] == 0, inside, "({x}, {y})");
             }
         }
     }
-    w.release().map_err(cv)?;
-    let records: Vec<CameraRecord> = cameras
-        .iter()
-        .enumerate()
-        .map(|(i, c)| CameraRecord::from_camera(format!("frame_{i:06}"), c))
-        .collect();
-    write_file(
-        &out.join("cameras.json"),
-        serde_json::to_string_pretty(&records)?.as_bytes(),
-    )?;
-    let summary = VideoSummary {
-        video,
-        codec,
-        frames: n,
-        fps: spec.fps,
-        masks,
-    };
-    let meta = serde_json::json!({
-        "generator": "posediff-synth",
-        "seed": spec.seed,
-        "codec": summary.codec,
-        "frames": n,
-        "fps": spec.fps,
-        "width": spec.size.width(),
-        "height": spec.size.height(),
-        "distractor": spec.distractor,
-        "cameras": "cameras.json: frame_<index> for every frame, OpenCV x_cam = R x_world + t",
-    });
-    write_file(
-        &out.join("video.json"),
-        serde_json::to_string_pretty(&meta)?.as_bytes(),
-    )?;
-    Ok(summary)
+
+    #[test]
+    fn the_distractor_moves_and_is_masked() {
+        let spec = VideoSpec {
+            seed: 3,
+            size: ImageSize::new(64, 48).unwrap_or_else(|_| unreachable!()),
+            fps: 4.0,
+            seconds: 1.0,
+            distractor: true,
+        };
+        let mut masks = Vec::new();
+        let cams = render_video(&spec, |f| {
+            masks.push(f.mask.unwrap_or_default());
+            Ok(())
+        })
+        .unwrap_or_default();
+        assert_eq!(cams.len(), 4);
+        assert!(masks.iter().any(|m| m.contains(&0)));
+        assert_ne!(masks[0], masks[3]);
+    }
 }

@@ -8,19 +8,19 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
+use posediff::io::synthetic_video::{VideoSummary, write_video};
 use posediff_geometry::camera_json::CameraRecord;
 use posediff_geometry::{Camera, ImageSize};
 use posediff_metrics::relative::relative_pose_errors;
-use posediff_synth::video::{VideoSpec, VideoSummary, write_video};
+use posediff_synth::video::VideoSpec;
 
-fn spec(mjpeg: bool) -> VideoSpec {
+fn spec() -> VideoSpec {
     VideoSpec {
         seed: 3,
         size: ImageSize::new(320, 240).unwrap(),
         fps: 15.0,
         seconds: 4.0,
         distractor: true,
-        mjpeg,
     }
 }
 
@@ -46,7 +46,7 @@ fn run_json(out: &Path) -> serde_json::Value {
 #[test]
 fn a_video_gives_its_keyframes_cameras_with_masks() {
     let dir = posediff_fixtures::temp_dir("video-e2e");
-    let video: VideoSummary = write_video(&dir.join("capture"), &spec(false)).unwrap();
+    let video: VideoSummary = write_video(&dir.join("capture"), &spec(), false).unwrap();
     let masks = video.masks.clone().unwrap();
     let out = dir.join("out");
     let r = posediff(&[
@@ -229,17 +229,10 @@ fn bad_videos_are_named_before_any_work() {
     let dir = posediff_fixtures::temp_dir("video-bad");
     let small = VideoSpec {
         seconds: 1.0,
-        ..spec(false)
+        ..spec()
     };
-    let mp4 = write_video(&dir.join("mp4"), &small).unwrap();
-    let avi = write_video(
-        &dir.join("avi"),
-        &VideoSpec {
-            mjpeg: true,
-            ..small.clone()
-        },
-    )
-    .unwrap();
+    let mp4 = write_video(&dir.join("mp4"), &small, false).unwrap();
+    let avi = write_video(&dir.join("avi"), &small, true).unwrap();
     assert_eq!(avi.codec, "MJPG");
     let put = |name: &str, bytes: &[u8]| -> PathBuf {
         let p = dir.join(name);
@@ -321,11 +314,11 @@ fn a_truncated_video_uses_what_decodes_and_says_so() {
     let avi = write_video(
         &dir.join("avi"),
         &VideoSpec {
-            mjpeg: true,
             distractor: false,
             seconds: 3.0,
-            ..spec(true)
+            ..spec()
         },
+        true,
     )
     .unwrap();
     let bytes = std::fs::read(&avi.video).unwrap();

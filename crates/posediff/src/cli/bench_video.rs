@@ -10,9 +10,10 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use anyhow::{Context, bail};
+use posediff::io::synthetic_video::write_video;
 use posediff_geometry::ImageSize;
 use posediff_geometry::camera_json::CameraRecord;
-use posediff_synth::video::{VideoSpec, write_video};
+use posediff_synth::video::VideoSpec;
 use serde::Serialize;
 
 /// The capture benchmark (JSON + Markdown).
@@ -62,10 +63,9 @@ fn video(
         fps: 30.0,
         seconds,
         distractor: true,
-        mjpeg: false,
     };
     let summary =
-        write_video(&dir, &spec).with_context(|| format!("rendering {}", dir.display()))?;
+        write_video(&dir, &spec, false).with_context(|| format!("rendering {}", dir.display()))?;
     Ok((dir, summary.codec))
 }
 

@@ -298,7 +298,7 @@ impl Args {
                 &frames,
                 &options.pipeline.video,
                 self.masks.as_deref().map(|m| (m, mask_out.as_path())),
-                progress,
+                progress.counter(),
             )?;
             if !self.quiet {
                 let (per_second, per_key) = capture.costs();

@@ -10,6 +10,7 @@ pub mod estimate;
 pub mod import_colmap;
 pub mod plot;
 pub mod score;
+pub mod synth_video;
 pub mod train;
 pub mod variant;
 pub mod view;
@@ -36,6 +37,9 @@ pub enum Command {
     /// and without its masks against the exact cameras, and the streaming cost at 1280×720
     /// (JSON + Markdown report).
     BenchVideo(bench_video::Args),
+    /// Write a synthetic capture video with exact cameras (an orbit, H.264 or Motion JPEG,
+    /// optionally a moving distractor and its masks).
+    SynthVideo(synth_video::Args),
     /// The official CO3Dv2 test protocol (JSON + Markdown report).
     BenchCo3d(bench::Co3dArgs),
     /// Train on CO3D-layout data (e.g. `cargo xtask synth` output): the official recipe with a
@@ -69,6 +73,7 @@ impl Command {
             Self::BenchReal(a) => a.run(),
             Self::BenchCameras(a) => a.run(),
             Self::BenchVideo(a) => a.run(),
+            Self::SynthVideo(a) => a.run(),
             Self::BenchCo3d(a) => a.run(),
             Self::Train(a) => a.run(),
             Self::ImportColmap(a) => a.run(),

@@ -12,6 +12,7 @@
 //! - [`exif`]: the camera and focal prior an image's EXIF gives (COLMAP's rules), and writing
 //!   EXIF into copies.
 //! - [`variants`]: harder copies of a set (zoomed photos) with their ground truth transformed.
+//! - [`synthetic_video`]: a `posediff-synth` orbit encoded as a capture video, with exact cameras.
 //! - [`video`]: video input: probing, one decoding pass, keyframes written with their account.
 
 pub mod co3d;
@@ -22,6 +23,7 @@ pub mod export;
 pub mod loader;
 pub mod outputs;
 pub mod records;
+pub mod synthetic_video;
 pub mod undistort;
 pub mod variants;
 pub mod video;

@@ -21,8 +21,8 @@ use posediff_matching::keyframes::{KeyframeSelector, SkipReason, Verdict};
 use serde::Serialize;
 
 use crate::error::{PosediffError, Result};
-use crate::estimate::estimator::Progress;
 use crate::estimate::options::VideoOptions;
+use posediff_pipeline::progress::StepCounter;
 
 /// File extensions taken as videos.
 pub const VIDEO_EXTENSIONS: [&str; 10] = [
@@ -364,7 +364,7 @@ pub fn extract_keyframes(
     folder: &Path,
     options: &VideoOptions,
     masks: Option<(&Path, &Path)>,
-    progress: &mut dyn Progress,
+    progress: &dyn StepCounter,
 ) -> Result<Capture> {
     let fresh = |d: &Path| -> Result<()> {
         if d.exists() {
@@ -419,7 +419,7 @@ fn extract_one(
     options: &VideoOptions,
     masks: Option<(&Path, &Path)>,
     keyframes: &mut Vec<KeyframeRecord>,
-    progress: &mut dyn Progress,
+    progress: &dyn StepCounter,
 ) -> Result<VideoReport> {
     let start = Instant::now();
     let mask_files = match masks {
@@ -429,7 +429,7 @@ fn extract_one(
     let mut cap = open(&info.path)?;
     let mut selector = KeyframeSelector::new(options.keyframes.clone())?;
     let fps = info.fps.unwrap_or(30.0);
-    progress.start(
+    progress.stage(
         &format!("video {} (decoding, scoring, tracking)", info.stem),
         info.frames_declared.unwrap_or(0),
     );
@@ -480,7 +480,7 @@ fn extract_one(
     while let Some(frame) = read(&mut cap)? {
         let index = decoded;
         decoded += 1;
-        progress.advance();
+        progress.step();
         let ms = cap.get(videoio::CAP_PROP_POS_MSEC)?;
         let time_s = if ms.is_finite() && (ms > 0.0 || index == 0) {
             ms / 1000.0
@@ -505,7 +505,6 @@ fn extract_one(
     }
     let vs = selector.finish()?;
     settle(vs, &mut pending, keyframes, &mut verdicts)?;
-    progress.finish();
     if decoded == 0 {
         return Err(PosediffError::invalid(
             &info.path,
