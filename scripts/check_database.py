@@ -62,6 +62,18 @@ def main():
         if len(kp) and (kp[:, 0].min() < 0 or kp[:, 0].max() > w or kp[:, 1].min() < 0
                         or kp[:, 1].max() > h):
             fail(f"{image.name}: keypoints outside the image")
+    # Each pair's F as pycolmap reads it must fit its inliers (x2ᵀ F x1 = 0, within 1 px).
+    for p in pairs:
+        g = db.read_two_view_geometry(image_id1=p["first"] + 1, image_id2=p["second"] + 1)
+        m = g.inlier_matches
+        k1 = db.read_keypoints(p["first"] + 1)[:, :2][m[:, 0]]
+        k2 = db.read_keypoints(p["second"] + 1)[:, :2][m[:, 1]]
+        x1 = np.c_[k1, np.ones(len(m))]
+        x2 = np.c_[k2, np.ones(len(m))]
+        fx1 = x1 @ g.F.T
+        d = np.abs(np.sum(x2 * fx1, 1)) / np.hypot(fx1[:, 0], fx1[:, 1])
+        if np.median(d) > 1.0:
+            fail(f"pair {p['first']}-{p['second']}: F fits its inliers to {np.median(d):.2f} px")
     matches = sum(db.read_two_view_geometry(image_id1=p["first"] + 1,
                                             image_id2=p["second"] + 1).inlier_matches.shape[0]
                   for p in pairs)

@@ -16,8 +16,6 @@
 use std::collections::HashMap;
 use std::path::Path;
 
-use opencv::core::{Mat, Point2d, Vector};
-use opencv::prelude::*;
 use posediff_geometry::PairMatches;
 use rusqlite::{Connection, params};
 
@@ -80,33 +78,6 @@ pub struct DatabaseSummary {
     pub images: usize,
     /// Pairs with verified matches.
     pub pairs: usize,
-}
-
-/// The fundamental matrix of `x1 ↔ x2` (eight-point on every match), row-major.
-fn fundamental(x1: &[[f64; 2]], x2: &[[f64; 2]]) -> Result<Option<[f64; 9]>> {
-    if x1.len() < 8 {
-        return Ok(None);
-    }
-    let p = |x: &[[f64; 2]]| -> Vector<Point2d> {
-        x.iter().map(|p| Point2d::new(p[0], p[1])).collect()
-    };
-    let f = opencv::calib3d::find_fundamental_mat(
-        &p(x1),
-        &p(x2),
-        opencv::calib3d::FM_8POINT,
-        3.0,
-        0.99,
-        1000,
-        &mut Mat::default(),
-    )?;
-    if f.rows() != 3 || f.cols() != 3 {
-        return Ok(None);
-    }
-    let mut out = [0.0; 9];
-    for (k, v) in out.iter_mut().enumerate() {
-        *v = *f.at_2d::<f64>(k as i32 / 3, k as i32 % 3)?;
-    }
-    Ok(out.iter().all(|v| v.is_finite()).then_some(out))
 }
 
 /// Writes `r` and its verified `pairs` as a new COLMAP database at `path` (which must not
@@ -255,7 +226,21 @@ pub fn write_database(
             params![id, p.len() as i64, data],
         )
         .map_err(&e)?;
-        let f = fundamental(&x1, &x2)?.map(|f| f64_blob(&f));
+        // The eight-point fit of the inliers, `x2ᵀ F x1 = 0`, row-major (pycolmap reads it so:
+        // scripts/check_database.py checks the epipolar distances of the inliers).
+        let f = posediff_matching::two_view::fundamental_least_squares(&x1, &x2)?.map(|f| {
+            f64_blob(&[
+                f[(0, 0)],
+                f[(0, 1)],
+                f[(0, 2)],
+                f[(1, 0)],
+                f[(1, 1)],
+                f[(1, 2)],
+                f[(2, 0)],
+                f[(2, 1)],
+                f[(2, 2)],
+            ])
+        });
         tx.execute(
             "INSERT INTO two_view_geometries (pair_id, rows, cols, data, config, F) VALUES (?1, ?2, 2, ?3, ?4, ?5)",
             params![id, p.len() as i64, data, UNCALIBRATED, f],
