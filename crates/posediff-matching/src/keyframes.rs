@@ -52,6 +52,10 @@ pub struct KeyframeOptions {
     /// A new keyframe is taken before fewer than this fraction of the keyframe's corners are
     /// still tracked (occlusion, turning away; see `max_displacement`).
     pub min_tracked: f64,
+    /// Fewer live corners than this and the motion is not measured: a keyframe with fewer is
+    /// followed by the sharpest of every `lookback` frames, a frame tracking fewer ends the
+    /// keyframe's run (8 is the fewest a median displacement is worth taking over).
+    pub min_corners: usize,
     /// Frames held while looking for the sharpest one (bounded memory: this many full frames).
     pub lookback: usize,
     /// A skipped frame whose sharpness is below this fraction of the held frames' median is
@@ -67,6 +71,7 @@ impl Default for KeyframeOptions {
             min_displacement: 0.015,
             max_displacement: 0.05,
             min_tracked: 0.8,
+            min_corners: 8,
             lookback: 8,
             blur_ratio: 0.5,
         }
@@ -82,6 +87,9 @@ impl KeyframeOptions {
         let bad = |what: &str| Err(MatchingError::Frames(format!("video.keyframes.{what}")));
         if self.track_side < 64 {
             return bad("track_side must be at least 64 px");
+        }
+        if self.min_corners < 1 || self.min_corners > self.corners {
+            return bad("min_corners must be between 1 and corners");
         }
         if self.corners < 16 {
             return bad("corners must be at least 16");
@@ -179,9 +187,6 @@ struct Tracks {
     /// The last frame's grey image.
     last: Mat,
 }
-
-/// Fewer live corners than this and the motion is not measured.
-const MIN_CORNERS: usize = 8;
 
 /// The streaming keyframe selector: [`Self::push`] each frame, then [`Self::finish`].
 pub struct KeyframeSelector {
@@ -289,7 +294,7 @@ impl KeyframeSelector {
             .tracks
             .as_ref()
             .map_or((0, 0), |t| (t.start.len(), t.now.iter().flatten().count()));
-        if started < MIN_CORNERS {
+        if started < self.options.min_corners {
             // Too little texture in the keyframe to measure motion: the sharpest of every
             // `lookback` frames.
             if self.held.len() >= self.options.lookback {
@@ -298,7 +303,7 @@ impl KeyframeSelector {
             }
         } else if displacement >= self.options.max_displacement
             || tracked < self.options.min_tracked
-            || live < MIN_CORNERS
+            || live < self.options.min_corners
         {
             // The newest frame is past the bound: the sharpest earlier held frame that moved
             // enough, else the newest itself.

@@ -244,7 +244,7 @@ fn bad_videos_are_named_before_any_work() {
     let audio = put("audio_only.mp4", &wav(2));
     let mut unknown = std::fs::read(&avi.video).unwrap();
     assert!(replace_all(&mut unknown, b"MJPG", b"ZZZZ") >= 1);
-    assert!(replace_all(&mut unknown, b"mjpg", b"zzzz") <= 4);
+    replace_all(&mut unknown, b"mjpg", b"zzzz");
     let unknown = put("unknown_codec.avi", &unknown);
     let bytes = std::fs::read(&mp4.video).unwrap();
     let mut cases: Vec<(PathBuf, &str)> = vec![

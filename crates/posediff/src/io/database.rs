@@ -13,7 +13,7 @@
 //! by a run, so the `descriptors` table is empty: COLMAP's and GLOMAP's mappers read none, its
 //! matchers need them.
 
-use std::collections::HashMap;
+use std::collections::HashSet;
 use std::path::Path;
 
 use posediff_geometry::PairMatches;
@@ -54,11 +54,6 @@ const UNCALIBRATED: i64 = 3;
 pub fn pair_id(a: u32, b: u32) -> i64 {
     let (a, b) = if a < b { (a, b) } else { (b, a) };
     i64::from(a) * MAX_IMAGES + i64::from(b)
-}
-
-/// The images and pairs of `pair_id`.
-pub fn pair_of(id: i64) -> (u32, u32) {
-    ((id / MAX_IMAGES) as u32, (id % MAX_IMAGES) as u32)
 }
 
 fn sql(path: &Path) -> impl Fn(rusqlite::Error) -> PosediffError + '_ {
@@ -131,10 +126,10 @@ pub fn write_database(
         next_camera += 1;
         cameras += 1;
     }
-    let mut rigs: HashMap<u32, ()> = HashMap::new();
+    let mut rigs: HashSet<u32> = HashSet::new();
     for (i, record) in r.images.iter().enumerate() {
         let (image_id, camera_id) = (i as i64 + 1, i64::from(camera_of[i]));
-        if rigs.insert(camera_of[i], ()).is_none() {
+        if rigs.insert(camera_of[i]) {
             tx.execute(
                 "INSERT INTO rigs (rig_id, ref_sensor_id, ref_sensor_type) VALUES (?1, ?1, ?2)",
                 params![camera_id, SENSOR_CAMERA],
@@ -209,14 +204,16 @@ pub fn write_database(
         let mut x2 = Vec::with_capacity(p.len());
         for k in 0..p.len() {
             let (a, b) = (row(p.first, p.idx1[k])?, row(p.second, p.idx2[k])?);
-            let (a, b) = if swap { (b, a) } else { (a, b) };
+            let (first, second) = (&r.images[p.first], &r.images[p.second]);
+            let pa = first.camera.photo_pixel(first.keypoints[a as usize].xy);
+            let pb = second.camera.photo_pixel(second.keypoints[b as usize].xy);
+            let ((a, pa), (b, pb)) = if swap {
+                ((b, pb), (a, pa))
+            } else {
+                ((a, pa), (b, pb))
+            };
             data.extend(a.to_le_bytes());
             data.extend(b.to_le_bytes());
-            let pa = r.images[p.first].keypoints[row(p.first, p.idx1[k])? as usize].xy;
-            let pb = r.images[p.second].keypoints[row(p.second, p.idx2[k])? as usize].xy;
-            let pa = r.images[p.first].camera.photo_pixel(pa);
-            let pb = r.images[p.second].camera.photo_pixel(pb);
-            let (pa, pb) = if swap { (pb, pa) } else { (pa, pb) };
             x1.push([pa[0] + PIXEL_CENTRE_OFFSET, pa[1] + PIXEL_CENTRE_OFFSET]);
             x2.push([pb[0] + PIXEL_CENTRE_OFFSET, pb[1] + PIXEL_CENTRE_OFFSET]);
         }

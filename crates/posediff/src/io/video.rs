@@ -247,9 +247,6 @@ pub struct Capture {
     /// given.
     #[serde(skip)]
     pub masks: Option<PathBuf>,
-    /// The options used.
-    #[serde(skip)]
-    pub options: VideoOptions,
 }
 
 impl Capture {
@@ -387,7 +384,6 @@ pub fn extract_keyframes(
         keyframes: Vec::new(),
         videos: Vec::new(),
         masks: masks.map(|(_, out)| out.to_owned()),
-        options: options.clone(),
     };
     for (v, info) in videos.iter().enumerate() {
         let report = extract_one(
@@ -551,6 +547,8 @@ fn extract_one(
             }),
         }
     }
+    // Containers state their frame count from the stream's duration, which can round up by
+    // one frame: one frame short is not a truncated file.
     let truncated = info
         .frames_declared
         .is_some_and(|n| (decoded as u64) + 1 < n);
