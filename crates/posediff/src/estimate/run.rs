@@ -471,7 +471,7 @@ impl Run {
     /// [`crate::io::outputs::prepare_output_dir`].
     ///
     /// # Errors
-    /// As [`write_outputs`].
+    /// As [`crate::io::outputs::write_outputs_with_pairs`].
     pub fn write(&self, out: &Path, options: &OutputOptions) -> Result<Written> {
         write_outputs_with_pairs(
             out,
