@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
-"""Maps a `posediff estimate --database` output's database.db with pycolmap 4.2.1.
+"""Maps the database of a `posediff estimate --database D` run with pycolmap 4.2.1.
 
-- pycolmap opens out/database.db: its images, cameras and verified pairs must be run.json's
+- pycolmap opens D (--database; default out/database.db): its images, cameras and verified pairs must be run.json's
   (every image; every pair run.json lists with matches); every match's keypoints must lie
   inside their images;
 - pycolmap's global mapper (GLOMAP's) and incremental mapper reconstruct from it with the
@@ -43,16 +43,19 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("out", type=pathlib.Path)
     ap.add_argument("--gt", type=pathlib.Path, required=True)
+    ap.add_argument("--database", type=pathlib.Path)
     args = ap.parse_args()
     run = json.loads((args.out / "run.json").read_text())
-    db_path = args.out / "database.db"
+    db_path = args.database or args.out / "database.db"
     db = pycolmap.Database.open(str(db_path))
     images = db.read_all_images()
     cameras = db.read_all_cameras()
     if len(images) != len(run["images"]):
         fail(f"{len(images)} images in the database, run.json has {len(run['images'])}")
     pairs = [p for p in run["matches_per_pair"] if p["matches"] > 0]
-    verified = db.num_verified_image_pairs()
+    # Pairs tried and verified too few are stored as DEGENERATE geometries without inliers.
+    _, inliers = db.read_two_view_geometry_num_inliers()
+    verified = sum(1 for n in inliers if n > 0)
     if verified != len(pairs):
         fail(f"{verified} verified pairs in the database, run.json has {len(pairs)} with matches")
     size = {c.camera_id: (c.width, c.height) for c in cameras}

@@ -430,10 +430,11 @@ impl PartialEq for SharedLearned {
 /// its LightGlue ([`LearnedCorrespondences`]) implement it; the mapper never sees either.
 pub trait Correspondences: Sync {
     /// The features of every image, in order; each image a step of stage "features" on
-    /// `counter` where the matcher counts them.
+    /// `counter` where the matcher counts them. (The controller refuses fewer than two images
+    /// before; a store extracts what it lacks, which may be one image.)
     ///
     /// # Errors
-    /// Fewer than two images, unreadable images (named), extraction errors.
+    /// Unreadable images (named), extraction errors.
     fn extract(&self, images: &[PathBuf], counter: &dyn StepCounter) -> Result<Vec<ImageFeatures>>;
 
     /// The verified matches of `pairs` (indices into `features`), each pair a step of stage
@@ -485,7 +486,10 @@ impl Correspondences for OpenCvCorrespondences<'_> {
     fn extract(&self, images: &[PathBuf], counter: &dyn StepCounter) -> Result<Vec<ImageFeatures>> {
         log_extraction(images.len());
         counter.stage("features", 0);
-        Ok(posediff_matching::extract_all(images, self.0)?)
+        Ok(images
+            .par_iter()
+            .map(|p| posediff_matching::features::extract(p, &self.0.features))
+            .collect::<std::result::Result<Vec<_>, _>>()?)
     }
 
     fn match_pairs(
@@ -526,12 +530,6 @@ pub struct LearnedCorrespondences<'a> {
 impl Correspondences for LearnedCorrespondences<'_> {
     fn extract(&self, images: &[PathBuf], counter: &dyn StepCounter) -> Result<Vec<ImageFeatures>> {
         log_extraction(images.len());
-        if images.len() < 2 {
-            return Err(PosediffError::TooFewImages {
-                needed: 2,
-                got: images.len(),
-            });
-        }
         counter.stage("features", images.len() as u64);
         let paths: Vec<&Path> = images.iter().map(PathBuf::as_path).collect();
         self.learned.0.extract_many(&paths, false, counter)
@@ -677,6 +675,12 @@ pub fn extract_all_counted(
     learned: Option<&SharedLearned>,
     counter: &dyn StepCounter,
 ) -> Result<Vec<ImageFeatures>> {
+    if images.len() < 2 {
+        return Err(PosediffError::TooFewImages {
+            needed: 2,
+            got: images.len(),
+        });
+    }
     correspondences(config, learned).extract(images, counter)
 }
 

@@ -29,6 +29,7 @@ pub use crate::ggs::{model_frame_matches, official_ggs};
 pub use crate::orientation::{STRONG_PAIR, TURN_PARTNERS, TURN_TESTS};
 use crate::orientation::{turn_components, turn_left_out};
 use crate::report::{DistortionOutcome, Warning};
+use crate::store::{SharedStore, Stored};
 use crate::two_view::{OpenCvTwoView, TwoViewCache};
 
 pub use posediff_sfm::intrinsics::{focal_scale, image_centre};
@@ -67,6 +68,9 @@ pub struct GeometricConfig {
     /// Each masked image's mask file (COLMAP's: zero = ignore), by the image's path: its
     /// keypoints on masked pixels are dropped after every extraction, before any matching.
     pub masks: HashMap<PathBuf, PathBuf>,
+    /// `--database`: where features and verified matches are read first and written as they
+    /// are made ([`crate::store`]).
+    pub store: Option<SharedStore>,
 }
 
 /// The second matching pass as it runs ([`crate::options::DensifyOptions`] has
@@ -100,6 +104,7 @@ impl Default for GeometricConfig {
             learned: None,
             hints: Vec::new(),
             masks: HashMap::new(),
+            store: None,
         }
     }
 }
@@ -141,18 +146,29 @@ impl GeometricConfig {
 
     /// The matcher the options ask for ([`crate::correspondences::correspondences`]).
     pub fn correspondences(&self) -> Box<dyn Correspondences + '_> {
-        let inner =
+        let mut matcher =
             crate::correspondences::correspondences(&self.options.matching, self.learned.as_ref());
-        if self.masks.is_empty() {
-            return inner;
+        if !self.masks.is_empty() {
+            matcher = Box::new(crate::correspondences::Adjusted {
+                inner: matcher,
+                adjust: Box::new(|path, features| match self.masks.get(path) {
+                    Some(mask) => {
+                        Ok(posediff_matching::mask::apply_mask(features, mask).map(|_| ())?)
+                    }
+                    None => Ok(()),
+                }),
+            });
         }
-        Box::new(crate::correspondences::Adjusted {
-            inner,
-            adjust: Box::new(|path, features| match self.masks.get(path) {
-                Some(mask) => Ok(posediff_matching::mask::apply_mask(features, mask).map(|_| ())?),
-                None => Ok(()),
+        // The store holds the masked features: the ones its matches index.
+        match &self.store {
+            Some(store) => Box::new(Stored {
+                inner: matcher,
+                store: store.0.as_ref(),
+                images_per_commit: self.options.database.images_per_commit,
+                pairs_per_commit: self.options.database.pairs_per_commit,
             }),
-        })
+            None => matcher,
+        }
     }
 
     /// The mapper's options for this refinement.
@@ -577,6 +593,21 @@ pub fn densify_pairs(
         densify.max_angle_deg,
         densify.per_image,
     )
+}
+
+/// The first pass as `posediff match` runs it alone: extraction, the pair plan's first
+/// selection and matching (with a store, from it and into it); the selected pairs' matches
+/// (empty where a pair verified too few) and the selection's rules.
+///
+/// # Errors
+/// As [`estimate_geometric`].
+pub fn extract_and_match(
+    images: &[PathBuf],
+    config: &GeometricConfig,
+    counter: &dyn StepCounter,
+) -> Result<(Vec<PairMatches>, String)> {
+    let m = match_all(images, config, counter)?;
+    Ok((m.pairs, m.selection))
 }
 
 /// What [`match_all`] gives.

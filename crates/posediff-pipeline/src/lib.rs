@@ -14,6 +14,8 @@
 //! - [`options`]: [`options::PipelineOptions`], every threshold in one tree (run.json,
 //!   `--config`, `--set`, Python).
 //! - [`report`]: what the controller reports (run.json's method report, warnings).
+//! - [`store`]: features and verified matches kept between runs (`--database`), and the
+//!   matcher wrapper that resumes from them.
 //! - [`progress`]: the step counter of the stages.
 //! - [`error`]: posediff's error type.
 //!
@@ -29,6 +31,7 @@ pub mod options;
 pub mod orientation;
 pub mod progress;
 pub mod report;
+pub mod store;
 mod two_view;
 
 pub use error::{PosediffError, Result};

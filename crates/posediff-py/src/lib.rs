@@ -674,7 +674,7 @@ struct Call {
 }
 
 /// The options `estimate` takes as keywords (the CLI's flags).
-const OPTION_NAMES: [&str; 18] = [
+const OPTION_NAMES: [&str; 19] = [
     "fps",
     "max_frames",
     "config",
@@ -693,6 +693,7 @@ const OPTION_NAMES: [&str; 18] = [
     "skip_bad_images",
     "names",
     "masks",
+    "database",
 ];
 
 /// One keyword of `options`, or its default.
@@ -846,6 +847,7 @@ fn call_options(options: Option<&Bound<'_, PyDict>>) -> PyResult<Call> {
         ggs,
         thumbnail_side: None,
         masks: option::<Option<PathBuf>>(options, "masks", None)?,
+        database: option::<Option<PathBuf>>(options, "database", None)?,
     };
     options.check().map_err(py_err)?;
     Ok(Call {

@@ -422,13 +422,14 @@ fn an_empty_page_draws_nothing_so_the_screenshot_check_can_fail() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
-/// `--database`: pycolmap 4.2.1 opens our database.db (its counts are run.json's) and both
-/// its mappers, GLOMAP's global one and the incremental one, reconstruct the fountain from it
-/// with the right rotations.
+/// `--database D`: pycolmap 4.2.1 opens the database a run kept (its counts are run.json's)
+/// and both its mappers, GLOMAP's global one and the incremental one, reconstruct the
+/// fountain from it with the right rotations.
 #[test]
 fn pycolmap_maps_the_database_we_write() {
     let dir = posediff_fixtures::temp_dir("clients-database");
     let out = dir.join("out");
+    let db = dir.join("database.db");
     let images = shared_path("data/strecha_fountainP11/images");
     posediff(&[
         "estimate".as_ref(),
@@ -436,6 +437,7 @@ fn pycolmap_maps_the_database_we_write() {
         "--out".as_ref(),
         out.as_os_str(),
         "--database".as_ref(),
+        db.as_os_str(),
         "--quiet".as_ref(),
     ]);
     let r = Command::new(python())
@@ -443,6 +445,8 @@ fn pycolmap_maps_the_database_we_write() {
         .arg(&out)
         .arg("--gt")
         .arg(shared_path("data/strecha_fountainP11/cameras.json"))
+        .arg("--database")
+        .arg(&db)
         .output()
         .unwrap();
     assert!(
@@ -456,9 +460,10 @@ fn pycolmap_maps_the_database_we_write() {
         assert_eq!(found[mapper]["registered"], 11, "{found}");
         assert!(found[mapper]["rra_5"].as_f64().unwrap() >= 0.95, "{found}");
     }
-    // A database is written new: a second write into the same file is refused.
+    // A snapshot database (Python's `write(formats=["database"])`) is written new: a write
+    // into an existing file is refused.
     let e = posediff::io::database::write_database(
-        &out.join("database.db"),
+        &db,
         &posediff::reconstruction::Reconstruction::default(),
         &[],
     )

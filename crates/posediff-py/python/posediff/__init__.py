@@ -78,6 +78,7 @@ class EstimateOptions(TypedDict, total=False):
     skip_bad_images: bool
     names: Sequence[str]
     masks: "Union[str, PathLike[str]]"
+    database: "Union[str, PathLike[str]]"
     fps: float
     max_frames: int
 
@@ -135,7 +136,8 @@ def estimate(images: Any, *, weights: Any = None, device: str = "cpu",
     weights, from ``cargo xtask weights``), ``pairs`` (``"auto"``, ``"exhaustive"``, ``"sequential:K"``,
     ``"retrieval:K"``), ``samples``, ``seed``, ``ggs``, ``device`` (``"cpu"``, ``"cuda"``),
     ``skip_bad_images``, ``masks`` (a folder of COLMAP-named masks, ``<image name>.png``, zero =
-    ignore); the pipeline's options tree (run.json's ``options``) from ``config``
+    ignore), ``database`` (COLMAP's database.db: features and matches read from it first and
+    written to it as they are made, as the CLI's ``--database``); the pipeline's options tree (run.json's ``options``) from ``config``
     (a TOML or JSON file, the CLI's ``--config``) and ``options`` (``{"orientation.strong_pair":
     100}``, the CLI's ``--set``). ``progress``: ``True`` for tqdm bars when tqdm is installed, ``False``,
     or a callable ``(stage, done, total, finished)``.

@@ -146,11 +146,12 @@ pub struct Args {
     /// for 3DGS and gsplat).
     #[arg(long)]
     undistort: bool,
-    /// Also write out/database.db: COLMAP 4.2's database of the keypoints in verified matches,
-    /// the matches and their two-view geometries, which COLMAP's and GLOMAP's mappers (and
-    /// pycolmap) map as it is.
-    #[arg(long)]
-    database: bool,
+    /// COLMAP 4.2's database.db at this path (created if absent): features and verified
+    /// matches are read from it first and written to it as they are made, so that a run that
+    /// stops resumes where it was; COLMAP's and GLOMAP's mappers (and pycolmap) map it as it
+    /// is. `posediff features` and `posediff match` fill it in steps.
+    #[arg(long, value_name = "FILE")]
+    database: Option<PathBuf>,
     /// Go on without images that are corrupt, truncated or unreadable (listed in run.json)
     /// instead of stopping.
     #[arg(long)]
@@ -188,7 +189,6 @@ impl Args {
             },
             view: !self.no_view,
             undistort: self.undistort,
-            database: self.database,
             ..OutputOptions::default()
         }
     }
@@ -334,16 +334,12 @@ impl Args {
     }
 
     fn run_options(&self) -> posediff::Result<RunOptions> {
-        let mut pipeline = PipelineOptions::default();
-        if let Some(path) = &self.config {
-            pipeline = pipeline.with_file(path)?;
-        }
-        if let Some(pairs) = &self.pairs {
-            pipeline.pairs.selection = pairs.clone();
-        }
-        if let Some(mode) = self.camera_mode {
-            pipeline.cameras.mode = mode;
-        }
+        let mut pipeline = pipeline_options(
+            self.config.as_deref(),
+            self.pairs.as_ref(),
+            self.camera_mode,
+            &[],
+        )?;
         if let Some(fps) = self.fps {
             pipeline.video.fps = Some(fps);
         }
@@ -372,12 +368,40 @@ impl Args {
             matcher: self.matcher.into(),
             weights_dir: self.weights_dir.clone(),
             masks: self.masks.clone(),
+            database: self.database.clone(),
             seed: self.seed,
             samples: self.samples,
             ggs: !self.no_ggs,
             thumbnail_side: None,
         })
     }
+}
+
+/// The options tree of a file (`--config`), `--pairs`, `--camera-mode` and `--set`
+/// assignments, in that order.
+///
+/// # Errors
+/// An unreadable file, an unknown key, a value of the wrong type.
+pub(super) fn pipeline_options(
+    config: Option<&Path>,
+    pairs: Option<&posediff_matching::PairSelection>,
+    camera_mode: Option<posediff_pipeline::options::CameraMode>,
+    set: &[String],
+) -> posediff::Result<PipelineOptions> {
+    let mut pipeline = PipelineOptions::default();
+    if let Some(path) = config {
+        pipeline = pipeline.with_file(path)?;
+    }
+    if let Some(pairs) = pairs {
+        pipeline.pairs.selection = pairs.clone();
+    }
+    if let Some(mode) = camera_mode {
+        pipeline.cameras.mode = mode;
+    }
+    for assignment in set {
+        pipeline = pipeline.with_assignment(assignment)?;
+    }
+    Ok(pipeline)
 }
 
 /// The cameras and the summary line on stdout.

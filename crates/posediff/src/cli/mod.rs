@@ -10,6 +10,7 @@ pub mod estimate;
 pub mod import_colmap;
 pub mod plot;
 pub mod score;
+pub mod stages;
 pub mod synth_video;
 pub mod train;
 pub mod variant;
@@ -28,6 +29,12 @@ use posediff::io::export::ImageCamera;
 pub enum Command {
     /// Estimate the cameras of a folder of images (or a list of image files).
     Estimate(estimate::Args),
+    /// Extract the features of images into COLMAP's database (`--database`), skipping the
+    /// images it already holds.
+    Features(stages::Args),
+    /// Extract what is missing, then match the selected pairs (`--pairs`) into COLMAP's
+    /// database, skipping the pairs it already holds.
+    Match(stages::Args),
     /// Score a method on the real sets of `--data` over `--subsets` (JSON + Markdown report).
     BenchReal(bench::RealArgs),
     /// The real-cameras benchmark: each set and its zoomed copy, camera modes single and auto,
@@ -70,6 +77,8 @@ impl Command {
     pub fn run(self) -> anyhow::Result<()> {
         match self {
             Self::Estimate(a) => a.run(),
+            Self::Features(a) => a.run(posediff::estimate::run::StopAfter::Features),
+            Self::Match(a) => a.run(posediff::estimate::run::StopAfter::Matching),
             Self::BenchReal(a) => a.run(),
             Self::BenchCameras(a) => a.run(),
             Self::BenchVideo(a) => a.run(),

@@ -37,6 +37,7 @@ use crate::io::records::{Matched, match_by_name};
 use crate::io::video::Capture;
 use crate::reconstruction::Reconstruction;
 use posediff_matching::PairSelection;
+use posediff_pipeline::store::SharedStore;
 
 /// The input images, checked and named: the files in use, the folder their names are relative
 /// to, and the files left out.
@@ -258,6 +259,9 @@ pub struct RunOptions {
     pub thumbnail_side: Option<u32>,
     /// `--masks`: a folder of masks named as COLMAP's (`<image name>.png`, zero = ignore).
     pub masks: Option<PathBuf>,
+    /// `--database`: COLMAP's database the features and verified matches are read from first
+    /// and written to as they are made ([`crate::io::database::Database`]).
+    pub database: Option<PathBuf>,
 }
 
 impl Default for RunOptions {
@@ -275,6 +279,7 @@ impl Default for RunOptions {
             ggs: true,
             thumbnail_side: None,
             masks: None,
+            database: None,
         }
     }
 }
@@ -375,6 +380,7 @@ impl RunOptions {
             learned: None,
             hints: Vec::new(),
             masks: HashMap::new(),
+            store: None,
         }
     }
 }
@@ -492,18 +498,85 @@ enum Init {
     Given(Vec<Option<Camera>>),
 }
 
-/// Estimates the cameras of `inputs` with the checkpoint-free mapper, or with PoseDiffusion
-/// when `network` is given, then triangulates and colours the points.
+/// Where `posediff features` and `posediff match` stop ([`run_stages`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum StopAfter {
+    /// Features of every image stored.
+    Features,
+    /// The first pass's pairs matched and stored.
+    Matching,
+}
+
+/// What [`run_stages`] leaves in the database.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct StagesSummary {
+    /// Images with features.
+    pub images: usize,
+    /// Pairs matched (`Matching` only).
+    pub pairs: usize,
+    /// Of those, pairs with enough verified matches.
+    pub verified: usize,
+    /// The pair selection's rules (`Matching` only).
+    pub selection: String,
+}
+
+/// `posediff features` / `posediff match`: the checkpoint-free path's extraction (and its
+/// first matching pass) into `options.database`, resuming from what it holds, then stop.
 ///
 /// # Errors
-/// Invalid options; a cameras.json (`init`, intrinsics) that names none of the images; every
-/// error of the estimation itself.
-pub fn run(
+/// No `--database`; as [`run`].
+pub fn run_stages(
     inputs: &Inputs,
     options: &RunOptions,
-    network: Option<Network<'_>>,
+    stop: StopAfter,
     progress: &mut dyn Progress,
-) -> Result<Run> {
+) -> Result<StagesSummary> {
+    if options.database.is_none() {
+        return Err(PosediffError::InvalidArgument(
+            "features and matches are stored in a database: give --database D".into(),
+        ));
+    }
+    let c = configure(inputs, options, false)?;
+    let files = &inputs.images.files;
+    progress.start("geometry", 0);
+    let result = match stop {
+        StopAfter::Features => c
+            .geometric
+            .correspondences()
+            .extract(files, progress.counter())
+            .map(|f| StagesSummary {
+                images: f.len(),
+                pairs: 0,
+                verified: 0,
+                selection: String::new(),
+            }),
+        StopAfter::Matching => {
+            posediff_pipeline::geometric::extract_and_match(files, &c.geometric, progress.counter())
+                .map(|(pairs, selection)| StagesSummary {
+                    images: files.len(),
+                    pairs: pairs.len(),
+                    verified: pairs.iter().filter(|p| !p.is_empty()).count(),
+                    selection,
+                })
+        }
+    };
+    progress.finish();
+    result
+}
+
+/// What a run has worked out before any image is read: the known intrinsics, the initial
+/// cameras, the controller's configuration (with `--database`'s store opened), the masks.
+struct Configured {
+    known: KnownIntrinsics,
+    init: Option<Init>,
+    geometric: GeometricConfig,
+    masks: Option<MasksReport>,
+    warnings: Vec<Warning>,
+    needs_matches: bool,
+}
+
+/// The checks and set-up of [`run`] and [`run_stages`], before any expensive work.
+fn configure(inputs: &Inputs, options: &RunOptions, network: bool) -> Result<Configured> {
     options.check()?;
     let names = &inputs.names;
     let files = &inputs.images.files;
@@ -570,7 +643,7 @@ pub fn run(
     let mut geometric = options.geometric_config(&known);
     let masks = match &options.masks {
         Some(dir) => {
-            if network.is_some() {
+            if network {
                 return Err(PosediffError::InvalidArgument(
                     "--masks is not applied with --weights yet (GGS's matching ignores it): \
                      run without --weights, or without --masks"
@@ -593,10 +666,76 @@ pub fn run(
         // A video's keyframes overlap their neighbours by construction.
         geometric.options.pairs.selection = geometric.options.video.pairs.clone();
     }
-    let needs_matches = network.is_none() || options.ggs;
+    let needs_matches = !network || options.ggs;
     if needs_matches {
         geometric.learned = options.load_learned()?;
     }
+    if let Some(path) = &options.database {
+        if network {
+            return Err(PosediffError::InvalidArgument(
+                "--database keeps the checkpoint-free path's features and matches: run without \
+                 --weights (GGS's matching is not stored yet)"
+                    .into(),
+            ));
+        }
+        let masks: Vec<(&PathBuf, &PathBuf)> = {
+            let mut m: Vec<_> = geometric.masks.iter().collect();
+            m.sort();
+            m
+        };
+        let settings = serde_json::json!({
+            "matching": geometric.options.matching,
+            "masks": masks,
+        });
+        let identity = crate::io::database::StoreIdentity {
+            matcher: options.matcher.as_str().to_owned(),
+            settings: settings.to_string(),
+        };
+        let images = files
+            .iter()
+            .zip(names)
+            .enumerate()
+            .map(|(i, (path, name))| crate::io::database::StoreImage {
+                path: path.clone(),
+                name: name.clone(),
+                focal: geometric.hints.get(i).map(|h| h.focal).unwrap_or_default(),
+            })
+            .collect();
+        let store = crate::io::database::Database::open(path, &identity, images)?;
+        geometric.store = Some(SharedStore(std::sync::Arc::new(store)));
+    }
+    Ok(Configured {
+        known,
+        init,
+        geometric,
+        masks,
+        warnings,
+        needs_matches,
+    })
+}
+
+/// Estimates the cameras of `inputs` with the checkpoint-free mapper, or with PoseDiffusion
+/// when `network` is given, then triangulates and colours the points.
+///
+/// # Errors
+/// Invalid options; a cameras.json (`init`, intrinsics) that names none of the images; every
+/// error of the estimation itself.
+pub fn run(
+    inputs: &Inputs,
+    options: &RunOptions,
+    network: Option<Network<'_>>,
+    progress: &mut dyn Progress,
+) -> Result<Run> {
+    let Configured {
+        known,
+        init,
+        geometric,
+        masks,
+        mut warnings,
+        needs_matches,
+    } = configure(inputs, options, network.is_some())?;
+    let names = &inputs.names;
+    let files = &inputs.images.files;
     let (entries, pairs, mut report) = match network {
         None => {
             progress.start("geometry", 0);

@@ -1,9 +1,18 @@
-//! COLMAP 4.2's `database.db` (the SQLite store of COLMAP, GLOMAP and hloc), written from a
-//! run: its schema exactly as pycolmap 4.2.1 creates it (rigs, rig sensors, cameras, frames,
-//! frame data, images, pose priors, keypoints, descriptors, matches, two-view geometries),
-//! through rusqlite with its bundled SQLite.
+//! COLMAP 4.2's `database.db` (the SQLite store of COLMAP, GLOMAP and hloc): its schema
+//! exactly as pycolmap 4.2.1 creates it (rigs, rig sensors, cameras, frames, frame data,
+//! images, pose priors, keypoints, descriptors, matches, two-view geometries), through
+//! rusqlite with its bundled SQLite. Two writers:
 //!
-//! What a run knows goes in: a camera per distinct estimated camera (its lens model and
+//! - [`Database`], `--database D`: the run's store ([`posediff_pipeline::store`]). Features
+//!   and verified matches are read from it first and written to it as they are made, in
+//!   chunked commits, so that an interrupted run resumes. It holds a camera per image with its
+//!   prior (COLMAP's default), every keypoint and descriptor, each matched pair's verified
+//!   matches (an `UNCALIBRATED` two-view geometry; a `DEGENERATE` one with no rows where too
+//!   few verified, so that the pair is not matched again).
+//!   A table of its own, `posediff_store`, records which matcher and settings made the
+//!   features, so that a run with others is refused instead of mixing them.
+//! - [`write_database`], Python's `write(..., formats=["database"])`: a snapshot of a result.
+//!   What a run knows goes in: a camera per distinct estimated camera (its lens model and
 //! parameters, `prior_focal_length = 1`: the focal is an estimate), a camera per image that was
 //! not estimated (SIMPLE_RADIAL with COLMAP's `1.2·max(W, H)` prior, `prior_focal_length = 0`);
 //! a rig per camera and a frame per image, as COLMAP 4's extraction writes them; the keypoints
@@ -13,11 +22,14 @@
 //! by a run, so the `descriptors` table is empty: COLMAP's and GLOMAP's mappers read none, its
 //! matchers need them.
 
-use std::collections::HashSet;
-use std::path::Path;
+use std::collections::{HashMap, HashSet};
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
 
-use posediff_geometry::PairMatches;
-use rusqlite::{Connection, params};
+use posediff_geometry::{ImageSize, PairMatches};
+use posediff_matching::{Descriptors, ImageFeatures};
+use posediff_pipeline::store::{FeatureStore, StoredMatches};
+use rusqlite::{Connection, OptionalExtension, params};
 
 use crate::error::{PosediffError, Result};
 use crate::io::colmap::{ColmapModel, PIXEL_CENTRE_OFFSET};
@@ -49,6 +61,19 @@ const MAX_IMAGES: i64 = 2_147_483_647;
 const SENSOR_CAMERA: i64 = 0;
 /// `TwoViewGeometry::UNCALIBRATED`.
 const UNCALIBRATED: i64 = 3;
+/// `TwoViewGeometry::DEGENERATE`: a pair that verified too few matches.
+const DEGENERATE: i64 = 1;
+/// `FeatureExtractorType::SIFT` (8-bit descriptors).
+const DESCRIPTOR_SIFT: i64 = 0;
+/// `FeatureExtractorType::ALIKED_N16ROT` (float descriptors, their bytes as 8-bit columns).
+const DESCRIPTOR_ALIKED_N16ROT: i64 = 1;
+/// `FeatureExtractorType::UNDEFINED`: ORB's bits, ALIKED n16's and DISK's floats.
+const DESCRIPTOR_UNDEFINED: i64 = -1;
+/// `CameraModelId::SIMPLE_RADIAL`.
+const SIMPLE_RADIAL: i64 = 2;
+
+/// posediff's own table: which matcher and settings made the stored features and matches.
+const STORE_TABLE: &str = "CREATE TABLE IF NOT EXISTS posediff_store (key TEXT PRIMARY KEY NOT NULL, value TEXT NOT NULL);";
 
 /// COLMAP's pair id of images `a` and `b` (ids from 1).
 pub fn pair_id(a: u32, b: u32) -> i64 {
@@ -251,4 +276,711 @@ pub fn write_database(
         images: r.images.len(),
         pairs: written,
     })
+}
+
+/// What made a store's features and matches: a run with other settings is refused.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct StoreIdentity {
+    /// The matcher (`sift`, `aliked-lightglue`, …).
+    pub matcher: String,
+    /// The matching settings and masks, as JSON.
+    pub settings: String,
+}
+
+/// One image of a run, as the store names it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StoreImage {
+    /// The file.
+    pub path: PathBuf,
+    /// Its name (relative to the input folder): the database's key.
+    pub name: String,
+    /// Its EXIF focal tags (the camera's prior focal, as COLMAP reads it).
+    pub focal: posediff_pipeline::options::ExifFocal,
+}
+
+/// `--database`: COLMAP's database as the run's [`FeatureStore`], held exclusively while the
+/// run lasts (SQLite's exclusive locking mode: a second writer, posediff's or COLMAP's, is
+/// refused with an error instead of waiting or interleaving).
+pub struct Database {
+    path: PathBuf,
+    conn: Mutex<Connection>,
+    /// The run's images by path.
+    by_path: HashMap<PathBuf, StoreImage>,
+    /// The images of the last [`FeatureStore::features`] list.
+    run: Mutex<RunImages>,
+    /// The stored keypoints of the run's images by id, COLMAP pixels (for the pairs' F).
+    keypoints: Mutex<HashMap<i64, Vec<[f64; 2]>>>,
+    /// Descriptors kind of the matcher.
+    matcher: String,
+}
+
+impl std::fmt::Debug for Database {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Database")
+            .field("path", &self.path)
+            .finish()
+    }
+}
+
+/// The run's images: their database ids (`-1`: no features yet) and their index by path.
+#[derive(Debug, Default)]
+struct RunImages {
+    ids: Vec<i64>,
+    index: HashMap<PathBuf, usize>,
+}
+
+/// The counts of a database, for logs and tests.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct DatabaseCounts {
+    /// Images.
+    pub images: usize,
+    /// Images with keypoints.
+    pub keypoints: usize,
+    /// Pairs with a two-view geometry (verified or not).
+    pub pairs: usize,
+    /// Of those, pairs with verified matches.
+    pub verified: usize,
+}
+
+fn lock_error(path: &Path, e: &rusqlite::Error) -> Option<PosediffError> {
+    match e {
+        rusqlite::Error::SqliteFailure(f, _)
+            if matches!(
+                f.code,
+                rusqlite::ErrorCode::DatabaseBusy | rusqlite::ErrorCode::DatabaseLocked
+            ) =>
+        {
+            Some(PosediffError::invalid(
+                path,
+                "is in use by another process (a posediff or COLMAP run writing it): wait for it \
+                 to finish, or give another --database",
+            ))
+        }
+        rusqlite::Error::SqliteFailure(f, _) if f.code == rusqlite::ErrorCode::NotADatabase => {
+            Some(PosediffError::invalid(
+                path,
+                "is not a SQLite database: give the path of a COLMAP database.db or of a new file",
+            ))
+        }
+        _ => None,
+    }
+}
+
+impl Database {
+    /// Opens (or creates) the database at `path` for a run of `images` whose features come
+    /// from `identity`, and takes it exclusively.
+    ///
+    /// # Errors
+    /// A folder that does not exist; a file that is not SQLite; a database in use by another
+    /// process; one written by another tool (no `posediff_store` table but images), or by a
+    /// run with another matcher or other settings (each named, with the fix).
+    pub fn open(path: &Path, identity: &StoreIdentity, images: Vec<StoreImage>) -> Result<Self> {
+        if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty())
+            && !parent.is_dir()
+        {
+            return Err(PosediffError::invalid(
+                path,
+                "its folder does not exist (create it first)",
+            ));
+        }
+        if path.is_dir() {
+            return Err(PosediffError::invalid(
+                path,
+                "is a folder: --database names a file (e.g. out/../database.db)",
+            ));
+        }
+        let wrap = |e: rusqlite::Error| {
+            lock_error(path, &e)
+                .unwrap_or_else(|| PosediffError::invalid(path, format!("SQLite: {e}")))
+        };
+        let conn = Connection::open(path).map_err(wrap)?;
+        conn.busy_timeout(std::time::Duration::ZERO).map_err(wrap)?;
+        // Exclusive from the first statement to the end of the run.
+        conn.pragma_update(None, "locking_mode", "EXCLUSIVE")
+            .map_err(wrap)?;
+        conn.execute_batch("BEGIN EXCLUSIVE;").map_err(wrap)?;
+        let set_up = (|| -> Result<()> {
+            let tables: i64 = conn
+                .query_row(
+                    "SELECT count(*) FROM sqlite_master WHERE type='table' AND name='posediff_store'",
+                    [],
+                    |r| r.get(0),
+                )
+                .map_err(wrap)?;
+            let has_images: i64 = conn
+                .query_row(
+                    "SELECT count(*) FROM sqlite_master WHERE type='table' AND name='images'",
+                    [],
+                    |r| r.get(0),
+                )
+                .map_err(wrap)?;
+            let foreign = tables == 0
+                && has_images > 0
+                && conn
+                    .query_row("SELECT count(*) FROM images", [], |r| r.get::<_, i64>(0))
+                    .map_err(wrap)?
+                    > 0;
+            if foreign {
+                return Err(PosediffError::invalid(
+                    path,
+                    "holds images that another tool wrote (COLMAP, pycolmap, hloc): posediff \
+                     cannot tell how its features were made. Map it with `posediff map --database \
+                     D --images DIR --out OUT`, or give estimate a new --database",
+                ));
+            }
+            conn.execute_batch(SCHEMA).map_err(wrap)?;
+            conn.execute_batch(STORE_TABLE).map_err(wrap)?;
+            for (key, value) in [
+                ("matcher", identity.matcher.as_str()),
+                ("settings", identity.settings.as_str()),
+            ] {
+                let stored: Option<String> = conn
+                    .query_row(
+                        "SELECT value FROM posediff_store WHERE key = ?1",
+                        params![key],
+                        |r| r.get(0),
+                    )
+                    .optional()
+                    .map_err(wrap)?;
+                match stored {
+                    None => {
+                        conn.execute(
+                            "INSERT INTO posediff_store (key, value) VALUES (?1, ?2)",
+                            params![key, value],
+                        )
+                        .map_err(wrap)?;
+                    }
+                    Some(s) if s == value => {}
+                    Some(s) => {
+                        return Err(PosediffError::invalid(
+                            path,
+                            format!(
+                                "holds features made with {key} {s}, and this run asks for \
+                                 {value}: run with the database's settings, or give another \
+                                 --database"
+                            ),
+                        ));
+                    }
+                }
+            }
+            Ok(())
+        })();
+        match set_up {
+            Ok(()) => conn.execute_batch("COMMIT;").map_err(wrap)?,
+            Err(e) => {
+                let _ = conn.execute_batch("ROLLBACK;");
+                return Err(e);
+            }
+        }
+        Ok(Self {
+            path: path.to_owned(),
+            conn: Mutex::new(conn),
+            by_path: images.into_iter().map(|i| (i.path.clone(), i)).collect(),
+            run: Mutex::new(RunImages::default()),
+            keypoints: Mutex::new(HashMap::new()),
+            matcher: identity.matcher.clone(),
+        })
+    }
+
+    fn wrap(&self) -> impl Fn(rusqlite::Error) -> PosediffError + '_ {
+        move |e| {
+            lock_error(&self.path, &e)
+                .unwrap_or_else(|| PosediffError::invalid(&self.path, format!("SQLite: {e}")))
+        }
+    }
+
+    fn conn(&self) -> std::sync::MutexGuard<'_, Connection> {
+        self.conn
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    fn image(&self, path: &Path) -> Result<&StoreImage> {
+        self.by_path.get(path).ok_or_else(|| {
+            PosediffError::InvalidArgument(format!(
+                "{} is not an image of this run's database",
+                path.display()
+            ))
+        })
+    }
+
+    /// How many images, keypoint records and pairs the database holds.
+    ///
+    /// # Errors
+    /// SQLite errors.
+    pub fn counts(&self) -> Result<DatabaseCounts> {
+        counts(&self.conn(), &self.path)
+    }
+
+    /// The descriptors of `f` as COLMAP stores them: type, columns, bytes.
+    fn encode_descriptors(&self, f: &ImageFeatures) -> Result<(i64, usize, Vec<u8>)> {
+        match &f.descriptors {
+            Descriptors::Float { data, dim } if self.matcher == "sift" => {
+                // OpenCV's SIFT values are whole numbers 0-255 in floats: COLMAP's 8 bits.
+                let bytes = data
+                    .iter()
+                    .map(|&v| {
+                        (v.fract() == 0.0 && (0.0..=255.0).contains(&v))
+                            .then_some(v as u8)
+                            .ok_or_else(|| {
+                                PosediffError::InvalidArgument(format!(
+                                    "a SIFT descriptor value {v} is not 8-bit"
+                                ))
+                            })
+                    })
+                    .collect::<Result<Vec<u8>>>()?;
+                Ok((DESCRIPTOR_SIFT, *dim, bytes))
+            }
+            Descriptors::Float { data, dim } => {
+                let kind = if self.matcher == "aliked-n16rot-lightglue" {
+                    DESCRIPTOR_ALIKED_N16ROT
+                } else {
+                    DESCRIPTOR_UNDEFINED
+                };
+                Ok((
+                    kind,
+                    dim * 4,
+                    data.iter().flat_map(|v| v.to_le_bytes()).collect(),
+                ))
+            }
+            Descriptors::Binary { data, words } => Ok((
+                DESCRIPTOR_UNDEFINED,
+                words * 8,
+                data.iter().flat_map(|w| w.to_le_bytes()).collect(),
+            )),
+        }
+    }
+
+    /// The descriptors stored as `kind`, `cols`, `data` for this store's matcher.
+    fn decode_descriptors(
+        &self,
+        kind: i64,
+        rows: usize,
+        cols: usize,
+        data: &[u8],
+    ) -> Result<Descriptors> {
+        let bad = || {
+            PosediffError::invalid(
+                &self.path,
+                format!(
+                    "descriptors of type {kind}, {rows}×{cols}, {} bytes: not this store's",
+                    data.len()
+                ),
+            )
+        };
+        if data.len() != rows * cols {
+            return Err(bad());
+        }
+        match (self.matcher.as_str(), kind) {
+            ("sift", DESCRIPTOR_SIFT) => Ok(Descriptors::Float {
+                data: data.iter().map(|&b| f32::from(b)).collect(),
+                dim: cols,
+            }),
+            ("orb", DESCRIPTOR_UNDEFINED) if cols % 8 == 0 => Ok(Descriptors::Binary {
+                data: data
+                    .chunks_exact(8)
+                    .map(|c| u64::from_le_bytes(c.try_into().unwrap_or_default()))
+                    .collect(),
+                words: cols / 8,
+            }),
+            (m, DESCRIPTOR_UNDEFINED | DESCRIPTOR_ALIKED_N16ROT)
+                if m != "sift" && m != "orb" && cols % 4 == 0 =>
+            {
+                Ok(Descriptors::Float {
+                    data: data
+                        .chunks_exact(4)
+                        .map(|c| f32::from_le_bytes(c.try_into().unwrap_or_default()))
+                        .collect(),
+                    dim: cols / 4,
+                })
+            }
+            _ => Err(bad()),
+        }
+    }
+}
+
+fn counts(conn: &Connection, path: &Path) -> Result<DatabaseCounts> {
+    let e = sql(path);
+    let one = |q: &str| -> Result<usize> {
+        conn.query_row(q, [], |r| r.get::<_, i64>(0))
+            .map(|v| v as usize)
+            .map_err(&e)
+    };
+    Ok(DatabaseCounts {
+        images: one("SELECT count(*) FROM images")?,
+        keypoints: one("SELECT count(*) FROM keypoints")?,
+        pairs: one("SELECT count(*) FROM two_view_geometries")?,
+        verified: one("SELECT count(*) FROM two_view_geometries WHERE rows > 0")?,
+    })
+}
+
+/// Keypoints stored as COLMAP pixels (`cols` 2, 4 or 6 float32 per row: x, y first) in
+/// OpenCV pixels.
+fn decode_keypoints(path: &Path, rows: usize, cols: usize, data: &[u8]) -> Result<Vec<[f64; 2]>> {
+    if cols < 2 || data.len() != rows * cols * 4 {
+        return Err(PosediffError::invalid(
+            path,
+            format!("keypoints of {rows}×{cols} in {} bytes", data.len()),
+        ));
+    }
+    Ok(data
+        .chunks_exact(cols * 4)
+        .map(|row| {
+            let v = |k: usize| {
+                f32::from_le_bytes([row[4 * k], row[4 * k + 1], row[4 * k + 2], row[4 * k + 3]])
+            };
+            [
+                f64::from(v(0)) - PIXEL_CENTRE_OFFSET,
+                f64::from(v(1)) - PIXEL_CENTRE_OFFSET,
+            ]
+        })
+        .collect())
+}
+
+/// The match rows of a blob (`rows` × 2 u32).
+fn decode_matches(path: &Path, rows: usize, data: &[u8]) -> Result<StoredMatches> {
+    if data.len() != rows * 8 {
+        return Err(PosediffError::invalid(
+            path,
+            format!("{rows} matches in {} bytes", data.len()),
+        ));
+    }
+    Ok(data
+        .chunks_exact(8)
+        .map(|c| {
+            (
+                u32::from_le_bytes([c[0], c[1], c[2], c[3]]),
+                u32::from_le_bytes([c[4], c[5], c[6], c[7]]),
+            )
+        })
+        .collect())
+}
+
+impl FeatureStore for Database {
+    fn features(
+        &self,
+        images: &[PathBuf],
+    ) -> posediff_pipeline::Result<Vec<Option<ImageFeatures>>> {
+        let conn = self.conn();
+        let e = self.wrap();
+        let mut ids = Vec::with_capacity(images.len());
+        let mut out = Vec::with_capacity(images.len());
+        let mut cache = self
+            .keypoints
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        for path in images {
+            let image = self.image(path)?;
+            let row: Option<(i64, i64, i64)> = conn
+                .query_row(
+                    "SELECT i.image_id, c.width, c.height FROM images i JOIN cameras c ON i.camera_id = c.camera_id WHERE i.name = ?1",
+                    params![image.name],
+                    |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)),
+                )
+                .optional()
+                .map_err(&e)?;
+            let Some((id, w, h)) = row else {
+                ids.push(-1);
+                out.push(None);
+                continue;
+            };
+            ids.push(id);
+            let kp: Option<(i64, i64, Vec<u8>)> = conn
+                .query_row(
+                    "SELECT rows, cols, data FROM keypoints WHERE image_id = ?1",
+                    params![id],
+                    |r| {
+                        Ok((
+                            r.get(0)?,
+                            r.get(1)?,
+                            r.get::<_, Option<Vec<u8>>>(2)?.unwrap_or_default(),
+                        ))
+                    },
+                )
+                .optional()
+                .map_err(&e)?;
+            let desc: Option<(i64, i64, i64, Vec<u8>)> = conn
+                .query_row(
+                    "SELECT type, rows, cols, data FROM descriptors WHERE image_id = ?1",
+                    params![id],
+                    |r| {
+                        Ok((
+                            r.get(0)?,
+                            r.get(1)?,
+                            r.get(2)?,
+                            r.get::<_, Option<Vec<u8>>>(3)?.unwrap_or_default(),
+                        ))
+                    },
+                )
+                .optional()
+                .map_err(&e)?;
+            let (Some((rows, cols, kdata)), Some((kind, drows, dcols, ddata))) = (kp, desc) else {
+                out.push(None);
+                continue;
+            };
+            if drows != rows {
+                return Err(PosediffError::invalid(
+                    &self.path,
+                    format!(
+                        "image {}: {rows} keypoints and {drows} descriptors",
+                        image.name
+                    ),
+                ));
+            }
+            let keypoints = decode_keypoints(&self.path, rows as usize, cols as usize, &kdata)?;
+            let descriptors =
+                self.decode_descriptors(kind, drows as usize, dcols as usize, &ddata)?;
+            cache.insert(id, keypoints.clone());
+            out.push(Some(ImageFeatures {
+                image_size: ImageSize::new(w as u32, h as u32)?,
+                keypoints,
+                descriptors,
+                half_turned: false,
+            }));
+        }
+        *self
+            .run
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner) = RunImages {
+            index: images.iter().cloned().zip(0..).collect(),
+            ids,
+        };
+        Ok(out)
+    }
+
+    fn put_features(
+        &self,
+        images: &[&Path],
+        features: Vec<ImageFeatures>,
+    ) -> posediff_pipeline::Result<Vec<ImageFeatures>> {
+        let mut conn = self.conn();
+        let e = self.wrap();
+        let tx = conn.transaction().map_err(&e)?;
+        let mut out = Vec::with_capacity(features.len());
+        let mut new_ids = Vec::with_capacity(features.len());
+        for (path, f) in images.iter().zip(features) {
+            let image = self.image(path)?;
+            let (w, h) = (f.image_size.width(), f.image_size.height());
+            let (fw, fh) = (f64::from(w), f64::from(h));
+            let (focal, prior) = match image.focal.prior(w, h) {
+                Some((f, _)) => (f, 1),
+                None => (1.2 * fw.max(fh), 0),
+            };
+            tx.execute(
+                "INSERT INTO cameras (model, width, height, params, prior_focal_length) VALUES (?1, ?2, ?3, ?4, ?5)",
+                params![SIMPLE_RADIAL, i64::from(w), i64::from(h), f64_blob(&[focal, fw / 2.0, fh / 2.0, 0.0]), prior],
+            )
+            .map_err(&e)?;
+            let camera = tx.last_insert_rowid();
+            tx.execute(
+                "INSERT INTO rigs (ref_sensor_id, ref_sensor_type) VALUES (?1, ?2)",
+                params![camera, SENSOR_CAMERA],
+            )
+            .map_err(&e)?;
+            let rig = tx.last_insert_rowid();
+            // An image left by an interrupted run has no keypoints (each image is written
+            // whole in one commit), but a name once stored is kept: replace its rows.
+            tx.execute("DELETE FROM images WHERE name = ?1", params![image.name])
+                .map_err(&e)?;
+            tx.execute(
+                "INSERT INTO images (name, camera_id) VALUES (?1, ?2)",
+                params![image.name, camera],
+            )
+            .map_err(&e)?;
+            let id = tx.last_insert_rowid();
+            tx.execute("INSERT INTO frames (rig_id) VALUES (?1)", params![rig])
+                .map_err(&e)?;
+            let frame = tx.last_insert_rowid();
+            tx.execute(
+                "INSERT INTO frame_data (frame_id, data_id, sensor_id, sensor_type) VALUES (?1, ?2, ?3, ?4)",
+                params![frame, id, camera, SENSOR_CAMERA],
+            )
+            .map_err(&e)?;
+            let kdata: Vec<u8> = f
+                .keypoints
+                .iter()
+                .flat_map(|k| {
+                    [
+                        (k[0] + PIXEL_CENTRE_OFFSET) as f32,
+                        (k[1] + PIXEL_CENTRE_OFFSET) as f32,
+                    ]
+                })
+                .flat_map(f32::to_le_bytes)
+                .collect();
+            let n = f.keypoints.len();
+            tx.execute(
+                "INSERT OR REPLACE INTO keypoints (image_id, rows, cols, data) VALUES (?1, ?2, 2, ?3)",
+                params![id, n as i64, kdata],
+            )
+            .map_err(&e)?;
+            let (kind, cols, ddata) = self.encode_descriptors(&f)?;
+            tx.execute(
+                "INSERT OR REPLACE INTO descriptors (image_id, type, rows, cols, data) VALUES (?1, ?2, ?3, ?4, ?5)",
+                params![id, kind, n as i64, cols as i64, ddata],
+            )
+            .map_err(&e)?;
+            // What a later run reads back.
+            let keypoints = decode_keypoints(&self.path, n, 2, &kdata)?;
+            let descriptors = self.decode_descriptors(kind, n, cols, &ddata)?;
+            new_ids.push((path.to_path_buf(), id, keypoints.clone()));
+            out.push(ImageFeatures {
+                image_size: f.image_size,
+                keypoints,
+                descriptors,
+                half_turned: false,
+            });
+        }
+        tx.commit().map_err(&e)?;
+        let mut cache = self
+            .keypoints
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        let mut run = self
+            .run
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        for (path, id, kp) in new_ids {
+            cache.insert(id, kp);
+            // The run's list (set by `features`) learns the new id.
+            if let Some(&slot) = run.index.get(&path) {
+                run.ids[slot] = id;
+            }
+        }
+        Ok(out)
+    }
+
+    fn matches(
+        &self,
+        pairs: &[(usize, usize)],
+    ) -> posediff_pipeline::Result<Vec<Option<StoredMatches>>> {
+        let conn = self.conn();
+        let e = self.wrap();
+        let run = self
+            .run
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        let ids = &run.ids;
+        let mut stmt = conn
+            .prepare_cached("SELECT rows, data FROM two_view_geometries WHERE pair_id = ?1")
+            .map_err(&e)?;
+        let mut out = Vec::with_capacity(pairs.len());
+        for &(i, j) in pairs {
+            let (a, b) = (run_id(ids, i)?, run_id(ids, j)?);
+            let row: Option<(i64, Option<Vec<u8>>)> = stmt
+                .query_row(params![pair_id(a as u32, b as u32)], |r| {
+                    Ok((r.get(0)?, r.get(1)?))
+                })
+                .optional()
+                .map_err(&e)?;
+            out.push(match row {
+                None => None,
+                Some((rows, data)) => {
+                    let m = decode_matches(&self.path, rows as usize, &data.unwrap_or_default())?;
+                    // COLMAP's first column is the smaller id's keypoint.
+                    Some(if a > b {
+                        m.into_iter().map(|(x, y)| (y, x)).collect()
+                    } else {
+                        m
+                    })
+                }
+            });
+        }
+        Ok(out)
+    }
+
+    fn put_matches(&self, pairs: &[PairMatches]) -> posediff_pipeline::Result<()> {
+        let mut conn = self.conn();
+        let e = self.wrap();
+        let ids = self
+            .run
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .ids
+            .clone();
+        let cache = self
+            .keypoints
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        let tx = conn.transaction().map_err(&e)?;
+        for p in pairs {
+            let (a, b) = (run_id(&ids, p.first)?, run_id(&ids, p.second)?);
+            let swap = a > b;
+            let mut data = Vec::with_capacity(p.len() * 8);
+            let mut x1 = Vec::with_capacity(p.len());
+            let mut x2 = Vec::with_capacity(p.len());
+            let (ka, kb) = (cache.get(&a), cache.get(&b));
+            for k in 0..p.len() {
+                let (u, v) = (p.idx1[k], p.idx2[k]);
+                let (pa, pb) = (
+                    ka.and_then(|kp| kp.get(u as usize)),
+                    kb.and_then(|kp| kp.get(v as usize)),
+                );
+                // COLMAP orders a pair by image id: the smaller id's keypoint first.
+                let ((u, pa), (v, pb)) = if swap {
+                    ((v, pb), (u, pa))
+                } else {
+                    ((u, pa), (v, pb))
+                };
+                data.extend(u.to_le_bytes());
+                data.extend(v.to_le_bytes());
+                if let (Some(pa), Some(pb)) = (pa, pb) {
+                    x1.push([pa[0] + PIXEL_CENTRE_OFFSET, pa[1] + PIXEL_CENTRE_OFFSET]);
+                    x2.push([pb[0] + PIXEL_CENTRE_OFFSET, pb[1] + PIXEL_CENTRE_OFFSET]);
+                }
+            }
+            let id = pair_id(a as u32, b as u32);
+            tx.execute(
+                "INSERT OR REPLACE INTO matches (pair_id, rows, cols, data) VALUES (?1, ?2, 2, ?3)",
+                params![id, p.len() as i64, data],
+            )
+            .map_err(&e)?;
+            let f = if x1.len() == p.len() && !p.is_empty() {
+                posediff_matching::two_view::fundamental_least_squares(&x1, &x2)?.map(|f| {
+                    f64_blob(&[
+                        f[(0, 0)],
+                        f[(0, 1)],
+                        f[(0, 2)],
+                        f[(1, 0)],
+                        f[(1, 1)],
+                        f[(1, 2)],
+                        f[(2, 0)],
+                        f[(2, 1)],
+                        f[(2, 2)],
+                    ])
+                })
+            } else {
+                None
+            };
+            let config = if p.is_empty() {
+                DEGENERATE
+            } else {
+                UNCALIBRATED
+            };
+            tx.execute(
+                "INSERT OR REPLACE INTO two_view_geometries (pair_id, rows, cols, data, config, F) VALUES (?1, ?2, 2, ?3, ?4, ?5)",
+                params![id, p.len() as i64, data, config, f],
+            )
+            .map_err(&e)?;
+        }
+        tx.commit().map_err(&e)?;
+        Ok(())
+    }
+
+    fn images(&self) -> usize {
+        self.run
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .ids
+            .len()
+    }
+}
+
+/// The database id of the run's image `i` (which must have features stored).
+fn run_id(ids: &[i64], i: usize) -> Result<i64> {
+    match ids.get(i) {
+        Some(&id) if id > 0 => Ok(id),
+        _ => Err(PosediffError::InvalidArgument(format!(
+            "image {i} has no features in the database"
+        ))),
+    }
 }

@@ -1,0 +1,211 @@
+//! Features and verified matches kept between runs (COLMAP's `database.db`, written by the
+//! umbrella's `io::database`): a [`FeatureStore`] is asked before anything is extracted or
+//! matched, and [`Stored`] wraps a matcher so that it only works on what the store lacks, and
+//! commits its work in chunks ([`crate::options::DatabaseOptions`]), so that a run killed
+//! mid-way loses at most one chunk and the next run resumes.
+//!
+//! What a run uses is what the store holds: features come back from the store after they are
+//! written (COLMAP keeps keypoints as 32-bit floats), so a first run and a resumed one see the
+//! same numbers and give the same cameras.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use posediff_geometry::PairMatches;
+use posediff_matching::ImageFeatures;
+
+use crate::correspondences::{Correspondences, StepCounter};
+use crate::error::Result;
+
+/// A verification outcome as stored: the keypoint indices of each verified match (in the
+/// pair's order, first image first), empty for a pair that verified too few.
+pub type StoredMatches = Vec<(u32, u32)>;
+
+/// Where features and verified matches are kept between runs. The images of a run are set by
+/// [`Self::features`]; [`Self::matches`] and [`Self::put_matches`] name them by index into that
+/// list.
+pub trait FeatureStore: Send + Sync {
+    /// The stored features of each of `images` (`None`: not stored), and `images` as the list
+    /// later pair indices refer to.
+    ///
+    /// # Errors
+    /// Images that are not the run's; unreadable records.
+    fn features(&self, images: &[PathBuf]) -> Result<Vec<Option<ImageFeatures>>>;
+
+    /// Stores the features of `images` in one commit; returns them as stored.
+    ///
+    /// # Errors
+    /// Images that are not the run's; the store cannot be written.
+    fn put_features(
+        &self,
+        images: &[&Path],
+        features: Vec<ImageFeatures>,
+    ) -> Result<Vec<ImageFeatures>>;
+
+    /// The stored outcome of each pair (indices into the last [`Self::features`] list;
+    /// `None`: never matched).
+    ///
+    /// # Errors
+    /// Indices out of range; unreadable records.
+    fn matches(&self, pairs: &[(usize, usize)]) -> Result<Vec<Option<StoredMatches>>>;
+
+    /// Stores the verified matches of pairs in one commit (each `PairMatches` names its pair;
+    /// an empty one records a pair that verified too few).
+    ///
+    /// # Errors
+    /// Indices out of range; the store cannot be written.
+    fn put_matches(&self, pairs: &[PairMatches]) -> Result<()>;
+
+    /// How many images the last [`Self::features`] list has.
+    fn images(&self) -> usize;
+}
+
+/// A store shared by the configurations that use it (equal when it is the same store).
+#[derive(Clone)]
+pub struct SharedStore(pub Arc<dyn FeatureStore>);
+
+impl std::fmt::Debug for SharedStore {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("SharedStore")
+    }
+}
+
+impl PartialEq for SharedStore {
+    fn eq(&self, other: &Self) -> bool {
+        Arc::ptr_eq(&self.0, &other.0)
+    }
+}
+
+/// A matcher that asks `store` first and stores what it computes, `images_per_commit` images
+/// and `pairs_per_commit` pairs at a time. Turned features (the orientation check's) and
+/// feature lists that are not the run's pass through unstored.
+pub struct Stored<'a> {
+    /// The matcher (with its masks applied: the store holds the features the matches index).
+    pub inner: Box<dyn Correspondences + 'a>,
+    /// The store.
+    pub store: &'a dyn FeatureStore,
+    /// Images extracted per commit.
+    pub images_per_commit: usize,
+    /// Pairs matched per commit.
+    pub pairs_per_commit: usize,
+}
+
+/// Forwards nothing: the chunks of [`Stored`] are counted by it, not by the inner matcher.
+struct Quiet;
+impl StepCounter for Quiet {}
+
+/// The matches `stored` of pair `(i, j)` with the keypoints of `features`.
+fn rebuild(
+    features: &[ImageFeatures],
+    (i, j): (usize, usize),
+    stored: &StoredMatches,
+) -> Result<PairMatches> {
+    let (a, b) = (&features[i], &features[j]);
+    let mut m = PairMatches {
+        first: i,
+        second: j,
+        ..PairMatches::default()
+    };
+    for &(k, l) in stored {
+        let (Some(&p), Some(&q)) = (a.keypoints.get(k as usize), b.keypoints.get(l as usize))
+        else {
+            return Err(crate::error::PosediffError::InvalidArgument(format!(
+                "stored match ({k}, {l}) of images {i} and {j} names a keypoint beyond their {} and {}",
+                a.keypoints.len(),
+                b.keypoints.len()
+            )));
+        };
+        m.kp1.push(p);
+        m.kp2.push(q);
+        m.idx1.push(k);
+        m.idx2.push(l);
+    }
+    Ok(m)
+}
+
+impl Correspondences for Stored<'_> {
+    fn extract(&self, images: &[PathBuf], counter: &dyn StepCounter) -> Result<Vec<ImageFeatures>> {
+        let mut out = self.store.features(images)?;
+        let missing: Vec<usize> = (0..images.len()).filter(|&i| out[i].is_none()).collect();
+        log::info!(
+            "features: {} of {} images from the database, {} to extract",
+            images.len() - missing.len(),
+            images.len(),
+            missing.len()
+        );
+        counter.stage("features", missing.len() as u64);
+        for chunk in missing.chunks(self.images_per_commit.max(1)) {
+            let paths: Vec<PathBuf> = chunk.iter().map(|&i| images[i].clone()).collect();
+            let fresh = self.inner.extract(&paths, &Quiet)?;
+            let refs: Vec<&Path> = paths.iter().map(PathBuf::as_path).collect();
+            for (&i, f) in chunk.iter().zip(self.store.put_features(&refs, fresh)?) {
+                out[i] = Some(f);
+                counter.step();
+            }
+        }
+        Ok(out.into_iter().flatten().collect())
+    }
+
+    fn match_pairs(
+        &self,
+        features: &[ImageFeatures],
+        pairs: &[(usize, usize)],
+        (counter, name): (&dyn StepCounter, &str),
+    ) -> Result<Vec<PairMatches>> {
+        if features.len() != self.store.images() || features.iter().any(|f| f.half_turned) {
+            return self.inner.match_pairs(features, pairs, (counter, name));
+        }
+        posediff_matching::check_pairs(features.len(), pairs)?;
+        let stored = self.store.matches(pairs)?;
+        let mut out: Vec<Option<PairMatches>> = vec![None; pairs.len()];
+        let mut missing = Vec::new();
+        for (k, s) in stored.iter().enumerate() {
+            match s {
+                Some(s) => out[k] = Some(rebuild(features, pairs[k], s)?),
+                None => missing.push(k),
+            }
+        }
+        log::info!(
+            "{name}: {} of {} pairs from the database, {} to match",
+            pairs.len() - missing.len(),
+            pairs.len(),
+            missing.len()
+        );
+        counter.stage(name, missing.len() as u64);
+        for chunk in missing.chunks(self.pairs_per_commit.max(1)) {
+            let list: Vec<(usize, usize)> = chunk.iter().map(|&k| pairs[k]).collect();
+            let fresh = self.inner.match_pairs(features, &list, (&Quiet, name))?;
+            if fresh.len() != list.len()
+                || fresh
+                    .iter()
+                    .zip(&list)
+                    .any(|(m, &p)| (m.first, m.second) != p)
+            {
+                return Err(crate::error::PosediffError::InvalidArgument(format!(
+                    "the matcher answered {} pairs for {} asked, or out of order",
+                    fresh.len(),
+                    list.len()
+                )));
+            }
+            self.store.put_matches(&fresh)?;
+            for (&k, m) in chunk.iter().zip(fresh) {
+                out[k] = Some(m);
+                counter.step();
+            }
+            log::info!("{name}: stored {} pairs", chunk.len());
+        }
+        Ok(out.into_iter().flatten().collect())
+    }
+
+    fn depends_on_orientation(&self) -> bool {
+        self.inner.depends_on_orientation()
+    }
+
+    fn extract_turned(
+        &self,
+        images: &[&Path],
+        counter: &dyn StepCounter,
+    ) -> Result<Option<Vec<ImageFeatures>>> {
+        self.inner.extract_turned(images, counter)
+    }
+}
