@@ -655,8 +655,17 @@ fn match_all(
             .any(|r| matches!(r, PairRule::Retrieval(_))))
     .then(|| BagOfWords::build(&features, &RetrievalOptions::default()))
     .flatten();
-    let pair_list = select_pairs_with(n, &selection, Some(&features), words.as_ref())?;
-    let mut rules: Vec<String> = selection.rules(n).iter().map(ToString::to_string).collect();
+    let fixed = match &config.store {
+        Some(store) => store.0.fixed_pairs()?,
+        None => None,
+    };
+    let (pair_list, mut rules) = match fixed {
+        Some(list) => (list, vec!["database".to_owned()]),
+        None => (
+            select_pairs_with(n, &selection, Some(&features), words.as_ref())?,
+            selection.rules(n).iter().map(ToString::to_string).collect(),
+        ),
+    };
     if let Some(d) = densify {
         rules.push(format!("densify:{}deg,{}", d.max_angle_deg, d.per_image));
     }

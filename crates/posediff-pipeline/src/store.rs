@@ -58,6 +58,15 @@ pub trait FeatureStore: Send + Sync {
 
     /// How many images the last [`Self::features`] list has.
     fn images(&self) -> usize;
+
+    /// The pairs to map instead of a selection (indices into the last [`Self::features`]
+    /// list): `posediff map` maps the pairs its database holds, as COLMAP's mappers do.
+    ///
+    /// # Errors
+    /// Unreadable records.
+    fn fixed_pairs(&self) -> Result<Option<Vec<(usize, usize)>>> {
+        Ok(None)
+    }
 }
 
 /// A store shared by the configurations that use it (equal when it is the same store).

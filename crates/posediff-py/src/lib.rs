@@ -848,6 +848,7 @@ fn call_options(options: Option<&Bound<'_, PyDict>>) -> PyResult<Call> {
         thumbnail_side: None,
         masks: option::<Option<PathBuf>>(options, "masks", None)?,
         database: option::<Option<PathBuf>>(options, "database", None)?,
+        map_database: false,
     };
     options.check().map_err(py_err)?;
     Ok(Call {

@@ -369,6 +369,7 @@ impl Args {
             weights_dir: self.weights_dir.clone(),
             masks: self.masks.clone(),
             database: self.database.clone(),
+            map_database: false,
             seed: self.seed,
             samples: self.samples,
             ggs: !self.no_ggs,

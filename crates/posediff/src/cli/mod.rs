@@ -8,6 +8,7 @@ pub mod bench_video;
 pub mod device_check;
 pub mod estimate;
 pub mod import_colmap;
+pub mod map;
 pub mod plot;
 pub mod score;
 pub mod stages;
@@ -35,6 +36,9 @@ pub enum Command {
     /// Extract what is missing, then match the selected pairs (`--pairs`) into COLMAP's
     /// database, skipping the pairs it already holds.
     Match(stages::Args),
+    /// Cameras and points from the features and verified pairs of a COLMAP database (ours or
+    /// COLMAP's, pycolmap's, hloc's), as COLMAP's mappers map it: nothing is matched.
+    Map(map::Args),
     /// Score a method on the real sets of `--data` over `--subsets` (JSON + Markdown report).
     BenchReal(bench::RealArgs),
     /// The real-cameras benchmark: each set and its zoomed copy, camera modes single and auto,
@@ -77,6 +81,7 @@ impl Command {
     pub fn run(self) -> anyhow::Result<()> {
         match self {
             Self::Estimate(a) => a.run(),
+            Self::Map(a) => a.run(),
             Self::Features(a) => a.run(posediff::estimate::run::StopAfter::Features),
             Self::Match(a) => a.run(posediff::estimate::run::StopAfter::Matching),
             Self::BenchReal(a) => a.run(),

@@ -262,6 +262,9 @@ pub struct RunOptions {
     /// `--database`: COLMAP's database the features and verified matches are read from first
     /// and written to as they are made ([`crate::io::database::Database`]).
     pub database: Option<PathBuf>,
+    /// `posediff map`: `database` is only read, whoever wrote it, and its verified pairs are
+    /// the pairs mapped (no second pass, no turned retry: nothing is matched).
+    pub map_database: bool,
 }
 
 impl Default for RunOptions {
@@ -280,6 +283,7 @@ impl Default for RunOptions {
             thumbnail_side: None,
             masks: None,
             database: None,
+            map_database: false,
         }
     }
 }
@@ -701,7 +705,14 @@ fn configure(inputs: &Inputs, options: &RunOptions, network: bool) -> Result<Con
                 focal: geometric.hints.get(i).map(|h| h.focal).unwrap_or_default(),
             })
             .collect();
-        let store = crate::io::database::Database::open(path, &identity, images)?;
+        let store = if options.map_database {
+            geometric.options.densify.when = posediff_pipeline::options::DensifyWhen::Never;
+            geometric.options.retry.enabled = false;
+            geometric.options.orientation.enabled = false;
+            crate::io::database::Database::open_for_mapping(path, images)?
+        } else {
+            crate::io::database::Database::open(path, &identity, images)?
+        };
         geometric.store = Some(SharedStore(std::sync::Arc::new(store)));
     }
     Ok(Configured {

@@ -312,6 +312,8 @@ pub struct Database {
     keypoints: Mutex<HashMap<i64, Vec<[f64; 2]>>>,
     /// Descriptors kind of the matcher.
     matcher: String,
+    /// `posediff map`: read what the database holds (any writer's), compute and write nothing.
+    map_only: bool,
 }
 
 impl std::fmt::Debug for Database {
@@ -479,7 +481,66 @@ impl Database {
             run: Mutex::new(RunImages::default()),
             keypoints: Mutex::new(HashMap::new()),
             matcher: identity.matcher.clone(),
+            map_only: false,
         })
+    }
+
+    /// Opens the database at `path` to map what it holds (`posediff map`), whoever wrote it
+    /// (posediff, COLMAP, pycolmap, hloc): keypoints and verified two-view geometries are read;
+    /// nothing is computed or written.
+    ///
+    /// # Errors
+    /// No such file; not SQLite; in use by a writer; no COLMAP tables.
+    pub fn open_for_mapping(path: &Path, images: Vec<StoreImage>) -> Result<Self> {
+        if !path.is_file() {
+            return Err(PosediffError::NotFound(path.to_owned()));
+        }
+        let wrap = |e: rusqlite::Error| {
+            lock_error(path, &e).unwrap_or_else(|| PosediffError::invalid(path, format!("SQLite: {e}")))
+        };
+        let conn = Connection::open_with_flags(path, rusqlite::OpenFlags::SQLITE_OPEN_READ_ONLY)
+            .map_err(wrap)?;
+        conn.busy_timeout(std::time::Duration::ZERO).map_err(wrap)?;
+        let tables: i64 = conn
+            .query_row(
+                "SELECT count(*) FROM sqlite_master WHERE type='table' AND name IN ('images', 'cameras', 'keypoints', 'two_view_geometries')",
+                [],
+                |r| r.get(0),
+            )
+            .map_err(wrap)?;
+        if tables != 4 {
+            return Err(PosediffError::invalid(
+                path,
+                "is not a COLMAP database (no images, cameras, keypoints and two_view_geometries tables)",
+            ));
+        }
+        Ok(Self {
+            path: path.to_owned(),
+            conn: Mutex::new(conn),
+            by_path: images.into_iter().map(|i| (i.path.clone(), i)).collect(),
+            run: Mutex::new(RunImages::default()),
+            keypoints: Mutex::new(HashMap::new()),
+            matcher: String::new(),
+            map_only: true,
+        })
+    }
+
+    /// The names of the images the database holds, by id.
+    ///
+    /// # Errors
+    /// SQLite errors.
+    pub fn image_names(&self) -> Result<Vec<String>> {
+        let conn = self.conn();
+        let e = self.wrap();
+        let mut stmt = conn
+            .prepare("SELECT name FROM images ORDER BY image_id")
+            .map_err(&e)?;
+        let names = stmt
+            .query_map([], |r| r.get(0))
+            .map_err(&e)?
+            .collect::<std::result::Result<Vec<String>, _>>()
+            .map_err(&e)?;
+        Ok(names)
     }
 
     fn wrap(&self) -> impl Fn(rusqlite::Error) -> PosediffError + '_ {
@@ -502,6 +563,17 @@ impl Database {
                 path.display()
             ))
         })
+    }
+
+    fn writable(&self) -> Result<()> {
+        if self.map_only {
+            return Err(PosediffError::invalid(
+                &self.path,
+                "is open to be mapped: it lacks features or matches this run needs (`posediff \
+                 features` and `posediff match` add them)",
+            ));
+        }
+        Ok(())
     }
 
     /// How many images, keypoint records and pairs the database holds.
@@ -680,6 +752,15 @@ impl FeatureStore for Database {
                 .optional()
                 .map_err(&e)?;
             let Some((id, w, h)) = row else {
+                if self.map_only {
+                    return Err(PosediffError::invalid(
+                        &self.path,
+                        format!(
+                            "has no image {:?}: give --images the folder the database's names are relative to",
+                            image.name
+                        ),
+                    ));
+                }
                 ids.push(-1);
                 out.push(None);
                 continue;
@@ -714,6 +795,24 @@ impl FeatureStore for Database {
                 )
                 .optional()
                 .map_err(&e)?;
+            if self.map_only {
+                // The mapper needs the keypoints only; the descriptors may be any writer's.
+                let Some((rows, cols, kdata)) = kp else {
+                    return Err(PosediffError::invalid(
+                        &self.path,
+                        format!("has no keypoints of {:?}: extract its features first", image.name),
+                    ));
+                };
+                let keypoints = decode_keypoints(&self.path, rows as usize, cols as usize, &kdata)?;
+                cache.insert(id, keypoints.clone());
+                out.push(Some(ImageFeatures {
+                    image_size: ImageSize::new(w as u32, h as u32)?,
+                    keypoints,
+                    descriptors: Descriptors::Float { data: Vec::new(), dim: 0 },
+                    half_turned: false,
+                }));
+                continue;
+            }
             let (Some((rows, cols, kdata)), Some((kind, drows, dcols, ddata))) = (kp, desc) else {
                 out.push(None);
                 continue;
@@ -753,6 +852,7 @@ impl FeatureStore for Database {
         images: &[&Path],
         features: Vec<ImageFeatures>,
     ) -> posediff_pipeline::Result<Vec<ImageFeatures>> {
+        self.writable()?;
         let mut conn = self.conn();
         let e = self.wrap();
         let tx = conn.transaction().map_err(&e)?;
@@ -889,6 +989,7 @@ impl FeatureStore for Database {
     }
 
     fn put_matches(&self, pairs: &[PairMatches]) -> posediff_pipeline::Result<()> {
+        self.writable()?;
         let mut conn = self.conn();
         let e = self.wrap();
         let ids = self
@@ -964,6 +1065,36 @@ impl FeatureStore for Database {
         }
         tx.commit().map_err(&e)?;
         Ok(())
+    }
+
+    fn fixed_pairs(&self) -> posediff_pipeline::Result<Option<Vec<(usize, usize)>>> {
+        if !self.map_only {
+            return Ok(None);
+        }
+        let run = self.run.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        let index: HashMap<i64, usize> = run.ids.iter().copied().zip(0..).collect();
+        let conn = self.conn();
+        let e = self.wrap();
+        // Verified geometries with inliers (COLMAP's mappers skip the rest the same way).
+        let mut stmt = conn
+            .prepare("SELECT pair_id FROM two_view_geometries WHERE rows > 0 AND config NOT IN (0, 1, 7, 8)")
+            .map_err(&e)?;
+        let ids = stmt
+            .query_map([], |r| r.get::<_, i64>(0))
+            .map_err(&e)?
+            .collect::<std::result::Result<Vec<i64>, _>>()
+            .map_err(&e)?;
+        let mut pairs: Vec<(usize, usize)> = ids
+            .into_iter()
+            .filter_map(|id| {
+                let (a, b) = (id / MAX_IMAGES, id % MAX_IMAGES);
+                let (i, j) = (*index.get(&a)?, *index.get(&b)?);
+                Some((i.min(j), i.max(j)))
+            })
+            .collect();
+        pairs.sort_unstable();
+        log::info!("{} verified pairs in {}", pairs.len(), self.path.display());
+        Ok(Some(pairs))
     }
 
     fn images(&self) -> usize {
