@@ -496,7 +496,8 @@ impl Database {
             return Err(PosediffError::NotFound(path.to_owned()));
         }
         let wrap = |e: rusqlite::Error| {
-            lock_error(path, &e).unwrap_or_else(|| PosediffError::invalid(path, format!("SQLite: {e}")))
+            lock_error(path, &e)
+                .unwrap_or_else(|| PosediffError::invalid(path, format!("SQLite: {e}")))
         };
         let conn = Connection::open_with_flags(path, rusqlite::OpenFlags::SQLITE_OPEN_READ_ONLY)
             .map_err(wrap)?;
@@ -800,7 +801,10 @@ impl FeatureStore for Database {
                 let Some((rows, cols, kdata)) = kp else {
                     return Err(PosediffError::invalid(
                         &self.path,
-                        format!("has no keypoints of {:?}: extract its features first", image.name),
+                        format!(
+                            "has no keypoints of {:?}: extract its features first",
+                            image.name
+                        ),
                     ));
                 };
                 let keypoints = decode_keypoints(&self.path, rows as usize, cols as usize, &kdata)?;
@@ -808,7 +812,10 @@ impl FeatureStore for Database {
                 out.push(Some(ImageFeatures {
                     image_size: ImageSize::new(w as u32, h as u32)?,
                     keypoints,
-                    descriptors: Descriptors::Float { data: Vec::new(), dim: 0 },
+                    descriptors: Descriptors::Float {
+                        data: Vec::new(),
+                        dim: 0,
+                    },
                     half_turned: false,
                 }));
                 continue;
@@ -1071,7 +1078,10 @@ impl FeatureStore for Database {
         if !self.map_only {
             return Ok(None);
         }
-        let run = self.run.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        let run = self
+            .run
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
         let index: HashMap<i64, usize> = run.ids.iter().copied().zip(0..).collect();
         let conn = self.conn();
         let e = self.wrap();

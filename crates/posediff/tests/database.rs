@@ -1,0 +1,234 @@
+//! `--database`, `posediff features`, `posediff match`, `posediff map`: COLMAP's database as
+//! the store of a run, on the real fountain images (11 photos, 55 pairs).
+//!
+//! - A `posediff match` killed (SIGKILL) mid-matching leaves a database that SQLite recovers
+//!   and the next run resumes from: its log says how many pairs it found stored, and its
+//!   cameras are byte-identical to an uninterrupted run's.
+//! - A second writer is refused while a run holds the database; a run with another matcher
+//!   is refused instead of mixing features.
+//! - `posediff map` gives the same cameras from the database alone.
+
+// Test helpers outside #[test] functions unwrap too: a failure is the test failing.
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use std::ffi::OsStr;
+use std::io::{BufRead, BufReader};
+use std::path::Path;
+use std::process::{Command, Output, Stdio};
+
+use posediff_fixtures::shared_path;
+
+fn posediff(args: &[&OsStr]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_posediff"))
+        .args(args)
+        .env("RUST_LOG", "posediff=info,posediff_pipeline=info")
+        .output()
+        .unwrap()
+}
+
+fn ok(args: &[&OsStr]) -> Output {
+    let out = posediff(args);
+    assert!(
+        out.status.success(),
+        "posediff {:?}: {}",
+        args,
+        String::from_utf8_lossy(&out.stderr)
+    );
+    out
+}
+
+fn stored_pairs(db: &Path) -> (i64, i64) {
+    let c = rusqlite::Connection::open(db).unwrap();
+    c.query_row(
+        "SELECT count(*), coalesce(sum(rows > 0), 0) FROM two_view_geometries",
+        [],
+        |r| Ok((r.get(0)?, r.get(1)?)),
+    )
+    .unwrap()
+}
+
+#[test]
+fn an_interrupted_match_resumes_to_the_same_cameras() {
+    let dir = posediff_fixtures::temp_dir("database-resume");
+    let images = shared_path("data/strecha_fountainP11/images");
+    let db = dir.join("d.db");
+    // Matching in commits of 4 pairs, killed after the first commit.
+    let mut child = Command::new(env!("CARGO_BIN_EXE_posediff"))
+        .args([
+            "match".as_ref(),
+            images.as_os_str(),
+            "--database".as_ref(),
+            db.as_os_str(),
+            "--pairs".as_ref(),
+            "exhaustive".as_ref(),
+            "--set".as_ref(),
+            "database.pairs_per_commit=4".as_ref(),
+            "--quiet".as_ref(),
+        ])
+        .env("RUST_LOG", "posediff=info,posediff_pipeline=info")
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut lines = BufReader::new(child.stderr.take().unwrap()).lines();
+    let mut log = String::new();
+    loop {
+        let line = lines
+            .next()
+            .unwrap_or_else(|| panic!("posediff match ended before storing pairs:\n{log}"))
+            .unwrap();
+        log.push_str(&line);
+        log.push('\n');
+        if line.contains("matching: stored") {
+            break;
+        }
+    }
+    // While it runs, a second writer is refused, naming the database.
+    let second = posediff(&[
+        "features".as_ref(),
+        images.as_os_str(),
+        "--database".as_ref(),
+        db.as_os_str(),
+        "--quiet".as_ref(),
+    ]);
+    let err = String::from_utf8_lossy(&second.stderr);
+    assert!(!second.status.success());
+    assert!(
+        err.contains("in use by another process") && err.contains("d.db"),
+        "{err}"
+    );
+    child.kill().unwrap();
+    assert!(!child.wait().unwrap().success(), "the run was not killed");
+    let (kept, _) = stored_pairs(&db);
+    assert!(kept > 0 && kept < 55, "{kept} pairs stored before the kill");
+    // The next run resumes: every image and the stored pairs come from the database.
+    let out1 = dir.join("resumed");
+    let resumed = ok(&[
+        "estimate".as_ref(),
+        images.as_os_str(),
+        "--database".as_ref(),
+        db.as_os_str(),
+        "--pairs".as_ref(),
+        "exhaustive".as_ref(),
+        "--out".as_ref(),
+        out1.as_os_str(),
+        "--no-view".as_ref(),
+        "--quiet".as_ref(),
+    ]);
+    let log = String::from_utf8_lossy(&resumed.stderr);
+    assert!(
+        log.contains("features: 11 of 11 images from the database, 0 to extract"),
+        "{log}"
+    );
+    assert!(
+        log.contains(&format!(
+            "matching: {kept} of 55 pairs from the database, {} to match",
+            55 - kept
+        )),
+        "{log}"
+    );
+    assert_eq!(stored_pairs(&db).0, 55);
+    // An uninterrupted run into a new database gives the same bytes.
+    let db2 = dir.join("d2.db");
+    let out2 = dir.join("whole");
+    ok(&[
+        "estimate".as_ref(),
+        images.as_os_str(),
+        "--database".as_ref(),
+        db2.as_os_str(),
+        "--pairs".as_ref(),
+        "exhaustive".as_ref(),
+        "--out".as_ref(),
+        out2.as_os_str(),
+        "--no-view".as_ref(),
+        "--quiet".as_ref(),
+    ]);
+    let cameras = |d: &Path| std::fs::read(d.join("cameras.json")).unwrap();
+    assert_eq!(
+        cameras(&out1),
+        cameras(&out2),
+        "resumed and whole runs differ"
+    );
+    assert_eq!(stored_pairs(&db), stored_pairs(&db2));
+    // `posediff map` maps the database's verified pairs to the same cameras.
+    let out3 = dir.join("mapped");
+    ok(&[
+        "map".as_ref(),
+        "--database".as_ref(),
+        db.as_os_str(),
+        "--images".as_ref(),
+        images.as_os_str(),
+        "--out".as_ref(),
+        out3.as_os_str(),
+        "--no-view".as_ref(),
+        "--quiet".as_ref(),
+    ]);
+    assert_eq!(cameras(&out1), cameras(&out3), "map and estimate differ");
+    // Another matcher's features are not mixed in.
+    let orb = posediff(&[
+        "match".as_ref(),
+        images.as_os_str(),
+        "--database".as_ref(),
+        db.as_os_str(),
+        "--matcher".as_ref(),
+        "orb".as_ref(),
+        "--quiet".as_ref(),
+    ]);
+    let err = String::from_utf8_lossy(&orb.stderr);
+    assert!(!orb.status.success());
+    assert!(
+        err.contains("holds features made with matcher sift") && err.contains("orb"),
+        "{err}"
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// Bad databases fail before any work, naming the file and the fix.
+#[test]
+fn bad_databases_are_named_errors() {
+    let dir = posediff_fixtures::temp_dir("database-bad");
+    let images = shared_path("data/strecha_fountainP11/images");
+    let text = dir.join("notes.db");
+    std::fs::write(&text, "not a database, just some text that is long enough").unwrap();
+    let cases: [(&Path, &str); 3] = [
+        (&text, "is not a SQLite database"),
+        (&dir.join("missing/d.db"), "its folder does not exist"),
+        (&dir, "is a folder"),
+    ];
+    for (db, why) in cases {
+        let out = posediff(&[
+            "features".as_ref(),
+            images.as_os_str(),
+            "--database".as_ref(),
+            db.as_os_str(),
+            "--quiet".as_ref(),
+        ]);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{}", db.display());
+        assert!(err.contains(why), "{}: {err}", db.display());
+        assert!(!err.contains("stage: "), "work started: {err}");
+    }
+    // `map` of a database without the images named.
+    let other = shared_path("data/middlebury_templeSR/images");
+    let db = dir.join("f.db");
+    ok(&[
+        "features".as_ref(),
+        images.as_os_str(),
+        "--database".as_ref(),
+        db.as_os_str(),
+        "--quiet".as_ref(),
+    ]);
+    let out = posediff(&[
+        "map".as_ref(),
+        "--database".as_ref(),
+        db.as_os_str(),
+        "--images".as_ref(),
+        other.as_os_str(),
+        "--out".as_ref(),
+        dir.join("o").as_os_str(),
+        "--quiet".as_ref(),
+    ]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(err.contains("has no image"), "{err}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
