@@ -472,3 +472,61 @@ fn pycolmap_maps_the_database_we_write() {
     assert!(e.contains("exists"), "{e}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// `posediff map` on a database pycolmap 4.2.1 wrote itself (its SIFT extraction and
+/// exhaustive matching, 6-column affine keypoints, CALIBRATED/UNCALIBRATED geometries): every
+/// fountain image estimated with the right rotations, nothing matched again.
+#[test]
+fn posediff_maps_a_database_pycolmap_wrote() {
+    let dir = posediff_fixtures::temp_dir("clients-map-pycolmap");
+    let images = shared_path("data/strecha_fountainP11/images");
+    let db = dir.join("pycolmap.db");
+    let r = Command::new(python())
+        .arg("-c")
+        .arg(
+            "import sys, pycolmap\n\
+             pycolmap.extract_features(sys.argv[2], sys.argv[1])\n\
+             pycolmap.match_exhaustive(sys.argv[2])\n",
+        )
+        .arg(&images)
+        .arg(&db)
+        .output()
+        .unwrap();
+    assert!(
+        r.status.success(),
+        "pycolmap: {}",
+        String::from_utf8_lossy(&r.stderr)
+    );
+    let out = dir.join("out");
+    posediff(&[
+        "map".as_ref(),
+        "--database".as_ref(),
+        db.as_os_str(),
+        "--images".as_ref(),
+        images.as_os_str(),
+        "--out".as_ref(),
+        out.as_os_str(),
+        "--no-view".as_ref(),
+        "--quiet".as_ref(),
+    ]);
+    let run: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("run.json")).unwrap()).unwrap();
+    assert_eq!(
+        run["report"]["pair_selection"], "database",
+        "{}",
+        run["report"]
+    );
+    let scores = dir.join("scores.json");
+    posediff(&[
+        "score".as_ref(),
+        out.join("cameras.json").as_os_str(),
+        "--gt".as_ref(),
+        shared_path("data/strecha_fountainP11/cameras.json").as_os_str(),
+        "--out".as_ref(),
+        scores.as_os_str(),
+    ]);
+    let s: serde_json::Value = serde_json::from_slice(&std::fs::read(&scores).unwrap()).unwrap();
+    assert_eq!(s["scores"]["registered"], 1.0, "{s}");
+    assert!(s["scores"]["maa_30"].as_f64().unwrap() >= 0.95, "{s}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
