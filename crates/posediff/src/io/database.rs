@@ -13,14 +13,16 @@
 //!   features, so that a run with others is refused instead of mixing them.
 //! - [`write_database`], Python's `write(..., formats=["database"])`: a snapshot of a result.
 //!   What a run knows goes in: a camera per distinct estimated camera (its lens model and
-//! parameters, `prior_focal_length = 1`: the focal is an estimate), a camera per image that was
-//! not estimated (SIMPLE_RADIAL with COLMAP's `1.2·max(W, H)` prior, `prior_focal_length = 0`);
-//! a rig per camera and a frame per image, as COLMAP 4's extraction writes them; the keypoints
-//! that occur in verified matches (in COLMAP pixels: the photo's pixel, `+0.5`), each pair's
-//! verified matches both as `matches` and as the inliers of an `UNCALIBRATED` two-view geometry
-//! with its fundamental matrix (the eight-point fit of those inliers). Descriptors are not kept
-//! by a run, so the `descriptors` table is empty: COLMAP's and GLOMAP's mappers read none, its
-//! matchers need them.
+//!   parameters, `prior_focal_length = 1`: the focal is an estimate), a camera per image that was
+//!   not estimated (SIMPLE_RADIAL with COLMAP's `1.2·max(W, H)` prior, `prior_focal_length = 0`);
+//!   a rig per camera and a frame per image, as COLMAP 4's extraction writes them; the keypoints
+//!   that occur in verified matches (in COLMAP pixels: the photo's pixel, `+0.5`), each pair's
+//!   verified matches both as `matches` and as the inliers of an `UNCALIBRATED` two-view geometry
+//!   with its fundamental matrix (the eight-point fit of those inliers). Descriptors are not kept
+//!   by the snapshot, so its `descriptors` table is empty: COLMAP's and GLOMAP's mappers read
+//!   none, its matchers need them.
+//!
+//! [`Database::open_for_mapping`] reads any writer's database for `posediff map`.
 
 use std::collections::{HashMap, HashSet};
 use std::path::{Path, PathBuf};
@@ -649,7 +651,7 @@ impl Database {
                 data: data.iter().map(|&b| f32::from(b)).collect(),
                 dim: cols,
             }),
-            ("orb", DESCRIPTOR_UNDEFINED) if cols % 8 == 0 => Ok(Descriptors::Binary {
+            ("orb", DESCRIPTOR_UNDEFINED) if cols.is_multiple_of(8) => Ok(Descriptors::Binary {
                 data: data
                     .chunks_exact(8)
                     .map(|c| u64::from_le_bytes(c.try_into().unwrap_or_default()))
@@ -657,7 +659,7 @@ impl Database {
                 words: cols / 8,
             }),
             (m, DESCRIPTOR_UNDEFINED | DESCRIPTOR_ALIKED_N16ROT)
-                if m != "sift" && m != "orb" && cols % 4 == 0 =>
+                if m != "sift" && m != "orb" && cols.is_multiple_of(4) =>
             {
                 Ok(Descriptors::Float {
                     data: data
