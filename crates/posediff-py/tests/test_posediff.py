@@ -259,6 +259,32 @@ def test_the_options_tree_from_python_is_the_clis(cli: Path, tmp_path: Path) -> 
         posediff.estimate(folder, options=["orientation.strong_pair"], progress=False)
 
 
+def test_a_database_from_python_is_the_clis_store(cli: Path, tmp_path: Path) -> None:
+    """``database=`` keeps the store as ``--database`` does: a second call reads every feature
+    and pair back and gives the same cameras; ``posediff map`` on it gives them too; a
+    database made with another matcher is a ValueError naming it."""
+    folder = tmp_path / "fountain"
+    folder.mkdir()
+    for f in sorted(images_of("strecha_fountainP11").glob("*"))[:4]:
+        (folder / f.name).write_bytes(f.read_bytes())
+    db = tmp_path / "d.db"
+    first = posediff.estimate(folder, database=db, progress=False)
+    assert db.is_file()
+    second = posediff.estimate(folder, database=db, progress=False)
+    assert all(a.estimated for a in first.cameras)
+    for a, b in zip(first.cameras, second.cameras):
+        np.testing.assert_array_equal(a.R, b.R)
+        np.testing.assert_array_equal(a.t, b.t)
+        np.testing.assert_array_equal(a.K, b.K)
+    second.write(tmp_path / "py")
+    run_cli(cli, "map", "--database", db, "--images", folder, "--out", tmp_path / "cli",
+            "--quiet", "--no-view")
+    assert (tmp_path / "py" / "cameras.json").read_bytes() == \
+        (tmp_path / "cli" / "cameras.json").read_bytes()
+    with pytest.raises(ValueError, match="matcher sift"):
+        posediff.estimate(folder, database=db, matcher="orb", progress=False)
+
+
 def test_the_gil_is_released_while_estimating() -> None:
     folder = images_of("middlebury_templeSR")
     result: dict[str, object] = {}
