@@ -245,14 +245,36 @@ pub fn write_database(
             x2.push([pb[0] + PIXEL_CENTRE_OFFSET, pb[1] + PIXEL_CENTRE_OFFSET]);
         }
         let id = pair_id(p.first as u32 + 1, p.second as u32 + 1);
-        tx.execute(
-            "INSERT INTO matches (pair_id, rows, cols, data) VALUES (?1, ?2, 2, ?3)",
-            params![id, p.len() as i64, data],
-        )
-        .map_err(&e)?;
-        // The eight-point fit of the inliers, `x2ᵀ F x1 = 0`, row-major (pycolmap reads it so:
-        // scripts/check_database.py checks the epipolar distances of the inliers).
-        let f = posediff_matching::two_view::fundamental_least_squares(&x1, &x2)?.map(|f| {
+        insert_pair(&tx, &e, id, p.len(), &data, (&x1, &x2))?;
+        written += 1;
+    }
+    tx.commit().map_err(&e)?;
+    Ok(DatabaseSummary {
+        cameras,
+        images: r.images.len(),
+        pairs: written,
+    })
+}
+
+/// Writes a pair's `rows` matches (`data`, COLMAP's order) as `matches` and as the inliers of
+/// its two-view geometry: `UNCALIBRATED` with F, the eight-point fit of the inliers `x1`, `x2`
+/// in COLMAP pixels (`x2ᵀ F x1 = 0`, row-major, as pycolmap reads it: scripts/check_database.py
+/// checks the epipolar distances), or `DEGENERATE` without rows where too few verified.
+fn insert_pair(
+    tx: &rusqlite::Transaction<'_>,
+    e: &impl Fn(rusqlite::Error) -> PosediffError,
+    id: i64,
+    rows: usize,
+    data: &[u8],
+    (x1, x2): (&[[f64; 2]], &[[f64; 2]]),
+) -> Result<()> {
+    tx.execute(
+        "INSERT OR REPLACE INTO matches (pair_id, rows, cols, data) VALUES (?1, ?2, 2, ?3)",
+        params![id, rows as i64, data],
+    )
+    .map_err(e)?;
+    let f = if rows > 0 && x1.len() == rows {
+        posediff_matching::two_view::fundamental_least_squares(x1, x2)?.map(|f| {
             f64_blob(&[
                 f[(0, 0)],
                 f[(0, 1)],
@@ -264,20 +286,17 @@ pub fn write_database(
                 f[(2, 1)],
                 f[(2, 2)],
             ])
-        });
-        tx.execute(
-            "INSERT INTO two_view_geometries (pair_id, rows, cols, data, config, F) VALUES (?1, ?2, 2, ?3, ?4, ?5)",
-            params![id, p.len() as i64, data, UNCALIBRATED, f],
-        )
-        .map_err(&e)?;
-        written += 1;
-    }
-    tx.commit().map_err(&e)?;
-    Ok(DatabaseSummary {
-        cameras,
-        images: r.images.len(),
-        pairs: written,
-    })
+        })
+    } else {
+        None
+    };
+    let config = if rows == 0 { DEGENERATE } else { UNCALIBRATED };
+    tx.execute(
+        "INSERT OR REPLACE INTO two_view_geometries (pair_id, rows, cols, data, config, F) VALUES (?1, ?2, 2, ?3, ?4, ?5)",
+        params![id, rows as i64, data, config, f],
+    )
+    .map_err(e)?;
+    Ok(())
 }
 
 /// What made a store's features and matches: a run with other settings is refused.
@@ -1038,39 +1057,14 @@ impl FeatureStore for Database {
                     x2.push([pb[0] + PIXEL_CENTRE_OFFSET, pb[1] + PIXEL_CENTRE_OFFSET]);
                 }
             }
-            let id = pair_id(a as u32, b as u32);
-            tx.execute(
-                "INSERT OR REPLACE INTO matches (pair_id, rows, cols, data) VALUES (?1, ?2, 2, ?3)",
-                params![id, p.len() as i64, data],
-            )
-            .map_err(&e)?;
-            let f = if x1.len() == p.len() && !p.is_empty() {
-                posediff_matching::two_view::fundamental_least_squares(&x1, &x2)?.map(|f| {
-                    f64_blob(&[
-                        f[(0, 0)],
-                        f[(0, 1)],
-                        f[(0, 2)],
-                        f[(1, 0)],
-                        f[(1, 1)],
-                        f[(1, 2)],
-                        f[(2, 0)],
-                        f[(2, 1)],
-                        f[(2, 2)],
-                    ])
-                })
-            } else {
-                None
-            };
-            let config = if p.is_empty() {
-                DEGENERATE
-            } else {
-                UNCALIBRATED
-            };
-            tx.execute(
-                "INSERT OR REPLACE INTO two_view_geometries (pair_id, rows, cols, data, config, F) VALUES (?1, ?2, 2, ?3, ?4, ?5)",
-                params![id, p.len() as i64, data, config, f],
-            )
-            .map_err(&e)?;
+            insert_pair(
+                &tx,
+                &e,
+                pair_id(a as u32, b as u32),
+                p.len(),
+                &data,
+                (&x1, &x2),
+            )?;
         }
         tx.commit().map_err(&e)?;
         Ok(())
