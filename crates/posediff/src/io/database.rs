@@ -802,24 +802,8 @@ impl FeatureStore for Database {
                 )
                 .optional()
                 .map_err(&e)?;
-            let desc: Option<(i64, i64, i64, Vec<u8>)> = conn
-                .query_row(
-                    "SELECT type, rows, cols, data FROM descriptors WHERE image_id = ?1",
-                    params![id],
-                    |r| {
-                        Ok((
-                            r.get(0)?,
-                            r.get(1)?,
-                            r.get(2)?,
-                            r.get::<_, Option<Vec<u8>>>(3)?.unwrap_or_default(),
-                        ))
-                    },
-                )
-                .optional()
-                .map_err(&e)?;
-            if self.map_only {
-                // The mapper needs the keypoints only; the descriptors may be any writer's.
-                let Some((rows, cols, kdata)) = kp else {
+            let Some((rows, cols, kdata)) = kp else {
+                if self.map_only {
                     return Err(PosediffError::invalid(
                         &self.path,
                         format!(
@@ -827,36 +811,49 @@ impl FeatureStore for Database {
                             image.name
                         ),
                     ));
-                };
-                let keypoints = decode_keypoints(&self.path, rows as usize, cols as usize, &kdata)?;
-                cache.insert(id, keypoints.clone());
-                out.push(Some(ImageFeatures {
-                    image_size: ImageSize::new(w as u32, h as u32)?,
-                    keypoints,
-                    descriptors: Descriptors::Float {
-                        data: Vec::new(),
-                        dim: 0,
-                    },
-                    half_turned: false,
-                }));
-                continue;
-            }
-            let (Some((rows, cols, kdata)), Some((kind, drows, dcols, ddata))) = (kp, desc) else {
+                }
                 out.push(None);
                 continue;
             };
-            if drows != rows {
-                return Err(PosediffError::invalid(
-                    &self.path,
-                    format!(
-                        "image {}: {rows} keypoints and {drows} descriptors",
-                        image.name
-                    ),
-                ));
-            }
             let keypoints = decode_keypoints(&self.path, rows as usize, cols as usize, &kdata)?;
-            let descriptors =
-                self.decode_descriptors(kind, drows as usize, dcols as usize, &ddata)?;
+            let descriptors = if self.map_only {
+                // The mapper needs the keypoints only; the descriptors (any writer's) are not
+                // read.
+                Descriptors::Float {
+                    data: Vec::new(),
+                    dim: 0,
+                }
+            } else {
+                let desc: Option<(i64, i64, i64, Vec<u8>)> = conn
+                    .query_row(
+                        "SELECT type, rows, cols, data FROM descriptors WHERE image_id = ?1",
+                        params![id],
+                        |r| {
+                            Ok((
+                                r.get(0)?,
+                                r.get(1)?,
+                                r.get(2)?,
+                                r.get::<_, Option<Vec<u8>>>(3)?.unwrap_or_default(),
+                            ))
+                        },
+                    )
+                    .optional()
+                    .map_err(&e)?;
+                let Some((kind, drows, dcols, ddata)) = desc else {
+                    out.push(None);
+                    continue;
+                };
+                if drows != rows {
+                    return Err(PosediffError::invalid(
+                        &self.path,
+                        format!(
+                            "image {}: {rows} keypoints and {drows} descriptors",
+                            image.name
+                        ),
+                    ));
+                }
+                self.decode_descriptors(kind, drows as usize, dcols as usize, &ddata)?
+            };
             cache.insert(id, keypoints.clone());
             out.push(Some(ImageFeatures {
                 image_size: ImageSize::new(w as u32, h as u32)?,
