@@ -241,6 +241,71 @@ fn a_failed_write_leaves_the_previous_results() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
+/// A commit stopped after each of its renames in turn (as a kill between two would leave it)
+/// is, once `recover` has looked at the folder, one run's whole results: the earlier run's
+/// until run.json is in place, the new one's after. Every step is tried, so a rename order
+/// that `recover` cannot undo fails here, not by chance in the kill test below.
+#[test]
+fn a_commit_stopped_after_any_rename_is_recovered_to_one_run() {
+    let dir = posediff_fixtures::temp_dir("outputs-stopped");
+    let (inputs, recon) = three_frames(&dir);
+    // The second run did not estimate the first image.
+    let mut other = recon.clone();
+    other.images[0].camera.camera = None;
+    let with_view = OutputOptions {
+        view: true,
+        ..OutputOptions::default()
+    };
+    let write_to = |out: &Path, r: &Reconstruction| {
+        write_outputs(out, r, &inputs, &report(), &with_view, None).unwrap();
+        results(out)
+    };
+    let (a, b) = (
+        write_to(&dir.join("a"), &recon),
+        write_to(&dir.join("b"), &other),
+    );
+    assert_ne!(a, b, "the two runs must differ");
+    assert!(a.iter().any(|(f, _)| f == "view.html"));
+    let out = dir.join("out");
+    let (mut stopped, mut steps) = (0, 1);
+    loop {
+        remove_dir(&out);
+        write_to(&out, &recon);
+        let done = posediff::io::outputs::write_outputs_interrupted(
+            &out,
+            &other,
+            &inputs,
+            &report(),
+            &with_view,
+            steps,
+        )
+        .unwrap();
+        posediff::io::outputs::recover(&out).unwrap();
+        let now = results(&out);
+        assert!(
+            now == a || now == b,
+            "stopped after {steps} renames: {:?}",
+            now.iter().map(|(f, _)| f).collect::<Vec<_>>()
+        );
+        assert!(!out.join(".posediff-previous").exists());
+        if done {
+            assert_eq!(now, b);
+            break;
+        }
+        stopped += 1;
+        steps += 1;
+    }
+    // Seven entries aside, the marker, seven in: each a place a kill can land.
+    assert_eq!(stopped, 15, "stopping points");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+fn remove_dir(path: &Path) {
+    if path.exists() {
+        std::fs::remove_dir_all(path).unwrap();
+    }
+}
+
 /// Runs killed while they write (from the moment their staging folder appears, 0 to 6 ms on:
 /// the whole write and the renames take about 4 ms here) leave, once the next run's recovery
 /// has looked at the folder, one run's whole results: the earlier run's or the killed one's,

@@ -303,6 +303,46 @@ pub fn write_outputs_with_pairs(
     options: &OutputOptions,
     thumbnails_made: Option<&[Option<Vec<u8>>]>,
 ) -> Result<Written> {
+    let results = (r, pairs);
+    write_and_commit(
+        out,
+        results,
+        inputs,
+        run,
+        options,
+        thumbnails_made,
+        usize::MAX,
+    )
+}
+
+/// [`write_outputs`] stopped after `steps` of its commit's renames, as a kill there would
+/// leave the folder (for tests of [`recover`]); `Ok(true)` when the commit was complete.
+///
+/// # Errors
+/// As [`write_outputs`].
+#[doc(hidden)]
+pub fn write_outputs_interrupted(
+    out: &Path,
+    r: &Reconstruction,
+    inputs: &InputImages,
+    run: &crate::estimate::run_report::RunReport,
+    options: &OutputOptions,
+    steps: usize,
+) -> Result<bool> {
+    let results = (r, &[][..]);
+    write_and_commit(out, results, inputs, run, options, None, steps)?;
+    Ok(!exists(&out.join(PREVIOUS)) && !exists(&out.join(STAGING)))
+}
+
+fn write_and_commit(
+    out: &Path,
+    (r, pairs): (&Reconstruction, &[posediff_geometry::PairMatches]),
+    inputs: &InputImages,
+    run: &crate::estimate::run_report::RunReport,
+    options: &OutputOptions,
+    thumbnails_made: Option<&[Option<Vec<u8>>]>,
+    steps: usize,
+) -> Result<Written> {
     std::fs::create_dir_all(out).map_err(|source| PosediffError::Write {
         path: out.to_owned(),
         source,
@@ -328,7 +368,7 @@ pub fn write_outputs_with_pairs(
             return Err(e);
         }
     };
-    commit(out, &staging)?;
+    commit(out, &staging, steps)?;
     Ok(written)
 }
 
@@ -380,25 +420,57 @@ fn exists(path: &Path) -> bool {
     std::fs::symlink_metadata(path).is_ok()
 }
 
-/// Moves the staged results into `out`: the previous ones aside (run.json first), the new ones
-/// in (run.json last), then the previous ones and the staging folder removed.
-fn commit(out: &Path, staging: &Path) -> Result<()> {
+/// Moves the staged results into `out`: the previous ones aside (run.json first), a marker
+/// ([`MOVED_ASIDE`], listing what the new run moves in) once they all are, the new ones in
+/// (run.json last), then the previous ones and the staging folder removed.
+fn commit(out: &Path, staging: &Path, steps: usize) -> Result<()> {
+    // Each step is one rename (or the marker's write): atomic, so a kill lands between two.
+    let mut left = steps;
+    let mut step = || {
+        left = left.saturating_sub(1);
+        left > 0
+    };
     let previous = out.join(PREVIOUS);
     remove(&previous)?;
     let entries = entries_of(staging);
     for entry in &entries {
         if exists(&out.join(entry)) {
             rename(&out.join(entry), &previous.join(entry))?;
+            if !step() {
+                return Ok(());
+            }
         }
+    }
+    // Until this marker exists, every result entry still in `out` is the previous run's
+    // (not yet moved aside); once it does, every one is the new run's.
+    std::fs::create_dir_all(&previous).map_err(|source| PosediffError::Write {
+        path: previous.clone(),
+        source,
+    })?;
+    let partial = previous.join(".posediff-moved-aside.partial");
+    std::fs::write(&partial, entries.join("\n")).map_err(|source| PosediffError::Write {
+        path: partial.clone(),
+        source,
+    })?;
+    rename(&partial, &previous.join(MOVED_ASIDE))?;
+    if !step() {
+        return Ok(());
     }
     for entry in entries.iter().rev() {
         if exists(&staging.join(entry)) {
             rename(&staging.join(entry), &out.join(entry))?;
+            if !step() {
+                return Ok(());
+            }
         }
     }
     remove(&previous)?;
     remove(staging)
 }
+
+/// The marker in [`PREVIOUS`] that says every previous entry has been moved aside: from then
+/// on, the result entries in `out` are the new run's. It lists them, one per line.
+const MOVED_ASIDE: &str = ".posediff-moved-aside";
 
 /// [`RESULTS`], and `images` after run.json when `folder` holds images of the run's own
 /// ([`ImagesMode::Move`]).
@@ -415,8 +487,9 @@ fn entries_of(folder: &Path) -> Vec<&'static str> {
 pub const FRAMES: &str = ".posediff-frames";
 
 /// Undoes what an interrupted run left in `out`: its staging folder, and, when it was killed
-/// while moving results in (no run.json in place), the new entries moved so far, the previous
-/// results put back.
+/// while moving results (no run.json in place), the previous results put back: while it was
+/// moving them aside, those it had moved; once it was moving the new ones in (the
+/// [`MOVED_ASIDE`] marker), the new entries removed first.
 ///
 /// # Errors
 /// I/O errors naming the path.
@@ -428,14 +501,34 @@ pub fn recover(out: &Path) -> Result<()> {
     }
     if !exists(&out.join("run.json")) {
         log::warn!(
-            "{}: a run was interrupted while moving its results in; the previous results are \
-             put back",
+            "{}: a run was interrupted while moving its results; the previous results are put \
+             back",
             out.display()
         );
-        for entry in entries_of(&previous) {
-            remove(&out.join(entry))?;
-            if exists(&previous.join(entry)) {
-                rename(&previous.join(entry), &out.join(entry))?;
+        let mut entries: Vec<String> = RESULTS.iter().map(|e| (*e).to_owned()).collect();
+        entries.push("images".into());
+        let moving_in = match std::fs::read_to_string(previous.join(MOVED_ASIDE)) {
+            Ok(list) => {
+                // The new run's entries (images only when it moved its own in).
+                entries = list.lines().map(str::to_owned).collect();
+                true
+            }
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => false,
+            Err(source) => {
+                return Err(PosediffError::Read {
+                    path: previous.join(MOVED_ASIDE),
+                    source,
+                });
+            }
+        };
+        // run.json last: a recovery that is itself interrupted is taken up again by the next.
+        for entry in entries.iter().rev() {
+            let (now, before) = (out.join(entry), previous.join(entry));
+            if moving_in {
+                remove(&now)?;
+            }
+            if exists(&before) {
+                rename(&before, &now)?;
             }
         }
     }
