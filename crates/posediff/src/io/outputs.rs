@@ -489,7 +489,7 @@ pub const FRAMES: &str = ".posediff-frames";
 /// Undoes what an interrupted run left in `out`: its staging folder, and, when it was killed
 /// while moving results (no run.json in place), the previous results put back: while it was
 /// moving them aside, those it had moved; once it was moving the new ones in (the
-/// [`MOVED_ASIDE`] marker), the new entries removed first.
+/// `.posediff-moved-aside` marker), the new entries removed first.
 ///
 /// # Errors
 /// I/O errors naming the path.
