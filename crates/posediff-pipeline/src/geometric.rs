@@ -29,7 +29,7 @@ pub use crate::ggs::{model_frame_matches, official_ggs};
 pub use crate::orientation::{STRONG_PAIR, TURN_PARTNERS, TURN_TESTS};
 use crate::orientation::{turn_components, turn_left_out};
 use crate::report::{DistortionOutcome, Warning};
-use crate::store::{SharedStore, Stored};
+use crate::store::{Shard, SharedStore, Stored};
 use crate::two_view::{OpenCvTwoView, TwoViewCache};
 
 pub use posediff_sfm::intrinsics::{focal_scale, image_centre};
@@ -411,7 +411,7 @@ pub fn estimate_geometric_counted(
         mut times,
         selection,
         words,
-    } = match_all(images, config, counter)?;
+    } = match_all(images, config, None, counter)?;
     let matcher = config.correspondences();
     let sizes: Vec<ImageSize> = features.iter().map(|f| f.image_size).collect();
     let (_, densify) = config.plan(images.len());
@@ -606,7 +606,22 @@ pub fn extract_and_match(
     config: &GeometricConfig,
     counter: &dyn StepCounter,
 ) -> Result<(Vec<PairMatches>, String)> {
-    let m = match_all(images, config, counter)?;
+    let m = match_all(images, config, None, counter)?;
+    Ok((m.pairs, m.selection))
+}
+
+/// [`extract_and_match`] restricted to `shard`'s part of the selected pairs (every image's
+/// features are read or extracted: the selection needs them all, and stores them).
+///
+/// # Errors
+/// As [`extract_and_match`].
+pub fn extract_and_match_shard(
+    images: &[PathBuf],
+    config: &GeometricConfig,
+    shard: Shard,
+    counter: &dyn StepCounter,
+) -> Result<(Vec<PairMatches>, String)> {
+    let m = match_all(images, config, Some(shard), counter)?;
     Ok((m.pairs, m.selection))
 }
 
@@ -631,6 +646,7 @@ struct Matched {
 fn match_all(
     images: &[PathBuf],
     config: &GeometricConfig,
+    shard: Option<Shard>,
     counter: &dyn StepCounter,
 ) -> Result<Matched> {
     if images.len() < 2 {
@@ -669,6 +685,13 @@ fn match_all(
     if let Some(d) = densify {
         rules.push(format!("densify:{}deg,{}", d.max_angle_deg, d.per_image));
     }
+    let pair_list = match shard {
+        Some(s) => {
+            rules.push(format!("shard:{s}"));
+            s.pairs(&pair_list)
+        }
+        None => pair_list,
+    };
     let selection = clock.elapsed().as_secs_f64();
     let clock = Instant::now();
     let pairs = matcher.match_pairs(&features, &pair_list, (counter, "matching"))?;
@@ -736,7 +759,7 @@ pub fn refine_given_cameras_counted(
         mut times,
         selection,
         ..
-    } = match_all(images, config, counter)?;
+    } = match_all(images, config, None, counter)?;
     let matcher = config.correspondences();
     let sizes: Vec<ImageSize> = features.iter().map(|f| f.image_size).collect();
     // The second pass needs no first map here: the given cameras say which images overlap.

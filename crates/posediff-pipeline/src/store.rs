@@ -69,6 +69,63 @@ pub trait FeatureStore: Send + Sync {
     }
 }
 
+/// One of `count` parts of a run's work (`--shard K/N`), for extraction and matching spread
+/// over processes or machines that each fill their own copy of the store: images are split
+/// into `count` contiguous runs, the selected pairs every `count`-th from `index`. The parts
+/// together are exactly the whole run's work, each piece in one part.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Shard {
+    /// This part, `0..count`.
+    pub index: usize,
+    /// How many parts.
+    pub count: usize,
+}
+
+impl Shard {
+    /// `K/N`, with `K < N`.
+    ///
+    /// # Errors
+    /// Anything else, named.
+    pub fn parse(text: &str) -> Result<Self> {
+        let bad = || {
+            crate::error::PosediffError::InvalidArgument(format!(
+                "shard {text:?}: give K/N with 0 <= K < N (e.g. 0/4)"
+            ))
+        };
+        let (k, n) = text.split_once('/').ok_or_else(bad)?;
+        let (index, count) = (
+            k.trim().parse::<usize>().map_err(|_| bad())?,
+            n.trim().parse::<usize>().map_err(|_| bad())?,
+        );
+        if count == 0 || index >= count {
+            return Err(bad());
+        }
+        Ok(Self { index, count })
+    }
+
+    /// This part's images of `len`: a contiguous range (empty when there are more parts than
+    /// images).
+    pub fn images(&self, len: usize) -> std::ops::Range<usize> {
+        (self.index * len / self.count)..((self.index + 1) * len / self.count)
+    }
+
+    /// This part's pairs of `pairs` (the whole run's selection, in its order).
+    pub fn pairs(&self, pairs: &[(usize, usize)]) -> Vec<(usize, usize)> {
+        pairs
+            .iter()
+            .skip(self.index)
+            .step_by(self.count)
+            .copied()
+            .collect()
+    }
+}
+
+impl std::fmt::Display for Shard {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}/{}", self.index, self.count)
+    }
+}
+
 /// A store shared by the configurations that use it (equal when it is the same store).
 #[derive(Clone)]
 pub struct SharedStore(pub Arc<dyn FeatureStore>);
@@ -216,5 +273,31 @@ impl Correspondences for Stored<'_> {
         counter: &dyn StepCounter,
     ) -> Result<Option<Vec<ImageFeatures>>> {
         self.inner.extract_turned(images, counter)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Shard;
+
+    /// The parts cover every image and every pair exactly once.
+    #[test]
+    fn shards_partition_images_and_pairs() {
+        let pairs: Vec<(usize, usize)> = (0..7)
+            .flat_map(|i| (i + 1..7).map(move |j| (i, j)))
+            .collect();
+        for count in 1..=9 {
+            let parts: Vec<Shard> = (0..count).map(|index| Shard { index, count }).collect();
+            let mut images: Vec<usize> = parts.iter().flat_map(|s| s.images(7)).collect();
+            images.sort_unstable();
+            assert_eq!(images, (0..7).collect::<Vec<_>>(), "{count} parts");
+            let mut all: Vec<(usize, usize)> = parts.iter().flat_map(|s| s.pairs(&pairs)).collect();
+            all.sort_unstable();
+            assert_eq!(all, pairs, "{count} parts");
+        }
+        assert_eq!(Shard::parse("1/3").unwrap(), Shard { index: 1, count: 3 });
+        for bad in ["3/3", "1", "a/2", "0/0", "-1/2"] {
+            assert!(Shard::parse(bad).is_err(), "{bad}");
+        }
     }
 }

@@ -149,6 +149,116 @@ fn an_interrupted_match_resumes_to_the_same_cameras() {
         "resumed and whole runs differ"
     );
     assert_eq!(stored_pairs(&db), stored_pairs(&db2));
+    // The same run split over three workers (`--shard`), each into its own database, merged by
+    // a driver (`--from`): the same pairs and the same bytes.
+    let part = |stage: &str, db: &Path, shard: &str, from: &[&Path]| {
+        let mut args: Vec<&OsStr> = vec![
+            stage.as_ref(),
+            images.as_os_str(),
+            "--database".as_ref(),
+            db.as_os_str(),
+            "--pairs".as_ref(),
+            "exhaustive".as_ref(),
+            "--shard".as_ref(),
+            shard.as_ref(),
+        ];
+        for f in from {
+            args.extend(["--from".as_ref(), f.as_os_str()]);
+        }
+        ok(&args)
+    };
+    let extracted: Vec<_> = (0..3).map(|k| dir.join(format!("f{k}.db"))).collect();
+    for (k, f) in extracted.iter().enumerate() {
+        let out = part("features", f, &format!("{k}/3"), &[]);
+        let said = String::from_utf8_lossy(&out.stdout);
+        let n = [3, 4, 4][k];
+        assert!(
+            said.contains(&format!("{n} images with features")),
+            "{said}"
+        );
+    }
+    let merged = dir.join("merged.db");
+    let mut args: Vec<&OsStr> = vec![
+        "features".as_ref(),
+        images.as_os_str(),
+        "--database".as_ref(),
+        merged.as_os_str(),
+    ];
+    for f in &extracted {
+        args.extend(["--from".as_ref(), f.as_os_str()]);
+    }
+    let said = ok(&args);
+    assert!(
+        String::from_utf8_lossy(&said.stdout)
+            .contains("imported 11 images' features and 0 pairs from 3 database(s)"),
+        "{}",
+        String::from_utf8_lossy(&said.stdout)
+    );
+    let matched: Vec<_> = (0..3).map(|k| dir.join(format!("m{k}.db"))).collect();
+    for (k, m) in matched.iter().enumerate() {
+        let out = part("match", m, &format!("{k}/3"), &[&merged]);
+        let said = String::from_utf8_lossy(&out.stdout);
+        assert!(
+            said.contains(&format!("pairs (exhaustive,shard:{k}/3) matched")),
+            "{said}"
+        );
+    }
+    let out4 = dir.join("sharded");
+    let mut args: Vec<&OsStr> = vec![
+        "estimate".as_ref(),
+        images.as_os_str(),
+        "--database".as_ref(),
+        merged.as_os_str(),
+        "--pairs".as_ref(),
+        "exhaustive".as_ref(),
+        "--out".as_ref(),
+        out4.as_os_str(),
+        "--no-view".as_ref(),
+        "--quiet".as_ref(),
+    ];
+    for m in &matched {
+        args.extend(["--from".as_ref(), m.as_os_str()]);
+    }
+    let sharded = ok(&args);
+    let log = String::from_utf8_lossy(&sharded.stderr);
+    assert!(
+        log.contains("matching: 55 of 55 pairs from the database, 0 to match"),
+        "{log}"
+    );
+    assert_eq!(
+        cameras(&out4),
+        cameras(&out2),
+        "sharded and whole runs differ"
+    );
+    assert_eq!(stored_pairs(&merged), stored_pairs(&db2));
+    // A worker's database is only read; one of another matcher is refused, named.
+    let orb_db = dir.join("orb.db");
+    ok(&[
+        "features".as_ref(),
+        images.as_os_str(),
+        "--database".as_ref(),
+        orb_db.as_os_str(),
+        "--matcher".as_ref(),
+        "orb".as_ref(),
+        "--shard".as_ref(),
+        "0/5".as_ref(),
+        "--quiet".as_ref(),
+    ]);
+    let mixed = posediff(&[
+        "features".as_ref(),
+        images.as_os_str(),
+        "--database".as_ref(),
+        merged.as_os_str(),
+        "--from".as_ref(),
+        orb_db.as_os_str(),
+        "--quiet".as_ref(),
+    ]);
+    let err = String::from_utf8_lossy(&mixed.stderr);
+    assert!(!mixed.status.success());
+    assert!(
+        err.contains("orb.db") && err.contains("holds features made with matcher orb"),
+        "{err}"
+    );
     // `posediff map` maps the database's verified pairs to the same cameras.
     let out3 = dir.join("mapped");
     ok(&[
@@ -230,5 +340,35 @@ fn bad_databases_are_named_errors() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success());
     assert!(err.contains("has no image"), "{err}");
+    // Shards and sources that cannot be used fail before any work, named.
+    let missing = dir.join("w9.db");
+    let new = dir.join("n.db");
+    let cases: [(Vec<&OsStr>, &str); 4] = [
+        (
+            vec!["--shard".as_ref(), "3/3".as_ref()],
+            "give K/N with 0 <= K < N",
+        ),
+        (vec!["--shard".as_ref(), "two".as_ref()], "give K/N"),
+        (vec!["--from".as_ref(), missing.as_os_str()], "w9.db"),
+        (
+            vec!["--from".as_ref(), new.as_os_str()],
+            "names the --database itself",
+        ),
+    ];
+    for (extra, why) in cases {
+        let mut args: Vec<&OsStr> = vec![
+            "match".as_ref(),
+            images.as_os_str(),
+            "--database".as_ref(),
+            new.as_os_str(),
+            "--quiet".as_ref(),
+        ];
+        args.extend(extra);
+        let out = posediff(&args);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{args:?}");
+        assert!(err.contains(why), "{args:?}: {err}");
+        assert!(!err.contains("stage: "), "work started: {err}");
+    }
     std::fs::remove_dir_all(&dir).unwrap();
 }

@@ -152,6 +152,11 @@ pub struct Args {
     /// is. `posediff features` and `posediff match` fill it in steps.
     #[arg(long, value_name = "FILE")]
     database: Option<PathBuf>,
+    /// Databases of the same matcher and settings (e.g. `posediff features|match --shard`
+    /// workers') whose features and pairs `--database` lacks: imported first, so only what
+    /// none of them did is done (repeatable; needs --database).
+    #[arg(long = "from", value_name = "DB")]
+    import_from: Vec<PathBuf>,
     /// Go on without images that are corrupt, truncated or unreadable (listed in run.json)
     /// instead of stopping.
     #[arg(long)]
@@ -370,6 +375,8 @@ impl Args {
             masks: self.masks.clone(),
             database: self.database.clone(),
             map_database: false,
+            shard: None,
+            import_from: self.import_from.clone(),
             seed: self.seed,
             samples: self.samples,
             ggs: !self.no_ggs,

@@ -4,7 +4,7 @@
 
 use std::path::PathBuf;
 
-use posediff::estimate::run::{Inputs, RunOptions, StopAfter, run_stages};
+use posediff::estimate::run::{Inputs, RunOptions, Shard, StopAfter, run_stages};
 use posediff::{Progress, Silent};
 
 use super::estimate::pipeline_options;
@@ -40,6 +40,16 @@ pub struct Args {
     /// Go on without images that are corrupt, truncated or unreadable.
     #[arg(long)]
     skip_bad_images: bool,
+    /// Do only the K-th of N parts (`K/N`, from 0): a contiguous run of the images'
+    /// extraction, or every N-th selected pair (the selection needs every image's features:
+    /// give them with --from). A driver merges the parts' databases with --from.
+    #[arg(long, value_name = "K/N")]
+    shard: Option<String>,
+    /// Databases of the same matcher and settings (workers' shards) whose features and pairs
+    /// --database lacks: imported before any work, so only what none of them did is done
+    /// (repeatable).
+    #[arg(long = "from", value_name = "DB")]
+    import_from: Vec<PathBuf>,
     /// Print nothing but errors.
     #[arg(long)]
     quiet: bool,
@@ -56,6 +66,8 @@ impl Args {
             weights_dir: self.weights_dir.clone(),
             masks: self.masks.clone(),
             database: Some(self.database.clone()),
+            shard: self.shard.as_deref().map(Shard::parse).transpose()?,
+            import_from: self.import_from.clone(),
             ..RunOptions::default()
         };
         options.check()?;
@@ -64,6 +76,14 @@ impl Args {
         let progress: &mut dyn Progress = if self.quiet { &mut Silent } else { &mut bars };
         let summary = run_stages(&inputs, &options, stop, progress)?;
         if !self.quiet {
+            if summary.imported != (0, 0) {
+                println!(
+                    "imported {} images' features and {} pairs from {} database(s)",
+                    summary.imported.0,
+                    summary.imported.1,
+                    self.import_from.len()
+                );
+            }
             match stop {
                 StopAfter::Features => println!(
                     "{} images with features in {}",

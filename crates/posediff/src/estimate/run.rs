@@ -18,6 +18,7 @@ use crate::correspondences::{LearnedMatcher, MatcherChoice, SharedLearned, learn
 use crate::error::{PosediffError, Result};
 use crate::estimate::estimator::{EstimateInput, Estimator, Progress};
 use posediff_pipeline::options::CameraHint;
+pub use posediff_pipeline::store::Shard;
 
 use crate::estimate::geometric::{
     GeometricConfig, KnownIntrinsics, Refinement, bundle_refine_cameras,
@@ -265,6 +266,15 @@ pub struct RunOptions {
     /// `posediff map`: `database` is only read, whoever wrote it, and its verified pairs are
     /// the pairs mapped (no second pass, no turned retry: nothing is matched).
     pub map_database: bool,
+    /// `--shard K/N` (`posediff features` / `posediff match` only): this process does the
+    /// `K`-th of `N` parts of the extraction (a contiguous run of images) or of the matching
+    /// (every `N`-th selected pair) into its own `database`, for a driver to merge with
+    /// [`Self::import_from`] (`posediff.distributed` on Ray).
+    pub shard: Option<Shard>,
+    /// `--from DB` (repeatable): databases of the same matcher and settings (workers' shards)
+    /// whose features and pairs `database` lacks are imported before any work, so only what
+    /// none of them did is done here.
+    pub import_from: Vec<PathBuf>,
 }
 
 impl Default for RunOptions {
@@ -284,6 +294,8 @@ impl Default for RunOptions {
             masks: None,
             database: None,
             map_database: false,
+            shard: None,
+            import_from: Vec::new(),
         }
     }
 }
@@ -315,6 +327,31 @@ impl RunOptions {
                 "--start-step must be 0-99 (a step of the 100-step schedule), got {}",
                 self.start_step
             )));
+        }
+        if (self.shard.is_some() || !self.import_from.is_empty()) && self.database.is_none() {
+            return Err(PosediffError::InvalidArgument(
+                "--shard and --from work on a database: give --database D".into(),
+            ));
+        }
+        if self.map_database && (self.shard.is_some() || !self.import_from.is_empty()) {
+            return Err(PosediffError::InvalidArgument(
+                "posediff map only reads its database: merge workers' databases with \
+                 `posediff match --database D --from W` first"
+                    .into(),
+            ));
+        }
+        if let Some(p) = self
+            .import_from
+            .iter()
+            .find(|p| Some(*p) == self.database.as_ref())
+        {
+            return Err(PosediffError::invalid(
+                p,
+                "--from names the --database itself: give the workers' databases",
+            ));
+        }
+        if let Some(p) = self.import_from.iter().find(|p| !p.is_file()) {
+            return Err(PosediffError::NotFound(p.clone()));
         }
         if let Some(InitSource::File(p)) = &self.init
             && !p.is_file()
@@ -522,6 +559,8 @@ pub struct StagesSummary {
     pub verified: usize,
     /// The pair selection's rules (`Matching` only).
     pub selection: String,
+    /// Images' features and pairs imported from `--from` before any work.
+    pub imported: (usize, usize),
 }
 
 /// `posediff features` / `posediff match`: the checkpoint-free path's extraction (and its
@@ -544,24 +583,47 @@ pub fn run_stages(
     let files = &inputs.images.files;
     progress.start("geometry", 0);
     let result = match stop {
-        StopAfter::Features => c
-            .geometric
-            .correspondences()
-            .extract(files, progress.counter())
-            .map(|f| StagesSummary {
+        StopAfter::Features => {
+            let part = match options.shard {
+                Some(s) => &files[s.images(files.len())],
+                None => &files[..],
+            };
+            let extracted = if part.is_empty() {
+                Ok(Vec::new())
+            } else {
+                c.geometric
+                    .correspondences()
+                    .extract(part, progress.counter())
+            };
+            extracted.map(|f| StagesSummary {
                 images: f.len(),
                 pairs: 0,
                 verified: 0,
                 selection: String::new(),
-            }),
+                imported: c.imported,
+            })
+        }
         StopAfter::Matching => {
-            posediff_pipeline::geometric::extract_and_match(files, &c.geometric, progress.counter())
-                .map(|(pairs, selection)| StagesSummary {
-                    images: files.len(),
-                    pairs: pairs.len(),
-                    verified: pairs.iter().filter(|p| !p.is_empty()).count(),
-                    selection,
-                })
+            let matched = match options.shard {
+                Some(s) => posediff_pipeline::geometric::extract_and_match_shard(
+                    files,
+                    &c.geometric,
+                    s,
+                    progress.counter(),
+                ),
+                None => posediff_pipeline::geometric::extract_and_match(
+                    files,
+                    &c.geometric,
+                    progress.counter(),
+                ),
+            };
+            matched.map(|(pairs, selection)| StagesSummary {
+                images: files.len(),
+                pairs: pairs.len(),
+                verified: pairs.iter().filter(|p| !p.is_empty()).count(),
+                selection,
+                imported: c.imported,
+            })
         }
     };
     progress.finish();
@@ -577,6 +639,8 @@ struct Configured {
     masks: Option<MasksReport>,
     warnings: Vec<Warning>,
     needs_matches: bool,
+    /// Images and pairs taken from `--from` (see [`RunOptions::import_from`]).
+    imported: (usize, usize),
 }
 
 /// The checks and set-up of [`run`] and [`run_stages`], before any expensive work.
@@ -674,7 +738,7 @@ fn configure(inputs: &Inputs, options: &RunOptions, network: bool) -> Result<Con
     if needs_matches {
         geometric.learned = options.load_learned()?;
     }
-    if let Some(path) = &options.database {
+    let imported = if let Some(path) = &options.database {
         if network {
             return Err(PosediffError::InvalidArgument(
                 "--database keeps the checkpoint-free path's features and matches: run without \
@@ -705,16 +769,31 @@ fn configure(inputs: &Inputs, options: &RunOptions, network: bool) -> Result<Con
                 focal: geometric.hints.get(i).map(|h| h.focal).unwrap_or_default(),
             })
             .collect();
+        let mut imported = (0, 0);
         let store = if options.map_database {
             geometric.options.densify.when = posediff_pipeline::options::DensifyWhen::Never;
             geometric.options.retry.enabled = false;
             geometric.options.orientation.enabled = false;
             crate::io::database::Database::open_for_mapping(path, images)?
         } else {
-            crate::io::database::Database::open(path, &identity, images)?
+            let from_images = images.clone();
+            let db = crate::io::database::Database::open(path, &identity, images)?;
+            for from in &options.import_from {
+                let worker = crate::io::database::Database::open_source(
+                    from,
+                    &identity,
+                    from_images.clone(),
+                )?;
+                let (i, p) = db.import(&worker, files)?;
+                imported = (imported.0 + i, imported.1 + p);
+            }
+            db
         };
         geometric.store = Some(SharedStore(std::sync::Arc::new(store)));
-    }
+        imported
+    } else {
+        (0, 0)
+    };
     Ok(Configured {
         known,
         init,
@@ -722,6 +801,7 @@ fn configure(inputs: &Inputs, options: &RunOptions, network: bool) -> Result<Con
         masks,
         warnings,
         needs_matches,
+        imported,
     })
 }
 
@@ -744,7 +824,16 @@ pub fn run(
         masks,
         mut warnings,
         needs_matches,
-    } = configure(inputs, options, network.is_some())?;
+        imported: _,
+    } = {
+        if let Some(s) = options.shard {
+            return Err(PosediffError::InvalidArgument(format!(
+                "--shard {s} splits `posediff features` and `posediff match`; an estimation maps \
+                 every image: merge the shards' databases with --from instead"
+            )));
+        }
+        configure(inputs, options, network.is_some())?
+    };
     let names = &inputs.names;
     let files = &inputs.images.files;
     let (entries, pairs, mut report) = match network {

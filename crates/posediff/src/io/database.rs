@@ -335,6 +335,9 @@ pub struct Database {
     matcher: String,
     /// `posediff map`: read what the database holds (any writer's), compute and write nothing.
     map_only: bool,
+    /// `--from`: a worker's database, read (features with their descriptors, pairs) and never
+    /// written, so that any number of processes read it at once.
+    source: bool,
 }
 
 impl std::fmt::Debug for Database {
@@ -503,6 +506,7 @@ impl Database {
             keypoints: Mutex::new(HashMap::new()),
             matcher: identity.matcher.clone(),
             map_only: false,
+            source: false,
         })
     }
 
@@ -544,6 +548,78 @@ impl Database {
             keypoints: Mutex::new(HashMap::new()),
             matcher: String::new(),
             map_only: true,
+            source: false,
+        })
+    }
+
+    /// Opens the database at `path` as a source to import from (`--from`): read-only, so that
+    /// the workers of a distributed run may all read one merged database at once; it must have
+    /// been written by posediff with `identity`'s matcher and settings.
+    ///
+    /// # Errors
+    /// No such file; not SQLite; in use by a writer; not written by posediff, or with another
+    /// matcher or other settings (named, with the fix).
+    pub fn open_source(
+        path: &Path,
+        identity: &StoreIdentity,
+        images: Vec<StoreImage>,
+    ) -> Result<Self> {
+        if !path.is_file() {
+            return Err(PosediffError::NotFound(path.to_owned()));
+        }
+        let wrap = |e: rusqlite::Error| {
+            lock_error(path, &e)
+                .unwrap_or_else(|| PosediffError::invalid(path, format!("SQLite: {e}")))
+        };
+        let conn = Connection::open_with_flags(path, rusqlite::OpenFlags::SQLITE_OPEN_READ_ONLY)
+            .map_err(wrap)?;
+        conn.busy_timeout(std::time::Duration::ZERO).map_err(wrap)?;
+        let tables: i64 = conn
+            .query_row(
+                "SELECT count(*) FROM sqlite_master WHERE type='table' AND name='posediff_store'",
+                [],
+                |r| r.get(0),
+            )
+            .map_err(wrap)?;
+        if tables == 0 {
+            return Err(PosediffError::invalid(
+                path,
+                "was not written by posediff (no posediff_store table): --from imports \
+                 posediff workers' databases (`posediff features|match --database W`)",
+            ));
+        }
+        for (key, value) in [
+            ("matcher", identity.matcher.as_str()),
+            ("settings", identity.settings.as_str()),
+        ] {
+            let stored: Option<String> = conn
+                .query_row(
+                    "SELECT value FROM posediff_store WHERE key = ?1",
+                    params![key],
+                    |r| r.get(0),
+                )
+                .optional()
+                .map_err(wrap)?;
+            if stored.as_deref() != Some(value) {
+                return Err(PosediffError::invalid(
+                    path,
+                    format!(
+                        "holds features made with {key} {}, and this run asks for {value}: give \
+                         --from databases filled with this run's matcher and settings",
+                        stored.as_deref().unwrap_or("(none)")
+                    ),
+                ));
+            }
+        }
+        Ok(Self {
+            path: path.to_owned(),
+            conn: Mutex::new(conn),
+            by_path: images.into_iter().map(|i| (i.path.clone(), i)).collect(),
+            run: Mutex::new(RunImages::default()),
+            keypoints: Mutex::new(HashMap::new()),
+            matcher: identity.matcher.clone(),
+            map_only: false,
+            source: true,
         })
     }
 
@@ -588,6 +664,12 @@ impl Database {
     }
 
     fn writable(&self) -> Result<()> {
+        if self.source {
+            return Err(PosediffError::invalid(
+                &self.path,
+                "is open as a --from source: it is only read",
+            ));
+        }
         if self.map_only {
             return Err(PosediffError::invalid(
                 &self.path,
@@ -604,6 +686,119 @@ impl Database {
     /// SQLite errors.
     pub fn counts(&self) -> Result<DatabaseCounts> {
         counts(&self.conn(), &self.path)
+    }
+
+    /// Takes into this database what `from` (a store of the same matcher and settings, e.g.
+    /// a worker's copy filled with `--shard`) holds for the run's `images` and this one lacks:
+    /// features first, then every matched pair (verified or not) between images both hold.
+    /// Returns how many images and pairs came in.
+    ///
+    /// # Errors
+    /// SQLite errors; features of the same image that differ between the two (the stores were
+    /// not filled from the same images).
+    pub fn import(&self, from: &Database, images: &[PathBuf]) -> Result<(usize, usize)> {
+        let mine = self.features(images)?;
+        let theirs = from.features(images)?;
+        let (mut paths, mut new) = (Vec::new(), Vec::new());
+        for (k, (m, t)) in mine.iter().zip(theirs).enumerate() {
+            match (m, t) {
+                (None, Some(t)) => {
+                    paths.push(images[k].as_path());
+                    new.push(t);
+                }
+                (Some(m), Some(t)) if m.keypoints != t.keypoints => {
+                    return Err(PosediffError::invalid(
+                        &from.path,
+                        format!(
+                            "holds other keypoints of {} than {}: it was not filled from the \
+                             same images (or with the same settings)",
+                            images[k].display(),
+                            self.path.display()
+                        ),
+                    ));
+                }
+                _ => {}
+            }
+        }
+        let imported = new.len();
+        if !new.is_empty() {
+            self.put_features(&paths, new)?;
+        }
+        let after = self.features(images)?;
+        Ok((imported, self.import_pairs(from, &after)?))
+    }
+
+    /// The pairs `from` holds and this database lacks, stored here (both have the run's list
+    /// set by `features`).
+    fn import_pairs(&self, from: &Database, features: &[Option<ImageFeatures>]) -> Result<usize> {
+        let candidates = from.stored_pairs()?;
+        let have = self.matches(&candidates)?;
+        let wanted: Vec<(usize, usize)> = candidates
+            .iter()
+            .zip(have)
+            .filter_map(|(&p, h)| h.is_none().then_some(p))
+            .collect();
+        let got = from.matches(&wanted)?;
+        let pairs: Vec<PairMatches> = wanted
+            .iter()
+            .zip(got)
+            .map(|(&(i, j), m)| {
+                let m = m.unwrap_or_default();
+                let point = |f: usize, k: u32| {
+                    features[f]
+                        .as_ref()
+                        .and_then(|fs| fs.keypoints.get(k as usize))
+                        .copied()
+                        .unwrap_or([0.0; 2])
+                };
+                PairMatches {
+                    first: i,
+                    second: j,
+                    kp1: m.iter().map(|&(k, _)| point(i, k)).collect(),
+                    kp2: m.iter().map(|&(_, l)| point(j, l)).collect(),
+                    idx1: m.iter().map(|&(k, _)| k).collect(),
+                    idx2: m.iter().map(|&(_, l)| l).collect(),
+                }
+            })
+            .collect();
+        self.put_matches(&pairs)?;
+        Ok(pairs.len())
+    }
+
+    /// Every pair with a two-view geometry (verified or not) between two of the run's images
+    /// that have features (indices into the last `features` list, smaller first).
+    fn stored_pairs(&self) -> Result<Vec<(usize, usize)>> {
+        let run = self
+            .run
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        let index: HashMap<i64, usize> = run
+            .ids
+            .iter()
+            .copied()
+            .zip(0..)
+            .filter(|&(id, _)| id > 0)
+            .collect();
+        let conn = self.conn();
+        let e = self.wrap();
+        let mut stmt = conn
+            .prepare("SELECT pair_id FROM two_view_geometries")
+            .map_err(&e)?;
+        let ids = stmt
+            .query_map([], |r| r.get::<_, i64>(0))
+            .map_err(&e)?
+            .collect::<std::result::Result<Vec<i64>, _>>()
+            .map_err(&e)?;
+        let mut pairs: Vec<(usize, usize)> = ids
+            .into_iter()
+            .filter_map(|id| {
+                let (a, b) = (id / MAX_IMAGES, id % MAX_IMAGES);
+                let (i, j) = (*index.get(&a)?, *index.get(&b)?);
+                Some((i.min(j), i.max(j)))
+            })
+            .collect();
+        pairs.sort_unstable();
+        Ok(pairs)
     }
 
     /// The descriptors of `f` as COLMAP stores them: type, columns, bytes.
