@@ -674,7 +674,7 @@ struct Call {
 }
 
 /// The options `estimate` takes as keywords (the CLI's flags).
-const OPTION_NAMES: [&str; 19] = [
+const OPTION_NAMES: [&str; 21] = [
     "fps",
     "max_frames",
     "config",
@@ -694,6 +694,8 @@ const OPTION_NAMES: [&str; 19] = [
     "names",
     "masks",
     "database",
+    "shard",
+    "import_from",
 ];
 
 /// One keyword of `options`, or its default.
@@ -849,6 +851,12 @@ fn call_options(options: Option<&Bound<'_, PyDict>>) -> PyResult<Call> {
         masks: option::<Option<PathBuf>>(options, "masks", None)?,
         database: option::<Option<PathBuf>>(options, "database", None)?,
         map_database: false,
+        shard: option::<Option<String>>(options, "shard", None)?
+            .map(|s| posediff::estimate::run::Shard::parse(&s))
+            .transpose()
+            .map_err(py_err)?,
+        import_from: option::<Option<Vec<PathBuf>>>(options, "import_from", None)?
+            .unwrap_or_default(),
     };
     options.check().map_err(py_err)?;
     Ok(Call {
@@ -988,6 +996,59 @@ fn estimate(
         ))),
         None => estimate_with(py, images, call, None, progress),
     }
+}
+
+/// `posediff features` / `posediff match` (`stop`: "features" or "matching") into
+/// `options["database"]`, with `shard` and `import_from` as the CLI's `--shard` and `--from`:
+/// the stages `posediff.distributed` runs as Ray tasks. Returns what the database holds.
+#[pyfunction]
+#[pyo3(signature = (images, stop, options = None, progress = None))]
+fn run_stages<'py>(
+    py: Python<'py>,
+    images: &Bound<'py, PyAny>,
+    stop: &str,
+    options: Option<&Bound<'py, PyDict>>,
+    progress: Option<Py<PyAny>>,
+) -> PyResult<Bound<'py, PyDict>> {
+    let stop = match stop {
+        "features" => posediff::estimate::run::StopAfter::Features,
+        "matching" => posediff::estimate::run::StopAfter::Matching,
+        other => {
+            return Err(value_err(format!(
+                "stop must be \"features\" or \"matching\", got {other:?}"
+            )));
+        }
+    };
+    let call = call_options(options)?;
+    if video_paths(images)?.is_some() {
+        return Err(value_err(
+            "run_stages takes images: extract a video's keyframes with estimate() first",
+        ));
+    }
+    let (inputs, _arrays) = resolve_images(images, call.names, call.skip_bad_images)?;
+    let mut progress = PyProgress::new(progress);
+    let result = py.detach(|| {
+        posediff::estimate::run::run_stages(&inputs, &call.options, stop, &mut progress)
+    });
+    if let Some(e) = progress.take_error() {
+        return Err(e);
+    }
+    let summary = result.map_err(py_err)?;
+    let d = PyDict::new(py);
+    d.set_item("images", summary.images)?;
+    d.set_item("pairs", summary.pairs)?;
+    d.set_item("verified", summary.verified)?;
+    d.set_item("selection", summary.selection)?;
+    d.set_item("imported_images", summary.imported.0)?;
+    d.set_item("imported_pairs", summary.imported.1)?;
+    Ok(d)
+}
+
+/// Checks `options` as `estimate` would (names, types, ranges, files), doing no work.
+#[pyfunction]
+#[pyo3(signature = (options = None))]
+fn check_options(options: Option<&Bound<'_, PyDict>>) -> PyResult<()> {
+    call_options(options).map(|_| ())
 }
 
 /// The cameras of a cameras.json (posediff's or the shared sets' schema), in file order.
@@ -1184,6 +1245,8 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<PyEstimator>()?;
     m.add_function(wrap_pyfunction!(estimate, m)?)?;
     m.add_function(wrap_pyfunction!(read_cameras, m)?)?;
+    m.add_function(wrap_pyfunction!(run_stages, m)?)?;
+    m.add_function(wrap_pyfunction!(check_options, m)?)?;
     m.add_function(wrap_pyfunction!(read_image, m)?)?;
     m.add_function(wrap_pyfunction!(score, m)?)?;
     m.add_function(wrap_pyfunction!(opencv_to_pytorch3d, m)?)?;

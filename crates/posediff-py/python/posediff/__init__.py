@@ -79,6 +79,8 @@ class EstimateOptions(TypedDict, total=False):
     names: Sequence[str]
     masks: "Union[str, PathLike[str]]"
     database: "Union[str, PathLike[str]]"
+    shard: str
+    import_from: "Sequence[Union[str, PathLike[str]]]"
     fps: float
     max_frames: int
 
@@ -137,7 +139,9 @@ def estimate(images: Any, *, weights: Any = None, device: str = "cpu",
     ``"retrieval:K"``), ``samples``, ``seed``, ``ggs``, ``device`` (``"cpu"``, ``"cuda"``),
     ``skip_bad_images``, ``masks`` (a folder of COLMAP-named masks, ``<image name>.png``, zero =
     ignore), ``database`` (COLMAP's database.db: features and matches read from it first and
-    written to it as they are made, as the CLI's ``--database``); the pipeline's options tree (run.json's ``options``) from ``config``
+    written to it as they are made, as the CLI's ``--database``), ``import_from`` (workers'
+    databases whose features and pairs ``database`` lacks, as ``--from``; see
+    :mod:`posediff.distributed`); the pipeline's options tree (run.json's ``options``) from ``config``
     (a TOML or JSON file, the CLI's ``--config``) and ``options`` (``{"orientation.strong_pair":
     100}``, the CLI's ``--set``). ``progress``: ``True`` for tqdm bars when tqdm is installed, ``False``,
     or a callable ``(stage, done, total, finished)``.
