@@ -13,6 +13,9 @@
 //! - `bench-scale [--sizes 20,50,100,300,1000] [--paths orbit,forward] [--pairs auto] --out D`:
 //!   the mapper on synthetic sequences of growing length (per-stage time, peak RSS, accuracy,
 //!   growth exponents; JSON + Markdown).
+//! - `bench-distributed [--frames 1000] [--profile release] [--out D]`: extraction and matching
+//!   of a synthetic orbit through a local Ray against the single process, the database written
+//!   and read back, the projection to 100,000 images (`scripts/bench_distributed.py`).
 //! - `wheel [--profile release]`: the Python module `crates/posediff-py` as an abi3 wheel in
 //!   `target/wheels/` (maturin from the test venv).
 //! - `py-test [--profile release]`: that wheel installed into the test venv and its pytest suite
@@ -186,6 +189,7 @@ fn main() -> Result<()> {
         ),
         "weights" => weights(&std::env::args().skip(2).collect::<Vec<_>>()),
         "bench-network" => bench_network(&std::env::args().skip(2).collect::<Vec<_>>()),
+        "bench-distributed" => bench_distributed(&std::env::args().skip(2).collect::<Vec<_>>()),
         "cuda-build" => cuda_build::cuda_build(&std::env::args().skip(2).collect::<Vec<_>>()),
         "convert-checkpoint" => {
             // Paths are the caller's, relative to where they ran the command.
@@ -1037,6 +1041,92 @@ fn wheel(profile: &str) -> Result<std::path::PathBuf> {
 
 /// The wheel installed into the test venv, then its pytest suite against the CLI of the same
 /// profile.
+/// `bench-distributed [--frames 1000] [--profile ci] [--out D]`: the synthetic orbit's features
+/// and matches through a local Ray against the single process, the database written and read
+/// back, and the projection to 100,000 images (`scripts/bench_distributed.py`; JSON + Markdown).
+fn bench_distributed(args: &[String]) -> Result<()> {
+    let root = workspace_root();
+    let mut frames = "1000".to_owned();
+    let mut profile = "release".to_owned();
+    let mut out = root.join("target/bench-distributed");
+    let mut it = args.iter();
+    while let Some(flag) = it.next() {
+        let mut value = || it.next().with_context(|| format!("{flag} needs a value"));
+        match flag.as_str() {
+            "--frames" => frames = value()?.clone(),
+            "--profile" => profile = value()?.clone(),
+            "--out" => out = std::env::current_dir()?.join(value()?),
+            other => bail!("bench-distributed: unknown argument {other:?}"),
+        }
+    }
+    let wheel = wheel(&profile)?;
+    let python = root.join(CLIENT_VENV).join("bin/python");
+    let py = python.to_string_lossy();
+    run(
+        &py,
+        &[
+            "-m",
+            "pip",
+            "install",
+            "-q",
+            "--force-reinstall",
+            "--no-deps",
+            &wheel.to_string_lossy(),
+        ],
+        &[("PIP_DISABLE_PIP_VERSION_CHECK", "1")],
+    )?;
+    run(
+        "cargo",
+        &[
+            "build",
+            "--profile",
+            &profile,
+            "-p",
+            "posediff",
+            "--bin",
+            "posediff",
+            "-p",
+            "posediff-synth",
+        ],
+        &[],
+    )?;
+    let scene = out.join(format!("orbit{frames}"));
+    let images = scene.join("synthetic/synthetic_0000/images");
+    if !images.is_dir() {
+        run(
+            &profile_dir(&profile)
+                .join("posediff-synth")
+                .to_string_lossy(),
+            &[
+                "--out",
+                &scene.to_string_lossy(),
+                "--sequences",
+                "1",
+                "--frames",
+                &frames,
+                "--path",
+                "orbit",
+                "--test-every",
+                "0",
+            ],
+            &[],
+        )?;
+    }
+    run(
+        &py,
+        &[
+            &root.join("scripts/bench_distributed.py").to_string_lossy(),
+            "--images",
+            &images.to_string_lossy(),
+            "--posediff",
+            &profile_dir(&profile).join("posediff").to_string_lossy(),
+            "--out",
+            &out.to_string_lossy(),
+        ],
+        &[],
+    )
+}
+
 fn py_test(profile: &str) -> Result<()> {
     let wheel = wheel(profile)?;
     let root = workspace_root();

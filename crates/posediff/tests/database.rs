@@ -292,6 +292,100 @@ fn an_interrupted_match_resumes_to_the_same_cameras() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
+/// Every pair's matches by image names, as (keypoint of the first name, of the second).
+fn matches_by_name(db: &Path) -> std::collections::BTreeMap<(String, String), Vec<(u32, u32)>> {
+    let c = rusqlite::Connection::open(db).unwrap();
+    let names: std::collections::HashMap<i64, String> = c
+        .prepare("SELECT image_id, name FROM images")
+        .unwrap()
+        .query_map([], |r| Ok((r.get(0)?, r.get(1)?)))
+        .unwrap()
+        .map(Result::unwrap)
+        .collect();
+    let mut stmt = c.prepare("SELECT pair_id, data FROM matches").unwrap();
+    let rows: Vec<(i64, Option<Vec<u8>>)> = stmt
+        .query_map([], |r| Ok((r.get(0)?, r.get(1)?)))
+        .unwrap()
+        .map(Result::unwrap)
+        .collect();
+    rows.into_iter()
+        .map(|(id, data)| {
+            let (a, b) = (&names[&(id / 2_147_483_647)], &names[&(id % 2_147_483_647)]);
+            let words: Vec<u32> = data
+                .unwrap_or_default()
+                .chunks_exact(4)
+                .map(|w| u32::from_le_bytes([w[0], w[1], w[2], w[3]]))
+                .collect();
+            let mut m: Vec<(u32, u32)> = words
+                .chunks_exact(2)
+                .map(|p| if a < b { (p[0], p[1]) } else { (p[1], p[0]) })
+                .collect();
+            m.sort_unstable();
+            ((a.min(b).clone(), a.max(b).clone()), m)
+        })
+        .collect()
+}
+
+/// A worker that listed the images in another order holds each pair the other way round
+/// (COLMAP orders a pair by image id): importing it turns every pair's matches round.
+#[test]
+fn a_worker_with_other_image_ids_imports_its_pairs_turned() {
+    let dir = posediff_fixtures::temp_dir("database-reordered");
+    let images = shared_path("data/strecha_fountainP11/images");
+    let files: Vec<std::path::PathBuf> =
+        (0..4).map(|k| images.join(format!("000{k}.jpg"))).collect();
+    let worker = dir.join("w.db");
+    let mut args: Vec<&OsStr> = vec!["match".as_ref()];
+    args.extend(files.iter().rev().map(|f| f.as_os_str()));
+    args.extend([
+        "--database".as_ref(),
+        worker.as_os_str(),
+        "--pairs".as_ref(),
+        "exhaustive".as_ref(),
+        "--quiet".as_ref(),
+    ]);
+    ok(&args);
+    let merged = dir.join("m.db");
+    let mut args: Vec<&OsStr> = vec!["match".as_ref()];
+    args.extend(files.iter().map(|f| f.as_os_str()));
+    args.extend([
+        "--database".as_ref(),
+        merged.as_os_str(),
+        "--pairs".as_ref(),
+        "exhaustive".as_ref(),
+        "--from".as_ref(),
+        worker.as_os_str(),
+    ]);
+    let out = ok(&args);
+    let log = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        String::from_utf8_lossy(&out.stdout).contains("imported 4 images' features and 6 pairs"),
+        "{}",
+        String::from_utf8_lossy(&out.stdout)
+    );
+    assert!(
+        log.contains("matching: 6 of 6 pairs from the database, 0 to match"),
+        "{log}"
+    );
+    let theirs = matches_by_name(&worker);
+    assert_eq!(theirs.len(), 6);
+    assert_eq!(matches_by_name(&merged), theirs);
+    // The ids run the other way in the two databases.
+    let first_id = |db: &Path| -> i64 {
+        rusqlite::Connection::open(db)
+            .unwrap()
+            .query_row(
+                "SELECT image_id FROM images WHERE name = '0000.jpg'",
+                [],
+                |r| r.get(0),
+            )
+            .unwrap()
+    };
+    assert_eq!((first_id(&worker), first_id(&merged)), (4, 1));
+    assert_eq!(stored_pairs(&merged), stored_pairs(&worker));
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
 /// Bad databases fail before any work, naming the file and the fix.
 #[test]
 fn bad_databases_are_named_errors() {

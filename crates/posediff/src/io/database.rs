@@ -729,17 +729,100 @@ impl Database {
     }
 
     /// The pairs `from` holds and this database lacks, stored here (both have the run's list
-    /// set by `features`).
+    /// set by `features`). Where the two databases order a pair's images alike (a worker's
+    /// copy of this one always does), its `matches` and `two_view_geometries` rows are copied
+    /// as they are, F included; otherwise the matches are stored again through
+    /// [`FeatureStore::put_matches`], which orders them by this database's ids and fits F.
     fn import_pairs(&self, from: &Database, features: &[Option<ImageFeatures>]) -> Result<usize> {
         let candidates = from.stored_pairs()?;
-        let have = self.matches(&candidates)?;
-        let wanted: Vec<(usize, usize)> = candidates
-            .iter()
-            .zip(have)
-            .filter_map(|(&p, h)| h.is_none().then_some(p))
-            .collect();
-        let got = from.matches(&wanted)?;
-        let pairs: Vec<PairMatches> = wanted
+        let (mine, theirs) = (self.run_ids(), from.run_ids());
+        let mut reordered = Vec::new();
+        let mut copied = 0;
+        {
+            let mut conn = self.conn();
+            let src = from.conn();
+            let e = self.wrap();
+            let fe = from.wrap();
+            let tx = conn.transaction().map_err(&e)?;
+            {
+                let mut exists = tx
+                    .prepare_cached("SELECT 1 FROM two_view_geometries WHERE pair_id = ?1")
+                    .map_err(&e)?;
+                let mut geometry = src
+                    .prepare_cached(
+                        "SELECT rows, cols, data, config, F, E, H, qvec, tvec, camera1, camera2 FROM two_view_geometries WHERE pair_id = ?1",
+                    )
+                    .map_err(&fe)?;
+                let mut matches = src
+                    .prepare_cached("SELECT rows, cols, data FROM matches WHERE pair_id = ?1")
+                    .map_err(&fe)?;
+                let mut put_geometry = tx
+                    .prepare_cached(
+                        "INSERT INTO two_view_geometries (pair_id, rows, cols, data, config, F, E, H, qvec, tvec, camera1, camera2) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12)",
+                    )
+                    .map_err(&e)?;
+                let mut put_matches = tx
+                    .prepare_cached(
+                        "INSERT OR REPLACE INTO matches (pair_id, rows, cols, data) VALUES (?1, ?2, ?3, ?4)",
+                    )
+                    .map_err(&e)?;
+                for &(i, j) in &candidates {
+                    let (Some(&a), Some(&b), Some(&fa), Some(&fb)) =
+                        (mine.get(i), mine.get(j), theirs.get(i), theirs.get(j))
+                    else {
+                        continue;
+                    };
+                    if a <= 0 || b <= 0 {
+                        continue;
+                    }
+                    let id = pair_id(a.min(b) as u32, a.max(b) as u32);
+                    if exists.exists(params![id]).map_err(&e)? {
+                        continue;
+                    }
+                    if (a < b) != (fa < fb) {
+                        reordered.push((i, j));
+                        continue;
+                    }
+                    let old = pair_id(fa.min(fb) as u32, fa.max(fb) as u32);
+                    let row: [rusqlite::types::Value; 11] = geometry
+                        .query_row(params![old], |r| {
+                            Ok(std::array::from_fn(|k| {
+                                r.get::<_, rusqlite::types::Value>(k)
+                                    .unwrap_or(rusqlite::types::Value::Null)
+                            }))
+                        })
+                        .map_err(&fe)?;
+                    let mut values = vec![rusqlite::types::Value::Integer(id)];
+                    values.extend(row);
+                    put_geometry
+                        .execute(rusqlite::params_from_iter(values))
+                        .map_err(&e)?;
+                    let m: Option<[rusqlite::types::Value; 3]> = matches
+                        .query_row(params![old], |r| {
+                            Ok(std::array::from_fn(|k| {
+                                r.get::<_, rusqlite::types::Value>(k)
+                                    .unwrap_or(rusqlite::types::Value::Null)
+                            }))
+                        })
+                        .optional()
+                        .map_err(&fe)?;
+                    if let Some(m) = m {
+                        let mut values = vec![rusqlite::types::Value::Integer(id)];
+                        values.extend(m);
+                        put_matches
+                            .execute(rusqlite::params_from_iter(values))
+                            .map_err(&e)?;
+                    }
+                    copied += 1;
+                }
+            }
+            tx.commit().map_err(&e)?;
+        }
+        if reordered.is_empty() {
+            return Ok(copied);
+        }
+        let got = from.matches(&reordered)?;
+        let pairs: Vec<PairMatches> = reordered
             .iter()
             .zip(got)
             .map(|(&(i, j), m)| {
@@ -762,7 +845,16 @@ impl Database {
             })
             .collect();
         self.put_matches(&pairs)?;
-        Ok(pairs.len())
+        Ok(copied + pairs.len())
+    }
+
+    /// The database ids of the last `features` list (`-1`: not in the database).
+    fn run_ids(&self) -> Vec<i64> {
+        self.run
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .ids
+            .clone()
     }
 
     /// Every pair with a two-view geometry (verified or not) between two of the run's images
