@@ -998,7 +998,8 @@ fn estimate(
     }
 }
 
-/// `posediff features` / `posediff match` (`stop`: "features" or "matching") into
+/// `posediff features` / `posediff match` (`stop`: "features" or "matching"; "import": only
+/// `import_from`'s features and pairs taken in) into
 /// `options["database"]`, with `shard` and `import_from` as the CLI's `--shard` and `--from`:
 /// the stages `posediff.distributed` runs as Ray tasks. Returns what the database holds.
 #[pyfunction]
@@ -1011,11 +1012,12 @@ fn run_stages<'py>(
     progress: Option<Py<PyAny>>,
 ) -> PyResult<Bound<'py, PyDict>> {
     let stop = match stop {
+        "import" => posediff::estimate::run::StopAfter::Import,
         "features" => posediff::estimate::run::StopAfter::Features,
         "matching" => posediff::estimate::run::StopAfter::Matching,
         other => {
             return Err(value_err(format!(
-                "stop must be \"features\" or \"matching\", got {other:?}"
+                "stop must be \"import\", \"features\" or \"matching\", got {other:?}"
             )));
         }
     };

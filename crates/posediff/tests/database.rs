@@ -383,6 +383,56 @@ fn a_worker_with_other_image_ids_imports_its_pairs_turned() {
     };
     assert_eq!((first_id(&worker), first_id(&merged)), (4, 1));
     assert_eq!(stored_pairs(&merged), stored_pairs(&worker));
+    // An image whose features were stripped (as posediff.distributed strips a matching task's
+    // database) is extracted again under its old id: its stored pairs stay its pairs.
+    let id_of = |name: &str| -> i64 {
+        rusqlite::Connection::open(&merged)
+            .unwrap()
+            .query_row("SELECT image_id FROM images WHERE name = ?1", [name], |r| {
+                r.get(0)
+            })
+            .unwrap()
+    };
+    let before = id_of("0001.jpg");
+    {
+        let c = rusqlite::Connection::open(&merged).unwrap();
+        c.execute_batch(&format!(
+            "DELETE FROM keypoints WHERE image_id = {before}; DELETE FROM descriptors WHERE image_id = {before};"
+        ))
+        .unwrap();
+    }
+    let mut args: Vec<&OsStr> = vec!["match".as_ref()];
+    args.extend(files.iter().map(|f| f.as_os_str()));
+    args.extend([
+        "--database".as_ref(),
+        merged.as_os_str(),
+        "--pairs".as_ref(),
+        "exhaustive".as_ref(),
+    ]);
+    let log = String::from_utf8_lossy(&ok(&args).stderr).into_owned();
+    assert!(
+        log.contains("features: 3 of 4 images from the database, 1 to extract")
+            && log.contains("matching: 6 of 6 pairs from the database, 0 to match"),
+        "{log}"
+    );
+    assert_eq!(id_of("0001.jpg"), before);
+    assert_eq!(matches_by_name(&merged), theirs);
+    let c = rusqlite::Connection::open(&merged).unwrap();
+    let count = |sql: &str| -> i64 { c.query_row(sql, [], |r| r.get(0)).unwrap() };
+    for table in [
+        "images",
+        "cameras",
+        "rigs",
+        "frames",
+        "frame_data",
+        "keypoints",
+    ] {
+        assert_eq!(
+            count(&format!("SELECT count(*) FROM {table}")),
+            4,
+            "{table}"
+        );
+    }
     std::fs::remove_dir_all(&dir).unwrap();
 }
 

@@ -30,7 +30,7 @@ import sqlite3
 import tempfile
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Dict, List, Optional, Sequence, Union
+from typing import TYPE_CHECKING, Any, Callable, Dict, List, Optional, Sequence, Tuple, Union
 
 from . import _native
 
@@ -86,10 +86,10 @@ def _part(
     source: Any,
     out_dir: Optional[str],
     before_task: Optional[Callable[[str, int], Any]],
-) -> Union[str, bytes]:
+) -> Tuple[Union[str, bytes], Dict[str, Any]]:
     """One task: `stage` ("features" or "matching") of shard `index`/`parts` in a folder of
     its own; returns the database's path under `out_dir` (renamed there once complete), or
-    its bytes when there is no shared `out_dir`."""
+    its bytes when there is no shared `out_dir`, with the stage's summary."""
     if before_task is not None:
         before_task(stage, index)
     if isinstance(source, list):  # a reference inside a list is not resolved by Ray
@@ -103,14 +103,14 @@ def _part(
                 db.write_bytes(source)
             else:
                 shutil.copyfile(source, db)
-        _native.run_stages(images, stage, opts)
+        done = _native.run_stages(images, stage, opts)
         if stage == "matching":
             _strip_features(db)
         if out_dir is None:
-            return db.read_bytes()
+            return db.read_bytes(), done
         final = Path(out_dir) / f"{stage}-{index}-of-{parts}.db"
         os.replace(db, final)
-        return str(final)
+        return str(final), done
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
 
@@ -173,10 +173,14 @@ def fill_database(
         runtime_env={"env_vars": {"RAYON_NUM_THREADS": str(threads_per_task)}},
     )
     seconds: Dict[str, float] = {}
+    tasks: Dict[str, List[Dict[str, Any]]] = {"features": [], "matching": []}
 
-    def landed(results: List[Union[str, bytes]], stage: str) -> List[str]:
+    def landed(
+        results: List[Tuple[Union[str, bytes], Dict[str, Any]]], stage: str
+    ) -> List[str]:
         paths = []
-        for k, r in enumerate(results):
+        for k, (r, done) in enumerate(results):
+            tasks[stage].append(done)
             if isinstance(r, bytes):
                 p = work / f"{stage}-{k}-of-{parts}.db"
                 p.write_bytes(r)
@@ -194,7 +198,7 @@ def fill_database(
         seconds["features_tasks"] = time.perf_counter() - clock
         clock = time.perf_counter()
         merged = _native.run_stages(
-            images, "features", dict(options, database=str(database), import_from=extracted)
+            images, "import", dict(options, database=str(database), import_from=extracted)
         )
         seconds["features_merge"] = time.perf_counter() - clock
         clock = time.perf_counter()
@@ -206,13 +210,20 @@ def fill_database(
         matched = landed(ray.get(refs), "matching")
         seconds["matching_tasks"] = time.perf_counter() - clock
         clock = time.perf_counter()
-        summary = _native.run_stages(
-            images, "matching", dict(options, database=str(database), import_from=matched)
+        pairs = _native.run_stages(
+            images, "import", dict(options, database=str(database), import_from=matched)
         )
         seconds["matching_merge"] = time.perf_counter() - clock
     finally:
         shutil.rmtree(work, ignore_errors=True)
-    summary["imported_images"] = merged["imported_images"]
+    summary = {
+        "images": sum(t["images"] for t in tasks["features"]),
+        "pairs": sum(t["pairs"] for t in tasks["matching"]),
+        "verified": sum(t["verified"] for t in tasks["matching"]),
+        "selection": tasks["matching"][0]["selection"].replace(f",shard:0/{parts}", ""),
+        "imported_images": merged["imported_images"],
+        "imported_pairs": pairs["imported_pairs"],
+    }
     summary["parts"] = parts
     summary["transfer"] = transfer
     summary["seconds"] = seconds

@@ -85,6 +85,7 @@ impl Args {
                 );
             }
             match stop {
+                StopAfter::Import => {}
                 StopAfter::Features => println!(
                     "{} images with features in {}",
                     summary.images,

@@ -542,6 +542,9 @@ enum Init {
 /// Where `posediff features` and `posediff match` stop ([`run_stages`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum StopAfter {
+    /// Only `--from`'s features and pairs imported (a distributed run's driver merging its
+    /// tasks' databases): nothing is read, selected, extracted or matched.
+    Import,
     /// Features of every image stored.
     Features,
     /// The first pass's pairs matched and stored.
@@ -583,6 +586,13 @@ pub fn run_stages(
     let files = &inputs.images.files;
     progress.start("geometry", 0);
     let result = match stop {
+        StopAfter::Import => Ok(StagesSummary {
+            images: 0,
+            pairs: 0,
+            verified: 0,
+            selection: String::new(),
+            imported: c.imported,
+        }),
         StopAfter::Features => {
             let part = match options.shard {
                 Some(s) => &files[s.images(files.len())],

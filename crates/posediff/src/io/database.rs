@@ -65,6 +65,12 @@ const SENSOR_CAMERA: i64 = 0;
 const UNCALIBRATED: i64 = 3;
 /// `TwoViewGeometry::DEGENERATE`: a pair that verified too few matches.
 const DEGENERATE: i64 = 1;
+/// `TwoViewGeometry::UNDEFINED`: not verified.
+const UNDEFINED: i64 = 0;
+/// `TwoViewGeometry::WATERMARK`: matches on a watermark or border, not the scene.
+const WATERMARK: i64 = 7;
+/// `TwoViewGeometry::MULTIPLE`: several geometries; COLMAP's mappers skip it as a pair.
+const MULTIPLE: i64 = 8;
 /// `FeatureExtractorType::SIFT` (8-bit descriptors).
 const DESCRIPTOR_SIFT: i64 = 0;
 /// `FeatureExtractorType::ALIKED_N16ROT` (float descriptors, their bytes as 8-bit columns).
@@ -697,8 +703,13 @@ impl Database {
     /// SQLite errors; features of the same image that differ between the two (the stores were
     /// not filled from the same images).
     pub fn import(&self, from: &Database, images: &[PathBuf]) -> Result<(usize, usize)> {
-        let mine = self.features(images)?;
         let theirs = from.features(images)?;
+        if theirs.iter().all(Option::is_none) {
+            // Pairs only (a matching task's database): this one's features are not read.
+            self.set_run(images)?;
+            return Ok((0, self.import_pairs(from, images)?));
+        }
+        let mine = self.features(images)?;
         let (mut paths, mut new) = (Vec::new(), Vec::new());
         for (k, (m, t)) in mine.iter().zip(theirs).enumerate() {
             match (m, t) {
@@ -724,8 +735,35 @@ impl Database {
         if !new.is_empty() {
             self.put_features(&paths, new)?;
         }
-        let after = self.features(images)?;
-        Ok((imported, self.import_pairs(from, &after)?))
+        self.set_run(images)?;
+        Ok((imported, self.import_pairs(from, images)?))
+    }
+
+    /// Makes `images` the run's list (their ids, `-1` where not stored) without reading any
+    /// feature, as [`FeatureStore::features`] does.
+    fn set_run(&self, images: &[PathBuf]) -> Result<()> {
+        let conn = self.conn();
+        let e = self.wrap();
+        let mut stmt = conn
+            .prepare_cached("SELECT image_id FROM images WHERE name = ?1")
+            .map_err(&e)?;
+        let mut ids = Vec::with_capacity(images.len());
+        for path in images {
+            let name = &self.image(path)?.name;
+            ids.push(
+                stmt.query_row(params![name], |r| r.get::<_, i64>(0))
+                    .optional()
+                    .map_err(&e)?
+                    .unwrap_or(-1),
+            );
+        }
+        let mut run = self
+            .run
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        run.index = images.iter().cloned().zip(0..).collect();
+        run.ids = ids;
+        Ok(())
     }
 
     /// The pairs `from` holds and this database lacks, stored here (both have the run's list
@@ -733,7 +771,7 @@ impl Database {
     /// copy of this one always does), its `matches` and `two_view_geometries` rows are copied
     /// as they are, F included; otherwise the matches are stored again through
     /// [`FeatureStore::put_matches`], which orders them by this database's ids and fits F.
-    fn import_pairs(&self, from: &Database, features: &[Option<ImageFeatures>]) -> Result<usize> {
+    fn import_pairs(&self, from: &Database, images: &[PathBuf]) -> Result<usize> {
         let candidates = from.stored_pairs()?;
         let (mine, theirs) = (self.run_ids(), from.run_ids());
         let mut reordered = Vec::new();
@@ -822,6 +860,8 @@ impl Database {
             return Ok(copied);
         }
         let got = from.matches(&reordered)?;
+        // The keypoints, for F (this also fills the keypoint cache `put_matches` reads).
+        let features = self.features(images)?;
         let pairs: Vec<PairMatches> = reordered
             .iter()
             .zip(got)
@@ -1190,13 +1230,31 @@ impl FeatureStore for Database {
             )
             .map_err(&e)?;
             let rig = tx.last_insert_rowid();
-            // An image left by an interrupted run has no keypoints (each image is written
-            // whole in one commit), but a name once stored is kept: replace its rows.
-            tx.execute("DELETE FROM images WHERE name = ?1", params![image.name])
+            // An image stored without keypoints (a worker's database whose features were
+            // stripped, `posediff.distributed`; each image is otherwise written whole in one
+            // commit) keeps its id, so that the pairs stored with it stay its pairs; its old
+            // camera, rig and frame rows go.
+            let old: Option<(i64, i64)> = tx
+                .query_row(
+                    "SELECT image_id, camera_id FROM images WHERE name = ?1",
+                    params![image.name],
+                    |r| Ok((r.get(0)?, r.get(1)?)),
+                )
+                .optional()
                 .map_err(&e)?;
+            if let Some((old_id, old_camera)) = old {
+                tx.execute_batch(&format!(
+                    "DELETE FROM frames WHERE frame_id IN (SELECT frame_id FROM frame_data WHERE data_id = {old_id} AND sensor_type = {SENSOR_CAMERA});
+                     DELETE FROM frame_data WHERE data_id = {old_id} AND sensor_type = {SENSOR_CAMERA};
+                     DELETE FROM images WHERE image_id = {old_id};
+                     DELETE FROM rigs WHERE ref_sensor_id = {old_camera} AND ref_sensor_type = {SENSOR_CAMERA};
+                     DELETE FROM cameras WHERE camera_id = {old_camera};"
+                ))
+                .map_err(&e)?;
+            }
             tx.execute(
-                "INSERT INTO images (name, camera_id) VALUES (?1, ?2)",
-                params![image.name, camera],
+                "INSERT INTO images (image_id, name, camera_id) VALUES (?1, ?2, ?3)",
+                params![old.map(|(id, _)| id), image.name, camera],
             )
             .map_err(&e)?;
             let id = tx.last_insert_rowid();
@@ -1367,7 +1425,9 @@ impl FeatureStore for Database {
         let e = self.wrap();
         // Verified geometries with inliers (COLMAP's mappers skip the rest the same way).
         let mut stmt = conn
-            .prepare("SELECT pair_id FROM two_view_geometries WHERE rows > 0 AND config NOT IN (0, 1, 7, 8)")
+            .prepare(&format!(
+                "SELECT pair_id FROM two_view_geometries WHERE rows > 0 AND config NOT IN ({UNDEFINED}, {DEGENERATE}, {WATERMARK}, {MULTIPLE})"
+            ))
             .map_err(&e)?;
         let ids = stmt
             .query_map([], |r| r.get::<_, i64>(0))
