@@ -1059,22 +1059,8 @@ fn bench_distributed(args: &[String]) -> Result<()> {
             other => bail!("bench-distributed: unknown argument {other:?}"),
         }
     }
-    let wheel = wheel(&profile)?;
-    let python = root.join(CLIENT_VENV).join("bin/python");
+    let python = install_wheel(&profile)?;
     let py = python.to_string_lossy();
-    run(
-        &py,
-        &[
-            "-m",
-            "pip",
-            "install",
-            "-q",
-            "--force-reinstall",
-            "--no-deps",
-            &wheel.to_string_lossy(),
-        ],
-        &[("PIP_DISABLE_PIP_VERSION_CHECK", "1")],
-    )?;
     run(
         "cargo",
         &[
@@ -1127,13 +1113,12 @@ fn bench_distributed(args: &[String]) -> Result<()> {
     )
 }
 
-fn py_test(profile: &str) -> Result<()> {
+/// The wheel of `profile` built and installed into the client venv; returns its python.
+fn install_wheel(profile: &str) -> Result<std::path::PathBuf> {
     let wheel = wheel(profile)?;
-    let root = workspace_root();
-    let python = root.join(CLIENT_VENV).join("bin/python");
-    let py = python.to_string_lossy();
+    let python = workspace_root().join(CLIENT_VENV).join("bin/python");
     run(
-        &py,
+        &python.to_string_lossy(),
         &[
             "-m",
             "pip",
@@ -1145,6 +1130,12 @@ fn py_test(profile: &str) -> Result<()> {
         ],
         &[("PIP_DISABLE_PIP_VERSION_CHECK", "1")],
     )?;
+    Ok(python)
+}
+
+fn py_test(profile: &str) -> Result<()> {
+    let python = install_wheel(profile)?;
+    let py = python.to_string_lossy();
     let binary = profile_dir(profile).join("posediff");
     if !binary.is_file() {
         run(

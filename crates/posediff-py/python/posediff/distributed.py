@@ -188,32 +188,28 @@ def fill_database(
             paths.append(r)
         return paths
 
+    def stage(name: str, source: Any) -> Dict[str, Any]:
+        """The tasks of `name`, then the driver's import of their databases."""
+        clock = time.perf_counter()
+        refs = [
+            task.remote(name, images, k, parts, options, source, out_dir, before_task)
+            for k in range(parts)
+        ]
+        done = landed(ray.get(refs), name)
+        seconds[f"{name}_tasks"] = time.perf_counter() - clock
+        clock = time.perf_counter()
+        imported = _native.run_stages(
+            images, "import", dict(options, database=str(database), import_from=done)
+        )
+        seconds[f"{name}_merge"] = time.perf_counter() - clock
+        return imported
+
     try:
-        clock = time.perf_counter()
-        refs = [
-            task.remote("features", images, k, parts, options, None, out_dir, before_task)
-            for k in range(parts)
-        ]
-        extracted = landed(ray.get(refs), "features")
-        seconds["features_tasks"] = time.perf_counter() - clock
-        clock = time.perf_counter()
-        merged = _native.run_stages(
-            images, "import", dict(options, database=str(database), import_from=extracted)
+        merged = stage("features", None)
+        pairs = stage(
+            "matching",
+            str(database) if transfer == "paths" else [ray.put(database.read_bytes())],
         )
-        seconds["features_merge"] = time.perf_counter() - clock
-        clock = time.perf_counter()
-        source: Any = str(database) if transfer == "paths" else [ray.put(database.read_bytes())]
-        refs = [
-            task.remote("matching", images, k, parts, options, source, out_dir, before_task)
-            for k in range(parts)
-        ]
-        matched = landed(ray.get(refs), "matching")
-        seconds["matching_tasks"] = time.perf_counter() - clock
-        clock = time.perf_counter()
-        pairs = _native.run_stages(
-            images, "import", dict(options, database=str(database), import_from=matched)
-        )
-        seconds["matching_merge"] = time.perf_counter() - clock
     finally:
         shutil.rmtree(work, ignore_errors=True)
     summary = {

@@ -374,6 +374,21 @@ pub struct DatabaseCounts {
     pub verified: usize,
 }
 
+/// A read-only connection to the existing database at `path` that fails at once on a writer's
+/// lock.
+fn open_read_only(path: &Path) -> Result<Connection> {
+    if !path.is_file() {
+        return Err(PosediffError::NotFound(path.to_owned()));
+    }
+    let wrap = |e: rusqlite::Error| {
+        lock_error(path, &e).unwrap_or_else(|| PosediffError::invalid(path, format!("SQLite: {e}")))
+    };
+    let conn = Connection::open_with_flags(path, rusqlite::OpenFlags::SQLITE_OPEN_READ_ONLY)
+        .map_err(wrap)?;
+    conn.busy_timeout(std::time::Duration::ZERO).map_err(wrap)?;
+    Ok(conn)
+}
+
 fn lock_error(path: &Path, e: &rusqlite::Error) -> Option<PosediffError> {
     match e {
         rusqlite::Error::SqliteFailure(f, _)
@@ -516,6 +531,26 @@ impl Database {
         })
     }
 
+    /// A read-only database: mapped (`map_only`) or a `--from` source.
+    fn read_only(
+        path: &Path,
+        conn: Connection,
+        images: Vec<StoreImage>,
+        matcher: String,
+        map_only: bool,
+    ) -> Self {
+        Self {
+            path: path.to_owned(),
+            conn: Mutex::new(conn),
+            by_path: images.into_iter().map(|i| (i.path.clone(), i)).collect(),
+            run: Mutex::new(RunImages::default()),
+            keypoints: Mutex::new(HashMap::new()),
+            matcher,
+            map_only,
+            source: !map_only,
+        }
+    }
+
     /// Opens the database at `path` to map what it holds (`posediff map`), whoever wrote it
     /// (posediff, COLMAP, pycolmap, hloc): keypoints and verified two-view geometries are read;
     /// nothing is computed or written.
@@ -523,16 +558,11 @@ impl Database {
     /// # Errors
     /// No such file; not SQLite; in use by a writer; no COLMAP tables.
     pub fn open_for_mapping(path: &Path, images: Vec<StoreImage>) -> Result<Self> {
-        if !path.is_file() {
-            return Err(PosediffError::NotFound(path.to_owned()));
-        }
+        let conn = open_read_only(path)?;
         let wrap = |e: rusqlite::Error| {
             lock_error(path, &e)
                 .unwrap_or_else(|| PosediffError::invalid(path, format!("SQLite: {e}")))
         };
-        let conn = Connection::open_with_flags(path, rusqlite::OpenFlags::SQLITE_OPEN_READ_ONLY)
-            .map_err(wrap)?;
-        conn.busy_timeout(std::time::Duration::ZERO).map_err(wrap)?;
         let tables: i64 = conn
             .query_row(
                 "SELECT count(*) FROM sqlite_master WHERE type='table' AND name IN ('images', 'cameras', 'keypoints', 'two_view_geometries')",
@@ -546,16 +576,7 @@ impl Database {
                 "is not a COLMAP database (no images, cameras, keypoints and two_view_geometries tables)",
             ));
         }
-        Ok(Self {
-            path: path.to_owned(),
-            conn: Mutex::new(conn),
-            by_path: images.into_iter().map(|i| (i.path.clone(), i)).collect(),
-            run: Mutex::new(RunImages::default()),
-            keypoints: Mutex::new(HashMap::new()),
-            matcher: String::new(),
-            map_only: true,
-            source: false,
-        })
+        Ok(Self::read_only(path, conn, images, String::new(), true))
     }
 
     /// Opens the database at `path` as a source to import from (`--from`): read-only, so that
@@ -570,16 +591,11 @@ impl Database {
         identity: &StoreIdentity,
         images: Vec<StoreImage>,
     ) -> Result<Self> {
-        if !path.is_file() {
-            return Err(PosediffError::NotFound(path.to_owned()));
-        }
+        let conn = open_read_only(path)?;
         let wrap = |e: rusqlite::Error| {
             lock_error(path, &e)
                 .unwrap_or_else(|| PosediffError::invalid(path, format!("SQLite: {e}")))
         };
-        let conn = Connection::open_with_flags(path, rusqlite::OpenFlags::SQLITE_OPEN_READ_ONLY)
-            .map_err(wrap)?;
-        conn.busy_timeout(std::time::Duration::ZERO).map_err(wrap)?;
         let tables: i64 = conn
             .query_row(
                 "SELECT count(*) FROM sqlite_master WHERE type='table' AND name='posediff_store'",
@@ -617,16 +633,13 @@ impl Database {
                 ));
             }
         }
-        Ok(Self {
-            path: path.to_owned(),
-            conn: Mutex::new(conn),
-            by_path: images.into_iter().map(|i| (i.path.clone(), i)).collect(),
-            run: Mutex::new(RunImages::default()),
-            keypoints: Mutex::new(HashMap::new()),
-            matcher: identity.matcher.clone(),
-            map_only: false,
-            source: true,
-        })
+        Ok(Self::read_only(
+            path,
+            conn,
+            images,
+            identity.matcher.clone(),
+            false,
+        ))
     }
 
     /// The names of the images the database holds, by id.
