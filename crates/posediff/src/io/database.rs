@@ -913,6 +913,12 @@ impl Database {
     /// Every pair with a two-view geometry (verified or not) between two of the run's images
     /// that have features (indices into the last `features` list, smaller first).
     fn stored_pairs(&self) -> Result<Vec<(usize, usize)>> {
+        self.pairs_where("1")
+    }
+
+    /// The pairs of the run's images whose two-view geometry meets the SQL `condition`
+    /// (indices into the last `features` list, smaller first, sorted).
+    fn pairs_where(&self, condition: &str) -> Result<Vec<(usize, usize)>> {
         let run = self
             .run
             .lock()
@@ -927,7 +933,9 @@ impl Database {
         let conn = self.conn();
         let e = self.wrap();
         let mut stmt = conn
-            .prepare("SELECT pair_id FROM two_view_geometries")
+            .prepare(&format!(
+                "SELECT pair_id FROM two_view_geometries WHERE {condition}"
+            ))
             .map_err(&e)?;
         let ids = stmt
             .query_map([], |r| r.get::<_, i64>(0))
@@ -1429,33 +1437,10 @@ impl FeatureStore for Database {
         if !self.map_only {
             return Ok(None);
         }
-        let run = self
-            .run
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner);
-        let index: HashMap<i64, usize> = run.ids.iter().copied().zip(0..).collect();
-        let conn = self.conn();
-        let e = self.wrap();
         // Verified geometries with inliers (COLMAP's mappers skip the rest the same way).
-        let mut stmt = conn
-            .prepare(&format!(
-                "SELECT pair_id FROM two_view_geometries WHERE rows > 0 AND config NOT IN ({UNDEFINED}, {DEGENERATE}, {WATERMARK}, {MULTIPLE})"
-            ))
-            .map_err(&e)?;
-        let ids = stmt
-            .query_map([], |r| r.get::<_, i64>(0))
-            .map_err(&e)?
-            .collect::<std::result::Result<Vec<i64>, _>>()
-            .map_err(&e)?;
-        let mut pairs: Vec<(usize, usize)> = ids
-            .into_iter()
-            .filter_map(|id| {
-                let (a, b) = (id / MAX_IMAGES, id % MAX_IMAGES);
-                let (i, j) = (*index.get(&a)?, *index.get(&b)?);
-                Some((i.min(j), i.max(j)))
-            })
-            .collect();
-        pairs.sort_unstable();
+        let pairs = self.pairs_where(&format!(
+            "rows > 0 AND config NOT IN ({UNDEFINED}, {DEGENERATE}, {WATERMARK}, {MULTIPLE})"
+        ))?;
         log::info!("{} verified pairs in {}", pairs.len(), self.path.display());
         Ok(Some(pairs))
     }
