@@ -380,13 +380,19 @@ fn open_read_only(path: &Path) -> Result<Connection> {
     if !path.is_file() {
         return Err(PosediffError::NotFound(path.to_owned()));
     }
-    let wrap = |e: rusqlite::Error| {
-        lock_error(path, &e).unwrap_or_else(|| PosediffError::invalid(path, format!("SQLite: {e}")))
-    };
+    let wrap = sqlite_error(path);
     let conn = Connection::open_with_flags(path, rusqlite::OpenFlags::SQLITE_OPEN_READ_ONLY)
         .map_err(wrap)?;
     conn.busy_timeout(std::time::Duration::ZERO).map_err(wrap)?;
     Ok(conn)
+}
+
+/// SQLite's errors on the database at `path` as posediff's: a lock or a file that is not
+/// SQLite named with the fix, anything else with SQLite's message.
+fn sqlite_error(path: &Path) -> impl Fn(rusqlite::Error) -> PosediffError + Copy + '_ {
+    move |e| {
+        lock_error(path, &e).unwrap_or_else(|| PosediffError::invalid(path, format!("SQLite: {e}")))
+    }
 }
 
 fn lock_error(path: &Path, e: &rusqlite::Error) -> Option<PosediffError> {
@@ -436,10 +442,7 @@ impl Database {
                 "is a folder: --database names a file (e.g. out/../database.db)",
             ));
         }
-        let wrap = |e: rusqlite::Error| {
-            lock_error(path, &e)
-                .unwrap_or_else(|| PosediffError::invalid(path, format!("SQLite: {e}")))
-        };
+        let wrap = sqlite_error(path);
         let conn = Connection::open(path).map_err(wrap)?;
         conn.busy_timeout(std::time::Duration::ZERO).map_err(wrap)?;
         // Exclusive from the first statement to the end of the run.
@@ -559,10 +562,7 @@ impl Database {
     /// No such file; not SQLite; in use by a writer; no COLMAP tables.
     pub fn open_for_mapping(path: &Path, images: Vec<StoreImage>) -> Result<Self> {
         let conn = open_read_only(path)?;
-        let wrap = |e: rusqlite::Error| {
-            lock_error(path, &e)
-                .unwrap_or_else(|| PosediffError::invalid(path, format!("SQLite: {e}")))
-        };
+        let wrap = sqlite_error(path);
         let tables: i64 = conn
             .query_row(
                 "SELECT count(*) FROM sqlite_master WHERE type='table' AND name IN ('images', 'cameras', 'keypoints', 'two_view_geometries')",
@@ -592,10 +592,7 @@ impl Database {
         images: Vec<StoreImage>,
     ) -> Result<Self> {
         let conn = open_read_only(path)?;
-        let wrap = |e: rusqlite::Error| {
-            lock_error(path, &e)
-                .unwrap_or_else(|| PosediffError::invalid(path, format!("SQLite: {e}")))
-        };
+        let wrap = sqlite_error(path);
         let tables: i64 = conn
             .query_row(
                 "SELECT count(*) FROM sqlite_master WHERE type='table' AND name='posediff_store'",
@@ -661,10 +658,7 @@ impl Database {
     }
 
     fn wrap(&self) -> impl Fn(rusqlite::Error) -> PosediffError + '_ {
-        move |e| {
-            lock_error(&self.path, &e)
-                .unwrap_or_else(|| PosediffError::invalid(&self.path, format!("SQLite: {e}")))
-        }
+        sqlite_error(&self.path)
     }
 
     fn conn(&self) -> std::sync::MutexGuard<'_, Connection> {
