@@ -314,6 +314,26 @@ pub struct StoreIdentity {
     pub settings: String,
 }
 
+impl StoreIdentity {
+    /// Its `posediff_store` rows.
+    fn entries(&self) -> [(&'static str, &str); 2] {
+        [
+            ("matcher", self.matcher.as_str()),
+            ("settings", self.settings.as_str()),
+        ]
+    }
+}
+
+/// The `posediff_store` value under `key`, if any.
+fn store_value(conn: &Connection, key: &str) -> rusqlite::Result<Option<String>> {
+    conn.query_row(
+        "SELECT value FROM posediff_store WHERE key = ?1",
+        params![key],
+        |r| r.get(0),
+    )
+    .optional()
+}
+
 /// One image of a run, as the store names it.
 #[derive(Debug, Clone, PartialEq)]
 pub struct StoreImage {
@@ -480,18 +500,8 @@ impl Database {
             }
             conn.execute_batch(SCHEMA).map_err(wrap)?;
             conn.execute_batch(STORE_TABLE).map_err(wrap)?;
-            for (key, value) in [
-                ("matcher", identity.matcher.as_str()),
-                ("settings", identity.settings.as_str()),
-            ] {
-                let stored: Option<String> = conn
-                    .query_row(
-                        "SELECT value FROM posediff_store WHERE key = ?1",
-                        params![key],
-                        |r| r.get(0),
-                    )
-                    .optional()
-                    .map_err(wrap)?;
+            for (key, value) in identity.entries() {
+                let stored = store_value(&conn, key).map_err(wrap)?;
                 match stored {
                     None => {
                         conn.execute(
@@ -607,18 +617,8 @@ impl Database {
                  posediff workers' databases (`posediff features|match --database W`)",
             ));
         }
-        for (key, value) in [
-            ("matcher", identity.matcher.as_str()),
-            ("settings", identity.settings.as_str()),
-        ] {
-            let stored: Option<String> = conn
-                .query_row(
-                    "SELECT value FROM posediff_store WHERE key = ?1",
-                    params![key],
-                    |r| r.get(0),
-                )
-                .optional()
-                .map_err(wrap)?;
+        for (key, value) in identity.entries() {
+            let stored = store_value(&conn, key).map_err(wrap)?;
             if stored.as_deref() != Some(value) {
                 return Err(PosediffError::invalid(
                     path,
