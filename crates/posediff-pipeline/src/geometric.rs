@@ -660,31 +660,7 @@ fn match_all(
     let features = matcher.extract(images, counter)?;
     let extraction = clock.elapsed().as_secs_f64();
     let clock = Instant::now();
-    let n = images.len();
-    let (selection, densify) = config.plan(n);
-    // The bag of words once, for a retrieval rule and the orientation check.
-    let words = (config.learned.is_some()
-        && config.options.support.min_verified.is_none()
-        && selection
-            .rules(n)
-            .iter()
-            .any(|r| matches!(r, PairRule::Retrieval(_))))
-    .then(|| BagOfWords::build(&features, &RetrievalOptions::default()))
-    .flatten();
-    let fixed = match &config.store {
-        Some(store) => store.0.fixed_pairs()?,
-        None => None,
-    };
-    let (pair_list, mut rules) = match fixed {
-        Some(list) => (list, vec!["database".to_owned()]),
-        None => (
-            select_pairs_with(n, &selection, Some(&features), words.as_ref())?,
-            selection.rules(n).iter().map(ToString::to_string).collect(),
-        ),
-    };
-    if let Some(d) = densify {
-        rules.push(format!("densify:{}deg,{}", d.max_angle_deg, d.per_image));
-    }
+    let (pair_list, mut rules, words) = selected_pairs(config, &features)?;
     let pair_list = match shard {
         Some(s) => {
             rules.push(format!("shard:{s}"));
@@ -712,6 +688,83 @@ fn match_all(
         selection: rules.join(","),
         words,
     })
+}
+
+/// The first pass's pairs of `features`' images: the store's fixed pairs (`posediff map`), a
+/// selection the store holds for these images under the same rules (a distributed run's
+/// driver made it once), or the selection made now (and stored); with the rules as run.json
+/// names them and the bag of words when the orientation check needs one.
+fn selected_pairs(
+    config: &GeometricConfig,
+    features: &[ImageFeatures],
+) -> Result<(Vec<(usize, usize)>, Vec<String>, Option<BagOfWords>)> {
+    let n = features.len();
+    let (selection, densify) = config.plan(n);
+    // The bag of words once, for a retrieval rule and the orientation check.
+    let words = (config.learned.is_some()
+        && config.options.support.min_verified.is_none()
+        && selection
+            .rules(n)
+            .iter()
+            .any(|r| matches!(r, PairRule::Retrieval(_))))
+    .then(|| BagOfWords::build(features, &RetrievalOptions::default()))
+    .flatten();
+    let store = config.store.as_ref().map(|s| &s.0);
+    let fixed = match store {
+        Some(store) => store.fixed_pairs()?,
+        None => None,
+    };
+    let (pair_list, mut rules) = match fixed {
+        Some(list) => (list, vec!["database".to_owned()]),
+        None => {
+            let rules: Vec<String> = selection.rules(n).iter().map(ToString::to_string).collect();
+            let key = rules.join(",");
+            let stored = match store {
+                Some(store) => store.selection(&key)?,
+                None => None,
+            };
+            let list = match stored {
+                Some(list) => {
+                    log::info!("selection: {} pairs ({key}) from the database", list.len());
+                    list
+                }
+                None => {
+                    let list = select_pairs_with(n, &selection, Some(features), words.as_ref())?;
+                    if let Some(store) = store {
+                        store.put_selection(&key, &list)?;
+                    }
+                    list
+                }
+            };
+            (list, rules)
+        }
+    };
+    if let Some(d) = densify {
+        rules.push(format!("densify:{}deg,{}", d.max_angle_deg, d.per_image));
+    }
+    Ok((pair_list, rules, words))
+}
+
+/// Features of every image (read from the store or extracted into it) and the first pass's
+/// pair selection, stored for the workers that match it (`posediff.distributed`'s driver).
+/// Returns how many pairs and the selection's rules.
+///
+/// # Errors
+/// Fewer than two images; as [`extract_and_match`].
+pub fn extract_and_select(
+    images: &[PathBuf],
+    config: &GeometricConfig,
+    counter: &dyn StepCounter,
+) -> Result<(usize, String)> {
+    if images.len() < 2 {
+        return Err(PosediffError::TooFewImages {
+            needed: 2,
+            got: images.len(),
+        });
+    }
+    let features = config.correspondences().extract(images, counter)?;
+    let (pairs, rules, _) = selected_pairs(config, &features)?;
+    Ok((pairs.len(), rules.join(",")))
 }
 
 /// Refines cameras from elsewhere (e.g. COLMAP's, converted to cameras.json) on the matches of

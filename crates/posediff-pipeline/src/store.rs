@@ -67,6 +67,26 @@ pub trait FeatureStore: Send + Sync {
     fn fixed_pairs(&self) -> Result<Option<Vec<(usize, usize)>>> {
         Ok(None)
     }
+
+    /// The pair selection stored under `rules` for exactly the last [`Self::features`] list
+    /// (`None`: none, or one made for other images or another order), so that the workers of a
+    /// distributed run match the driver's selection instead of each making it again.
+    ///
+    /// # Errors
+    /// Unreadable records.
+    fn selection(&self, rules: &str) -> Result<Option<Vec<(usize, usize)>>> {
+        let _ = rules;
+        Ok(None)
+    }
+
+    /// Stores `pairs`, the selection `rules` made for the last [`Self::features`] list.
+    ///
+    /// # Errors
+    /// The store cannot be written.
+    fn put_selection(&self, rules: &str, pairs: &[(usize, usize)]) -> Result<()> {
+        let _ = (rules, pairs);
+        Ok(())
+    }
 }
 
 /// One of `count` parts of a run's work (`--shard K/N`), for extraction and matching spread

@@ -999,7 +999,8 @@ fn estimate(
 }
 
 /// `posediff features` / `posediff match` (`stop`: "features" or "matching"; "import": only
-/// `import_from`'s features and pairs taken in) into
+/// `import_from`'s features and pairs taken in; "selection": features and the pair selection
+/// stored, nothing matched) into
 /// `options["database"]`, with `shard` and `import_from` as the CLI's `--shard` and `--from`:
 /// the stages `posediff.distributed` runs as Ray tasks. Returns what the database holds.
 #[pyfunction]
@@ -1013,11 +1014,12 @@ fn run_stages<'py>(
 ) -> PyResult<Bound<'py, PyDict>> {
     let stop = match stop {
         "import" => posediff::estimate::run::StopAfter::Import,
+        "selection" => posediff::estimate::run::StopAfter::Selection,
         "features" => posediff::estimate::run::StopAfter::Features,
         "matching" => posediff::estimate::run::StopAfter::Matching,
         other => {
             return Err(value_err(format!(
-                "stop must be \"import\", \"features\" or \"matching\", got {other:?}"
+                "stop must be \"import\", \"features\", \"selection\" or \"matching\", got {other:?}"
             )));
         }
     };

@@ -194,6 +194,22 @@ fn an_interrupted_match_resumes_to_the_same_cameras() {
         "{}",
         String::from_utf8_lossy(&said.stdout)
     );
+    // The driver selects the pairs once; each worker matches its share of that selection.
+    let said = ok(&[
+        "match".as_ref(),
+        images.as_os_str(),
+        "--database".as_ref(),
+        merged.as_os_str(),
+        "--pairs".as_ref(),
+        "exhaustive".as_ref(),
+        "--select-only".as_ref(),
+    ]);
+    assert!(
+        String::from_utf8_lossy(&said.stdout).contains("55 pairs (exhaustive) selected, stored in"),
+        "{}",
+        String::from_utf8_lossy(&said.stdout)
+    );
+    assert_eq!(stored_pairs(&merged), (0, 0), "--select-only matched");
     let matched: Vec<_> = (0..3).map(|k| dir.join(format!("m{k}.db"))).collect();
     for (k, m) in matched.iter().enumerate() {
         let out = part("match", m, &format!("{k}/3"), &[&merged]);
@@ -201,6 +217,11 @@ fn an_interrupted_match_resumes_to_the_same_cameras() {
         assert!(
             said.contains(&format!("pairs (exhaustive,shard:{k}/3) matched")),
             "{said}"
+        );
+        let log = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            log.contains("selection: 55 pairs (exhaustive) from the database"),
+            "{log}"
         );
     }
     let out4 = dir.join("sharded");
@@ -367,6 +388,9 @@ fn a_worker_with_other_image_ids_imports_its_pairs_turned() {
         log.contains("matching: 6 of 6 pairs from the database, 0 to match"),
         "{log}"
     );
+    // The worker's stored selection came in with its pairs, but it was made for the images in
+    // the other order: it is made again, not used.
+    assert!(!log.contains("selection: 6 pairs"), "{log}");
     let theirs = matches_by_name(&worker);
     assert_eq!(theirs.len(), 6);
     assert_eq!(matches_by_name(&merged), theirs);
@@ -412,6 +436,7 @@ fn a_worker_with_other_image_ids_imports_its_pairs_turned() {
     let log = String::from_utf8_lossy(&ok(&args).stderr).into_owned();
     assert!(
         log.contains("features: 3 of 4 images from the database, 1 to extract")
+            && log.contains("selection: 6 pairs (exhaustive) from the database")
             && log.contains("matching: 6 of 6 pairs from the database, 0 to match"),
         "{log}"
     );

@@ -2,9 +2,10 @@
 
 The images are split into ``parts`` shards: each Ray task extracts one contiguous run of
 images into a database of its own (the CLI's ``posediff features --shard K/N``); the driver
-merges them into one COLMAP database (``--from``); each task then matches every ``parts``-th
-selected pair on a copy of it (``posediff match --shard K/N``), and the driver merges those
-and maps. The merged database is COLMAP's ``database.db``, resumable like ``--database``'s,
+merges them into one COLMAP database (``--from``) and selects the pairs once, storing the
+selection in it (``posediff match --select-only``); each task then matches every
+``parts``-th pair of that selection on a copy of it (``posediff match --shard K/N``), and the
+driver merges those and maps. The merged database is COLMAP's ``database.db``, resumable like ``--database``'s,
 and the cameras are byte-identical to a single process's ``posediff estimate --database``::
 
     import ray
@@ -206,6 +207,10 @@ def fill_database(
 
     try:
         merged = stage("features", None)
+        # The pairs selected once, on the driver, and stored: the tasks match them.
+        clock = time.perf_counter()
+        _native.run_stages(images, "selection", dict(options, database=str(database)))
+        seconds["selection"] = time.perf_counter() - clock
         pairs = stage(
             "matching",
             str(database) if transfer == "paths" else [ray.put(database.read_bytes())],

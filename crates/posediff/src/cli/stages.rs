@@ -40,6 +40,11 @@ pub struct Args {
     /// Go on without images that are corrupt, truncated or unreadable.
     #[arg(long)]
     skip_bad_images: bool,
+    /// `posediff match`: store the pair selection and stop, matching nothing (a driver does
+    /// this once; its `--shard` workers, given the database with --from, match that selection
+    /// instead of each making it again).
+    #[arg(long)]
+    select_only: bool,
     /// Do only the K-th of N parts (`K/N`, from 0): a contiguous run of the images'
     /// extraction, or every N-th selected pair (the selection needs every image's features:
     /// give them with --from). A driver merges the parts' databases with --from.
@@ -74,6 +79,11 @@ impl Args {
         let inputs = Inputs::resolve(&self.inputs, self.skip_bad_images)?;
         let mut bars = Bars::default();
         let progress: &mut dyn Progress = if self.quiet { &mut Silent } else { &mut bars };
+        let stop = match (stop, self.select_only) {
+            (StopAfter::Matching, true) => StopAfter::Selection,
+            (_, true) => anyhow::bail!("--select-only is a `posediff match` option"),
+            (stop, false) => stop,
+        };
         let summary = run_stages(&inputs, &options, stop, progress)?;
         if !self.quiet {
             if summary.imported != (0, 0) {
@@ -86,6 +96,12 @@ impl Args {
             }
             match stop {
                 StopAfter::Import => {}
+                StopAfter::Selection => println!(
+                    "{} pairs ({}) selected, stored in {}",
+                    summary.pairs,
+                    summary.selection,
+                    self.database.display()
+                ),
                 StopAfter::Features => println!(
                     "{} images with features in {}",
                     summary.images,

@@ -547,6 +547,9 @@ pub enum StopAfter {
     Import,
     /// Features of every image stored.
     Features,
+    /// Features of every image stored, and the first pass's pair selection (for the workers
+    /// of a distributed run to match the same pairs without selecting them again).
+    Selection,
     /// The first pass's pairs matched and stored.
     Matching,
 }
@@ -613,6 +616,18 @@ pub fn run_stages(
                 imported: c.imported,
             })
         }
+        StopAfter::Selection => posediff_pipeline::geometric::extract_and_select(
+            files,
+            &c.geometric,
+            progress.counter(),
+        )
+        .map(|(pairs, selection)| StagesSummary {
+            images: files.len(),
+            pairs,
+            verified: 0,
+            selection,
+            imported: c.imported,
+        }),
         StopAfter::Matching => {
             let matched = match options.shard {
                 Some(s) => posediff_pipeline::geometric::extract_and_match_shard(

@@ -374,6 +374,14 @@ impl std::fmt::Debug for Database {
     }
 }
 
+/// A pair selection as `posediff_store` keeps it (`selection:<rules>`): the image names it was
+/// made for, in the run's order, and the pairs as indices into them.
+#[derive(serde::Serialize, serde::Deserialize)]
+struct StoredSelection {
+    images: Vec<String>,
+    pairs: Vec<(usize, usize)>,
+}
+
 /// The run's images: their database ids (`-1`: no features yet) and their index by path.
 #[derive(Debug, Default)]
 struct RunImages {
@@ -743,7 +751,34 @@ impl Database {
             self.put_features(&paths, new)?;
         }
         self.set_run(images)?;
+        self.import_selections(from)?;
         Ok((imported, self.import_pairs(from, images)?))
+    }
+
+    /// The pair selections `from` keeps that this database lacks (each is used only for the
+    /// image list it was made for).
+    fn import_selections(&self, from: &Database) -> Result<()> {
+        let rows: Vec<(String, String)> = {
+            let src = from.conn();
+            let fe = from.wrap();
+            let mut stmt = src
+                .prepare("SELECT key, value FROM posediff_store WHERE key LIKE 'selection:%'")
+                .map_err(&fe)?;
+            stmt.query_map([], |r| Ok((r.get(0)?, r.get(1)?)))
+                .map_err(&fe)?
+                .collect::<std::result::Result<Vec<_>, _>>()
+                .map_err(&fe)?
+        };
+        let conn = self.conn();
+        let e = self.wrap();
+        for (key, value) in rows {
+            conn.execute(
+                "INSERT OR IGNORE INTO posediff_store (key, value) VALUES (?1, ?2)",
+                params![key, value],
+            )
+            .map_err(&e)?;
+        }
+        Ok(())
     }
 
     /// Makes `images` the run's list (their ids, `-1` where not stored) without reading any
@@ -893,6 +928,21 @@ impl Database {
             .collect();
         self.put_matches(&pairs)?;
         Ok(copied + pairs.len())
+    }
+
+    /// The names of the last `features` list, in its order.
+    fn run_names(&self) -> Vec<String> {
+        let run = self
+            .run
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        let mut names = vec![String::new(); run.index.len()];
+        for (path, &k) in &run.index {
+            if let (Some(slot), Some(image)) = (names.get_mut(k), self.by_path.get(path)) {
+                slot.clone_from(&image.name);
+            }
+        }
+        names
     }
 
     /// The database ids of the last `features` list (`-1`: not in the database).
@@ -1437,6 +1487,65 @@ impl FeatureStore for Database {
         ))?;
         log::info!("{} verified pairs in {}", pairs.len(), self.path.display());
         Ok(Some(pairs))
+    }
+
+    fn selection(&self, rules: &str) -> posediff_pipeline::Result<Option<Vec<(usize, usize)>>> {
+        let names = self.run_names();
+        let e = self.wrap();
+        let stored: Option<String> = self
+            .conn()
+            .query_row(
+                "SELECT value FROM posediff_store WHERE key = ?1",
+                params![format!("selection:{rules}")],
+                |r| r.get(0),
+            )
+            .optional()
+            .map_err(&e)?;
+        let Some(text) = stored else {
+            return Ok(None);
+        };
+        let stored: StoredSelection = serde_json::from_str(&text).map_err(|err| {
+            PosediffError::invalid(&self.path, format!("its stored selection {rules:?}: {err}"))
+        })?;
+        if stored.images != names {
+            // Made for other images (or another order): made again.
+            return Ok(None);
+        }
+        let n = names.len();
+        if stored
+            .pairs
+            .iter()
+            .any(|&(i, j)| i >= n || j >= n || i == j)
+        {
+            return Err(PosediffError::invalid(
+                &self.path,
+                format!("its stored selection {rules:?} names images it does not list"),
+            ));
+        }
+        Ok(Some(stored.pairs))
+    }
+
+    fn put_selection(
+        &self,
+        rules: &str,
+        pairs: &[(usize, usize)],
+    ) -> posediff_pipeline::Result<()> {
+        if self.map_only || self.source {
+            return Ok(());
+        }
+        let value = serde_json::to_string(&StoredSelection {
+            images: self.run_names(),
+            pairs: pairs.to_vec(),
+        })
+        .map_err(|err| PosediffError::InvalidArgument(format!("selection {rules:?}: {err}")))?;
+        let e = self.wrap();
+        self.conn()
+            .execute(
+                "INSERT OR REPLACE INTO posediff_store (key, value) VALUES (?1, ?2)",
+                params![format!("selection:{rules}"), value],
+            )
+            .map_err(&e)?;
+        Ok(())
     }
 
     fn images(&self) -> usize {
