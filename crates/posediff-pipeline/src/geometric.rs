@@ -660,7 +660,11 @@ fn match_all(
     let features = matcher.extract(images, counter)?;
     let extraction = clock.elapsed().as_secs_f64();
     let clock = Instant::now();
-    let (pair_list, mut rules, words) = selected_pairs(config, &features)?;
+    let Selected {
+        pairs: pair_list,
+        mut rules,
+        words,
+    } = selected_pairs(config, &features)?;
     let pair_list = match shard {
         Some(s) => {
             rules.push(format!("shard:{s}"));
@@ -694,10 +698,7 @@ fn match_all(
 /// selection the store holds for these images under the same rules (a distributed run's
 /// driver made it once), or the selection made now (and stored); with the rules as run.json
 /// names them and the bag of words when the orientation check needs one.
-fn selected_pairs(
-    config: &GeometricConfig,
-    features: &[ImageFeatures],
-) -> Result<(Vec<(usize, usize)>, Vec<String>, Option<BagOfWords>)> {
+fn selected_pairs(config: &GeometricConfig, features: &[ImageFeatures]) -> Result<Selected> {
     let n = features.len();
     let (selection, densify) = config.plan(n);
     // The bag of words once, for a retrieval rule and the orientation check.
@@ -742,7 +743,18 @@ fn selected_pairs(
     if let Some(d) = densify {
         rules.push(format!("densify:{}deg,{}", d.max_angle_deg, d.per_image));
     }
-    Ok((pair_list, rules, words))
+    Ok(Selected {
+        pairs: pair_list,
+        rules,
+        words,
+    })
+}
+
+/// What [`selected_pairs`] gives: the pairs, the rules as run.json names them, the bag of words.
+struct Selected {
+    pairs: Vec<(usize, usize)>,
+    rules: Vec<String>,
+    words: Option<BagOfWords>,
 }
 
 /// Features of every image (read from the store or extracted into it) and the first pass's
@@ -763,8 +775,8 @@ pub fn extract_and_select(
         });
     }
     let features = config.correspondences().extract(images, counter)?;
-    let (pairs, rules, _) = selected_pairs(config, &features)?;
-    Ok((pairs.len(), rules.join(",")))
+    let selected = selected_pairs(config, &features)?;
+    Ok((selected.pairs.len(), selected.rules.join(",")))
 }
 
 /// Refines cameras from elsewhere (e.g. COLMAP's, converted to cameras.json) on the matches of
