@@ -10,9 +10,11 @@
 //!   (`posediff plot`), all under `out/demo/<set>/`.
 //! - `synth --out D [--sequences S --frames F --seed N --size WxH,...]`: synthetic CO3D-style
 //!   sequences (`posediff-synth`).
-//! - `bench-scale [--sizes 20,50,100,300,1000] [--paths orbit,forward] [--pairs auto] --out D`:
+//! - `bench-scale [--sizes 20,50,100,300,1000] [--paths orbit,forward] [--pairs auto] [--profile release] --out D`:
 //!   the mapper on synthetic sequences of growing length (per-stage time, peak RSS, accuracy,
-//!   growth exponents; JSON + Markdown).
+//!   growth exponents; JSON + Markdown). `--against-colmap [--python P] [--colmap-overlap 15]
+//!   [--colmap-script ../shared/tools/pycolmap_run.py]` runs COLMAP 4.2's global mapper on the
+//!   same frames in the same run and writes both columns.
 //! - `bench-distributed [--frames 1000] [--profile release] [--out D]`: extraction and matching
 //!   of a synthetic orbit through a local Ray against the single process, the database written
 //!   and read back, the projection to 100,000 images (`scripts/bench_distributed.py`).
@@ -183,10 +185,30 @@ fn main() -> Result<()> {
         }
         "demo" => demo(),
         "synth" => cargo_run(&["-p", "posediff-synth"], &caller_args()?),
-        "bench-scale" => cargo_run(
-            &["-p", "posediff-synth", "--example", "bench_scale"],
-            &caller_args()?,
-        ),
+        "bench-scale" => {
+            // `--profile P` picks the build (default release; `ci` reuses CI's build).
+            let mut rest = caller_args()?;
+            let profile = match rest.iter().position(|a| a == "--profile") {
+                Some(i) if i + 1 < rest.len() => {
+                    let p = rest.remove(i + 1);
+                    rest.remove(i);
+                    p
+                }
+                Some(_) => bail!("--profile needs a value"),
+                None => "release".to_owned(),
+            };
+            cargo_run(
+                &[
+                    "--profile",
+                    &profile,
+                    "-p",
+                    "posediff-synth",
+                    "--example",
+                    "bench_scale",
+                ],
+                &rest,
+            )
+        }
         "weights" => weights(&std::env::args().skip(2).collect::<Vec<_>>()),
         "bench-network" => bench_network(&std::env::args().skip(2).collect::<Vec<_>>()),
         "bench-distributed" => bench_distributed(&std::env::args().skip(2).collect::<Vec<_>>()),
@@ -210,7 +232,7 @@ fn main() -> Result<()> {
         }
         _ => {
             eprintln!(
-                "usage: cargo xtask <demo | synth ... | cuda-build [--compute-cap 90] [--out F] | bench-network [--frames 10,20,100] [--python P | --no-pytorch] [--out D] | bench-scale [--sizes 20,50,100] [--paths orbit,forward] [--pairs P] --out D | ci | setup | deps-check | convert-checkpoint IN OUT | bench-matching --data D --out F.json [--matchers sift,orb,aliked-lightglue] [--weights-dir D] | bench-real ... | bench-co3d ...>"
+                "usage: cargo xtask <demo | synth ... | cuda-build [--compute-cap 90] [--out F] | bench-network [--frames 10,20,100] [--python P | --no-pytorch] [--out D] | bench-scale [--sizes 20,50,100] [--paths orbit,forward] [--pairs P] [--against-colmap [--python P]] [--profile release] --out D | ci | setup | deps-check | convert-checkpoint IN OUT | bench-matching --data D --out F.json [--matchers sift,orb,aliked-lightglue] [--weights-dir D] | bench-real ... | bench-co3d ...>"
             );
             bail!("unknown task {task:?}")
         }
@@ -219,7 +241,11 @@ fn main() -> Result<()> {
 
 /// `cargo run --release --quiet <target…> -- <rest…>` in the workspace root.
 fn cargo_run(target: &[&str], rest: &[String]) -> Result<()> {
-    let mut args = vec!["run", "--release", "--quiet"];
+    let profiled = target.contains(&"--profile");
+    let mut args = vec!["run", "--quiet"];
+    if !profiled {
+        args.push("--release");
+    }
     args.extend_from_slice(target);
     args.push("--");
     args.extend(rest.iter().map(String::as_str));
@@ -260,7 +286,8 @@ fn output(program: &str, args: &[&str]) -> Result<String> {
 }
 
 /// Flags of the benchmark commands whose values are paths.
-const PATH_FLAGS: [&str; 7] = [
+const PATH_FLAGS: [&str; 8] = [
+    "--colmap-script",
     "--init",
     "--data",
     "--subsets",
@@ -277,7 +304,9 @@ fn caller_args() -> Result<Vec<String>> {
     let mut rest = Vec::new();
     let mut path_next = false;
     for a in std::env::args().skip(2) {
-        rest.push(if path_next {
+        // `--python P` is a path when it has a slash, else a command on PATH.
+        let python_path = rest.last().is_some_and(|f| f == "--python") && a.contains('/');
+        rest.push(if path_next || python_path {
             cwd.join(&a).to_string_lossy().into_owned()
         } else {
             a.clone()

@@ -8,8 +8,16 @@
 //! fraction). The report (JSON + Markdown) fits the growth exponent of each stage between
 //! successive sizes and over N ≥ 100.
 //!
+//! With `--against-colmap`, COLMAP 4.2's global mapper (pycolmap 4.2.1 through
+//! `../shared/tools/pycolmap_run.py`: SIFT, sequential matching with `--colmap-overlap` (15)
+//! neighbours, a comparable number of pairs to posediff's `auto`) runs on the same frames in the
+//! same run, under `/usr/bin/time` for its peak resident set, and is scored the same way: the
+//! report gets both columns and the speed-up.
+//!
 //! ```sh
 //! cargo xtask bench-scale --sizes 20,50,100 --paths orbit,forward --out target/bench-scale
+//! cargo xtask bench-scale --sizes 300 --paths orbit --against-colmap \
+//!     --python target/client-venv/bin/python --out target/bench-scale-colmap
 //! ```
 #![allow(clippy::print_stdout)]
 
@@ -107,6 +115,71 @@ fn run_case(images_dir: &Path, gt: &Path, out: &Path, pairs: &str) -> Result<()>
     Ok(())
 }
 
+/// How to run COLMAP 4.2 beside posediff (`--against-colmap`).
+struct Colmap {
+    python: PathBuf,
+    script: PathBuf,
+    overlap: usize,
+}
+
+/// COLMAP 4.2's global mapper on `images` into `out`, scored against `gt`: wall seconds (its
+/// own, features and matching included), peak RSS, the accuracy figures. A failed run is a
+/// report with `"error"`, not an abort, so posediff's column still lands.
+fn run_colmap(colmap: &Colmap, images: &Path, gt: &Path, out: &Path) -> Value {
+    let rss_file = out.with_extension("rss");
+    let _ = std::fs::create_dir_all(out.parent().unwrap_or(Path::new(".")));
+    let clock = Instant::now();
+    let output = Command::new("/usr/bin/time")
+        .args(["-f", "%M", "-o"])
+        .arg(&rss_file)
+        .arg(&colmap.python)
+        .arg(&colmap.script)
+        .arg(images)
+        .arg(out)
+        .args(["--mappers", "global", "--threads", "2", "--matching"])
+        .arg(format!("sequential:{}", colmap.overlap))
+        .output();
+    let wall = clock.elapsed().as_secs_f64();
+    let output = match output {
+        Ok(o) => o,
+        Err(e) => {
+            return json!({"error": format!("running /usr/bin/time {}: {e}", colmap.python.display())});
+        }
+    };
+    if !output.status.success() {
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        return json!({"error": format!("pycolmap_run.py failed ({}): {}", output.status, stderr.lines().last().unwrap_or(""))});
+    }
+    let lines: Vec<Value> = String::from_utf8_lossy(&output.stdout)
+        .lines()
+        .filter_map(|l| serde_json::from_str(l).ok())
+        .collect();
+    let seconds_of = |key: &str, name: &str| {
+        lines
+            .iter()
+            .find(|v| v[key] == json!(name))
+            .and_then(|v| v["seconds"].as_f64())
+    };
+    let peak_rss_mb = std::fs::read_to_string(&rss_file)
+        .ok()
+        .and_then(|s| s.lines().last()?.trim().parse::<f64>().ok())
+        .map_or(f64::NAN, |kb| kb / 1024.0);
+    match posediff::bench::score_cameras_files(&out.join("global/cameras.json"), gt) {
+        Ok(s) => json!({
+            "mapper": "COLMAP 4.2 global (pycolmap 4.2.1)",
+            "matching": format!("sequential:{}", colmap.overlap),
+            "seconds": seconds_of("mapper", "global").unwrap_or(wall),
+            "features_matching_seconds": seconds_of("stage", "features+matching"),
+            "peak_rss_mb": peak_rss_mb,
+            "rra_5": s.scores.rra[0],
+            "rta_5": s.scores.rta[0],
+            "maa_30": s.scores.maa_30,
+            "registered": s.scores.registered,
+        }),
+        Err(e) => json!({"error": format!("scoring COLMAP's cameras: {e}")}),
+    }
+}
+
 fn arg(args: &[String], flag: &str, default: &str) -> String {
     args.windows(2)
         .find(|w| w[0] == flag)
@@ -152,6 +225,39 @@ fn main() -> Result<()> {
     let out = PathBuf::from(arg(&args, "--out", "target/bench-scale"));
     let pairs = arg(&args, "--pairs", "auto");
     let seed: u64 = arg(&args, "--seed", "3").parse().context("--seed")?;
+    let colmap = if args.iter().any(|a| a == "--against-colmap") {
+        let python = PathBuf::from(arg(&args, "--python", "python3"));
+        let script = PathBuf::from(arg(
+            &args,
+            "--colmap-script",
+            "../shared/tools/pycolmap_run.py",
+        ));
+        if !script.is_file() {
+            bail!(
+                "--against-colmap: {} is not a file (pass --colmap-script)",
+                script.display()
+            );
+        }
+        let check = Command::new(&python)
+            .args(["-c", "import pycolmap; print(pycolmap.__version__)"])
+            .output()
+            .with_context(|| format!("--python {}", python.display()))?;
+        if !check.status.success() {
+            bail!(
+                "--against-colmap: {} cannot import pycolmap (install scripts/requirements-clients.txt or pass --python)",
+                python.display()
+            );
+        }
+        Some(Colmap {
+            python,
+            script,
+            overlap: arg(&args, "--colmap-overlap", "15")
+                .parse()
+                .context("--colmap-overlap: a whole number")?,
+        })
+    } else {
+        None
+    };
     std::fs::create_dir_all(&out)?;
     let exe = std::env::current_exe()?;
     let mut cases: Vec<Value> = Vec::new();
@@ -206,6 +312,17 @@ fn main() -> Result<()> {
                 v["maa_30"].as_f64().unwrap_or(f64::NAN),
                 v["registered"].as_f64().unwrap_or(f64::NAN),
             );
+            if let Some(colmap) = &colmap {
+                eprintln!("running COLMAP 4.2's global mapper on {path} N={n} ...");
+                let c = run_colmap(
+                    colmap,
+                    &seq.join("images"),
+                    &seq.join("cameras.json"),
+                    &out.join(format!("colmap/{path}_{n}")),
+                );
+                eprintln!("{path} N={n} COLMAP: {c}");
+                v["colmap"] = c;
+            }
             cases.push(v);
         }
     }
@@ -287,6 +404,40 @@ fn main() -> Result<()> {
                     fmt(&e["n_ge_100"])
                 ));
             }
+        }
+    }
+    if colmap.is_some() {
+        md.push_str("\nAgainst COLMAP 4.2's global mapper (pycolmap 4.2.1, SIFT, sequential matching) on the same frames, in the same run:\n\n| path | N | posediff s | COLMAP s | speed-up | posediff / COLMAP peak RSS MB | posediff / COLMAP mAA(30) | RRA@5 | RTA@5 | registered |\n|---|---|---|---|---|---|---|---|---|---|\n");
+        for c in &cases {
+            let ours = |k: &str| c[k].as_f64().unwrap_or(f64::NAN);
+            let theirs = |k: &str| c["colmap"][k].as_f64().unwrap_or(f64::NAN);
+            if let Some(e) = c["colmap"]["error"].as_str() {
+                md.push_str(&format!(
+                    "| {} | {} | {:.1} | failed: {e} | | | | | | |\n",
+                    c["path"].as_str().unwrap_or(""),
+                    c["frames"],
+                    ours("seconds")
+                ));
+                continue;
+            }
+            md.push_str(&format!(
+                "| {} | {} | {:.1} | {:.1} | {:.2}× | {:.0} / {:.0} | {:.3} / {:.3} | {:.3} / {:.3} | {:.3} / {:.3} | {:.3} / {:.3} |\n",
+                c["path"].as_str().unwrap_or(""),
+                c["frames"],
+                ours("seconds"),
+                theirs("seconds"),
+                theirs("seconds") / ours("seconds"),
+                ours("peak_rss_mb"),
+                theirs("peak_rss_mb"),
+                ours("maa_30"),
+                theirs("maa_30"),
+                ours("rra_5"),
+                theirs("rra_5"),
+                ours("rta_5"),
+                theirs("rta_5"),
+                ours("registered"),
+                theirs("registered"),
+            ));
         }
     }
     std::fs::write(out.join("report.md"), &md)?;

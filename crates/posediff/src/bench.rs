@@ -205,6 +205,67 @@ pub fn score_set(
     ))
 }
 
+/// An estimate's cameras.json scored against a ground truth's, matched by file name.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct FileScores {
+    /// The official test.py scores (an image missing from the estimate, marked not estimated or
+    /// with an invalid camera fails in all its pairs).
+    pub scores: Scores,
+    /// The RelPose++ camera-centre accuracy at 10 % of the scene scale.
+    pub cc_10: f64,
+    /// The median relative focal error `|fx / fx_truth - 1|` over the estimated images
+    /// (`None` when none was).
+    pub focal_error: Option<f64>,
+}
+
+/// Scores the cameras.json at `estimate` (ours or `pycolmap_run.py`'s; records matched to
+/// the truth's by file name, so any order and any missing image is fine) against the ground
+/// truth cameras.json at `truth`.
+///
+/// # Errors
+/// Unreadable or unparsable files, a ground truth that is not a camera list, fewer than two
+/// ground-truth cameras.
+pub fn score_cameras_files(estimate: &Path, truth: &Path) -> Result<FileScores> {
+    use posediff_geometry::camera_json::CameraRecord;
+    fn records(path: &Path) -> Result<Vec<serde_json::Value>> {
+        serde_json::from_str(&crate::error::read_text(path)?).map_err(|e| read_err(path, e))
+    }
+    fn file_name(image: &str) -> &str {
+        image.rsplit('/').next().unwrap_or(image)
+    }
+    let gt: Vec<CameraRecord> = serde_json::from_value(serde_json::Value::Array(records(truth)?))
+        .map_err(|e| read_err(truth, e))?;
+    let est = records(estimate)?;
+    let mut pred = Vec::with_capacity(gt.len());
+    let mut focal_errors = Vec::new();
+    let mut gt_cams = Vec::with_capacity(gt.len());
+    for g in &gt {
+        let gc = g.to_camera().map_err(|e| read_err(truth, e))?;
+        let camera = est
+            .iter()
+            .find(|e| {
+                e.get("image")
+                    .and_then(|v| v.as_str())
+                    .is_some_and(|n| file_name(n) == file_name(&g.image))
+            })
+            .filter(|e| e.get("estimated") != Some(&serde_json::Value::Bool(false)))
+            .and_then(|e| serde_json::from_value::<CameraRecord>(e.clone()).ok())
+            .and_then(|r| r.to_camera().ok());
+        if let Some(c) = &camera {
+            focal_errors.push((c.intrinsics.fx() / gc.intrinsics.fx() - 1.0).abs());
+        }
+        pred.push(camera.map(|c| c.cam_from_world));
+        gt_cams.push(gc);
+    }
+    let (scores, cc_10) = score_set(&gt_cams, &pred).map_err(|e| read_err(truth, e))?;
+    focal_errors.sort_by(f64::total_cmp);
+    Ok(FileScores {
+        scores,
+        cc_10,
+        focal_error: (!focal_errors.is_empty()).then(|| focal_errors[focal_errors.len() / 2]),
+    })
+}
+
 /// Scores `method` on the sets of `data` over the subsets of `subsets_json`.
 ///
 /// # Errors

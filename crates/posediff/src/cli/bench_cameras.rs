@@ -73,40 +73,10 @@ fn records(path: &Path) -> anyhow::Result<Vec<serde_json::Value>> {
     serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))
 }
 
-fn file_name(image: &str) -> &str {
-    image.rsplit('/').next().unwrap_or(image)
-}
-
-/// Scores an estimate against the ground truth matched by file name: images missing from the
-/// estimate, marked not estimated, or with invalid cameras (COLMAP can write a negative focal)
-/// count as failed in all their pairs.
+/// mAA(30), registered fraction and median focal error of `estimate` against `truth`.
 fn score(estimate: &Path, truth: &Path) -> anyhow::Result<(f64, f64, Option<f64>)> {
-    let gt: Vec<CameraRecord> = serde_json::from_value(serde_json::Value::Array(records(truth)?))?;
-    let est = records(estimate)?;
-    let mut pred = Vec::with_capacity(gt.len());
-    let mut focal_errors = Vec::new();
-    let mut gt_cams = Vec::with_capacity(gt.len());
-    for g in &gt {
-        let gc = g.to_camera()?;
-        let found = est.iter().find(|e| {
-            e.get("image")
-                .and_then(|v| v.as_str())
-                .is_some_and(|n| file_name(n) == file_name(&g.image))
-        });
-        let camera = found
-            .filter(|e| e.get("estimated") != Some(&serde_json::Value::Bool(false)))
-            .and_then(|e| serde_json::from_value::<CameraRecord>(e.clone()).ok())
-            .and_then(|r| r.to_camera().ok());
-        if let Some(c) = &camera {
-            focal_errors.push((c.intrinsics.fx() / gc.intrinsics.fx() - 1.0).abs());
-        }
-        pred.push(camera.map(|c| c.cam_from_world));
-        gt_cams.push(gc);
-    }
-    let (s, _) = posediff::bench::score_set(&gt_cams, &pred)?;
-    focal_errors.sort_by(f64::total_cmp);
-    let median = (!focal_errors.is_empty()).then(|| focal_errors[focal_errors.len() / 2]);
-    Ok((s.maa_30, s.registered, median))
+    let s = posediff::bench::score_cameras_files(estimate, truth)?;
+    Ok((s.scores.maa_30, s.scores.registered, s.focal_error))
 }
 
 impl Args {
