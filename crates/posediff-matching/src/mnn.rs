@@ -81,6 +81,12 @@ pub fn mutual_nearest_neighbours(
 }
 
 /// Row bests and column argmins of squared L2 distances.
+///
+/// The product of a block of query rows with Bᵀ is column-major (`rb × m`), so the scan walks
+/// it column by column: each column's `rb` distances are contiguous, the block's row bests are
+/// kept as arrays (nearest, second, index) updated by selects, and both loops vectorise. The
+/// order of the comparisons is the plain row-by-row scan's (strict `<`: the first of equal
+/// distances wins, in rows and in columns), so the result is the same.
 fn l2_best(a: &[f32], b: &[f32], dim: usize) -> (Vec<RowBest>, Vec<usize>) {
     let (n, m) = (a.len() / dim, b.len() / dim);
     let mut rows = vec![RowBest::EMPTY; n];
@@ -92,20 +98,65 @@ fn l2_best(a: &[f32], b: &[f32], dim: usize) -> (Vec<RowBest>, Vec<usize>) {
     let b_norms: Vec<f32> = b.chunks(dim).map(norm).collect();
     // Bᵀ (dim × m, column-major) is B's row-major storage as it is.
     let bt = DMatrix::from_column_slice(dim, m, b);
+    let mut dist = vec![0.0f32; BLOCK_ROWS];
+    let (mut d1, mut d2, mut jbest) = (
+        vec![0.0f32; BLOCK_ROWS],
+        vec![0.0f32; BLOCK_ROWS],
+        vec![0u32; BLOCK_ROWS],
+    );
     for start in (0..n).step_by(BLOCK_ROWS) {
         let rb = BLOCK_ROWS.min(n - start);
         let block = &a[start * dim..(start + rb) * dim];
         let d = DMatrix::from_row_slice(rb, dim, block) * &bt;
-        for r in 0..rb {
-            let i = start + r;
-            let a_norm = norm(&block[r * dim..(r + 1) * dim]);
-            let best = &mut rows[i];
-            for (j, (&bn, cb)) in b_norms.iter().zip(col_best.iter_mut()).enumerate() {
-                let dist = (a_norm + bn - 2.0 * d[(r, j)]).max(0.0);
-                best.offer(j, dist);
-                if dist < cb.0 {
-                    *cb = (dist, i);
-                }
+        let a_norms: Vec<f32> = block.chunks(dim).map(norm).collect();
+        let (dist, d1, d2, jbest) = (
+            &mut dist[..rb],
+            &mut d1[..rb],
+            &mut d2[..rb],
+            &mut jbest[..rb],
+        );
+        d1.fill(f32::INFINITY);
+        d2.fill(f32::INFINITY);
+        jbest.fill(u32::MAX);
+        for (j, ((column, &bn), cb)) in d
+            .as_slice()
+            .chunks_exact(rb)
+            .zip(&b_norms)
+            .zip(col_best.iter_mut())
+            .enumerate()
+        {
+            for ((x, &an), &dot) in dist.iter_mut().zip(&a_norms).zip(column) {
+                *x = (an + bn - 2.0 * dot).max(0.0);
+            }
+            // Row bests: the nearest so far moves to second when beaten.
+            let ju = j as u32;
+            for (((&x, n1), n2), jb) in dist
+                .iter()
+                .zip(d1.iter_mut())
+                .zip(d2.iter_mut())
+                .zip(jbest.iter_mut())
+            {
+                let closer = x < *n1;
+                *n2 = if closer { *n1 } else { n2.min(x) };
+                *jb = if closer { ju } else { *jb };
+                *n1 = if closer { x } else { *n1 };
+            }
+            // The column's nearest row of this block (the first of equals), kept when it beats
+            // the earlier blocks'.
+            let low = dist.iter().copied().fold(f32::INFINITY, f32::min);
+            if low < cb.0
+                && let Some(r) = dist.iter().position(|&x| x == low)
+            {
+                *cb = (low, start + r);
+            }
+        }
+        for (r, best) in rows[start..start + rb].iter_mut().enumerate() {
+            if jbest[r] != u32::MAX {
+                *best = RowBest {
+                    j: jbest[r] as usize,
+                    d1: d1[r],
+                    d2: d2[r],
+                };
             }
         }
     }
@@ -166,6 +217,58 @@ mod tests {
                 (s >> 8) as f32 / (1u32 << 24) as f32
             })
             .collect()
+    }
+
+    /// Row bests and column argmins by plain loops, strict `<` (the first of equals wins).
+    fn plain_best(a: &[f32], b: &[f32], dim: usize) -> (Vec<(usize, f32, f32)>, Vec<usize>) {
+        let norm = |v: &[f32]| v.iter().map(|x| x * x).sum::<f32>();
+        let (n, m) = (a.len() / dim, b.len() / dim);
+        let mut cols = vec![(f32::INFINITY, usize::MAX); m];
+        let rows = (0..n)
+            .map(|i| {
+                let ai = &a[i * dim..(i + 1) * dim];
+                let mut best = RowBest::EMPTY;
+                for (j, col) in cols.iter_mut().enumerate() {
+                    let bj = &b[j * dim..(j + 1) * dim];
+                    let dot: f32 = ai.iter().zip(bj).map(|(x, y)| x * y).sum();
+                    let d = (norm(ai) + norm(bj) - 2.0 * dot).max(0.0);
+                    best.offer(j, d);
+                    if d < col.0 {
+                        *col = (d, i);
+                    }
+                }
+                (best.j, best.d1, best.d2)
+            })
+            .collect();
+        (rows, cols.into_iter().map(|c| c.1).collect())
+    }
+
+    #[test]
+    fn equal_distances_go_to_the_first_row_and_column_across_blocks() {
+        // Small integers: every dot product is exact, so equal descriptors give equal
+        // distances whatever the summation order, and ties are real.
+        let dim = 8;
+        // Code k: its base-3 digits, distinct for k < 3⁸.
+        let code = |k: usize| {
+            (0..dim as u32)
+                .map(|c| ((k / 3usize.pow(c)) % 3) as f32)
+                .collect::<Vec<_>>()
+        };
+        // 700 query rows (three blocks) repeating 40 codes; 90 columns repeating 30 codes.
+        let a: Vec<f32> = (0..700).flat_map(|i| code(i % 40)).collect();
+        let b: Vec<f32> = (0..90).flat_map(|j| code(j % 30)).collect();
+        let (rows, cols) = l2_best(&a, &b, dim);
+        let (want_rows, want_cols) = plain_best(&a, &b, dim);
+        assert_eq!(cols, want_cols);
+        for (r, w) in rows.iter().zip(&want_rows) {
+            assert_eq!((r.j, r.d1, r.d2), *w);
+        }
+        // Code k < 30 is nearest to column k (its first copy) at distance 0.
+        assert_eq!((rows[5].j, rows[5].d1), (5, 0.0));
+        assert_eq!(
+            cols[35], 5,
+            "column 35 (code 5) goes to the first row with code 5"
+        );
     }
 
     #[test]
