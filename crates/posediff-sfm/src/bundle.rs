@@ -22,7 +22,7 @@ use crate::camera::{CameraPose, ParameterLayout, gauge_scale};
 use crate::error::Result;
 use crate::intrinsics::ImageIntrinsics;
 use crate::linalg::{BlockSystem, Solver};
-use crate::lm::{LeastSquares, LmOptions, Termination, minimize};
+use crate::lm::{CauchySum, LeastSquares, LmOptions, Termination, minimize};
 use crate::sampson_refine::check_inputs;
 use crate::tracks::{Observation, Track};
 
@@ -260,11 +260,6 @@ struct Problem<'a> {
 }
 
 impl Problem<'_> {
-    fn rho(&self, e2: f64) -> f64 {
-        let c2 = self.cauchy * self.cauchy;
-        0.5 * c2 * (1.0 + e2 / c2).ln()
-    }
-
     fn focal(&self, factors: &[f64], image: usize) -> f64 {
         factors[self.intrinsics.group[image]] * self.intrinsics.scale[image]
     }
@@ -283,18 +278,18 @@ impl LeastSquares for Problem<'_> {
             .par_iter()
             .zip(points)
             .map(|(obs, x)| {
-                let mut total = 0.0;
+                let mut total = CauchySum::new(self.cauchy);
                 for o in obs.iter() {
                     let Some(c) = cams[o.image] else { continue };
                     let f = self.focal(factors, o.image);
-                    total += match project(&c, f, self.intrinsics.principal[o.image], x) {
-                        Some((uv, _)) => {
-                            self.rho((uv[0] - o.xy[0]).powi(2) + (uv[1] - o.xy[1]).powi(2))
-                        }
-                        None => self.rho(1e6),
-                    };
+                    total.add(
+                        match project(&c, f, self.intrinsics.principal[o.image], x) {
+                            Some((uv, _)) => (uv[0] - o.xy[0]).powi(2) + (uv[1] - o.xy[1]).powi(2),
+                            None => 1e6,
+                        },
+                    );
                 }
-                total
+                total.total()
             })
             .collect();
         per_point.iter().sum()

@@ -6,6 +6,62 @@
 
 use crate::error::Result;
 
+/// A running sum of Cauchy losses `½c² ln(1 + e²/c²)` with one logarithm per batch of terms:
+/// `Σ ln(1 + xᵢ) = ln Π(1 + xᵢ)`, the product taken until it would pass [`Self::LIMIT`].
+///
+/// The costs of the Sampson refinement and the bundle adjustment sum millions of these per
+/// evaluation; at one `ln` each the logarithm was 15 % of a 300-frame orbit's mapper (perf,
+/// docs/BENCHMARKS.md "Video-scale speed"). Every factor is ≥ 1, so the product only grows and
+/// its rounding (one ulp per factor) is the same size as a sum of logarithms' rounding. A NaN
+/// term makes the sum NaN, as the plain sum would.
+#[derive(Debug, Clone, Copy)]
+pub struct CauchySum {
+    c2: f64,
+    product: f64,
+    logs: f64,
+}
+
+impl CauchySum {
+    /// Where a product is closed with its logarithm (far below `f64::MAX`, so one more
+    /// factor below the limit cannot overflow).
+    pub const LIMIT: f64 = 1e150;
+
+    /// An empty sum with Cauchy scale `cauchy` (`c`).
+    #[must_use]
+    pub fn new(cauchy: f64) -> Self {
+        Self {
+            c2: cauchy * cauchy,
+            product: 1.0,
+            logs: 0.0,
+        }
+    }
+
+    /// Adds the loss of one squared residual `e2`.
+    #[inline]
+    pub fn add(&mut self, e2: f64) {
+        let factor = 1.0 + e2 / self.c2;
+        let product = self.product * factor;
+        if product < Self::LIMIT {
+            self.product = product;
+        } else {
+            self.logs += self.product.ln();
+            if factor < Self::LIMIT {
+                self.product = factor;
+            } else {
+                // A huge (or NaN) factor alone.
+                self.logs += factor.ln();
+                self.product = 1.0;
+            }
+        }
+    }
+
+    /// The sum so far.
+    #[must_use]
+    pub fn total(&self) -> f64 {
+        0.5 * self.c2 * (self.logs + self.product.ln())
+    }
+}
+
 /// A robust least-squares problem.
 pub trait LeastSquares {
     /// The parameters being refined.
@@ -172,6 +228,37 @@ pub fn minimize<P: LeastSquares>(
 mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
+
+    #[test]
+    fn a_batched_cauchy_sum_is_the_sum_of_the_losses() {
+        let c = 2.5;
+        let rho = |e2: f64| 0.5 * c * c * (1.0 + e2 / (c * c)).ln();
+        // Many small residuals, some huge ones (each closes a batch), one past the limit alone.
+        let mut s = 7u64;
+        let mut e2s: Vec<f64> = (0..100_000)
+            .map(|_| {
+                s = s.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1);
+                ((s >> 11) as f64 / (1u64 << 53) as f64 * 20.0).powi(2)
+            })
+            .collect();
+        e2s.extend([1e12, 1e200, 0.0, 3.0, 1e6]);
+        let mut sum = CauchySum::new(c);
+        for &e2 in &e2s {
+            sum.add(e2);
+        }
+        let plain: f64 = e2s.iter().map(|&e2| rho(e2)).sum();
+        assert!(
+            (sum.total() - plain).abs() <= 1e-12 * plain,
+            "{} vs {plain}",
+            sum.total()
+        );
+        assert_eq!(CauchySum::new(c).total(), 0.0);
+        let mut nan = CauchySum::new(c);
+        nan.add(1.0);
+        nan.add(f64::NAN);
+        nan.add(1.0);
+        assert!(nan.total().is_nan(), "a NaN term is not hidden");
+    }
 
     /// Rosenbrock as residuals (1 − x, 10(y − x²)), solved by the core with a dense 2×2 solve.
     struct Rosenbrock {

@@ -24,7 +24,7 @@ use crate::camera::{CameraPose, ParameterLayout, normalize_scale};
 use crate::error::{Result, SfmError};
 use crate::intrinsics::ImageIntrinsics;
 use crate::linalg::{BlockSystem, Solver};
-use crate::lm::{LeastSquares, LmOptions, LmReport, Termination, minimize};
+use crate::lm::{CauchySum, LeastSquares, LmOptions, LmReport, Termination, minimize};
 
 /// Refinement settings.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -182,12 +182,17 @@ struct Loss {
 }
 
 impl Loss {
-    fn rho(&self, r: f64) -> f64 {
-        let c2 = self.cauchy * self.cauchy;
-        let r = match self.gate {
+    /// The residual the loss sees: `|r|` capped at the gate.
+    fn clamped(&self, r: f64) -> f64 {
+        match self.gate {
             Some(g) => r.abs().min(g),
             None => r,
-        };
+        }
+    }
+
+    fn rho(&self, r: f64) -> f64 {
+        let c2 = self.cauchy * self.cauchy;
+        let r = self.clamped(r);
         0.5 * c2 * (1.0 + r * r / c2).ln()
     }
 }
@@ -220,12 +225,13 @@ fn cost_of(
             let f = row_major(&pair_fundamental(
                 &a, &b, phi, intrinsics, p.first, p.second,
             ));
-            p.kp1
-                .iter()
-                .zip(&p.kp2)
-                .filter_map(|(x1, x2)| sampson_residual(&f, *x1, *x2))
-                .map(|(r, _)| loss.rho(r))
-                .sum()
+            let mut sum = CauchySum::new(loss.cauchy);
+            for (x1, x2) in p.kp1.iter().zip(&p.kp2) {
+                if let Some((r, _)) = sampson_residual(&f, *x1, *x2) {
+                    sum.add(loss.clamped(r).powi(2));
+                }
+            }
+            sum.total()
         })
         .collect();
     per_pair.iter().sum()
