@@ -26,6 +26,16 @@ pub struct TwoViewConfig {
     /// A pair is a homography pair when at least this fraction of its matches fit one
     /// homography within the threshold.
     pub homography_fraction: f64,
+    /// The homography RANSAC runs only the iterations that find, at `confidence`, a
+    /// homography explaining at least this fraction `w` of the matches: `ln(1 − c) /
+    /// ln(1 − w⁴)` (108 at 0.5 and 0.999), where OpenCV's cap was 10,000. Only fractions of at
+    /// least `homography_fraction` (0.9) decide anything, and OpenCV's adaptive count stops a
+    /// pair whose best fraction is ≥ `w` at the same iteration either way, so such pairs get
+    /// the same homography; pairs below `w` (general pairs, some 10–40 %) stop early. Measured
+    /// on the 300-frame orbit of `cargo xtask bench-scale` (docs/BENCHMARKS.md, "Video-scale
+    /// speed"): the homography tests went from 15 % of the mapper's time to about 1 %, same
+    /// cameras.
+    pub homography_min_fraction: f64,
     /// A homography pair whose `K_b⁻¹HK_a` has singular values within this ratio of each other
     /// is a rotation (no measurable baseline).
     pub rotation_tolerance: f64,
@@ -39,6 +49,7 @@ impl Default for TwoViewConfig {
             threshold_px: 1.0,
             confidence: 0.999,
             homography_fraction: 0.9,
+            homography_min_fraction: 0.5,
             rotation_tolerance: 1.05,
             min_inliers: 15,
         }
@@ -123,13 +134,118 @@ pub fn homography_fit(
         opencv::calib3d::RANSAC,
         config.threshold_px,
         &mut mask,
-        10_000,
+        homography_iterations(config),
         config.confidence,
     )?;
     let Some(h) = to_matrix3(&h)? else {
         return Ok(None);
     };
     Ok(Some((h, mask_count(&mask)? as f64 / kp1.len() as f64)))
+}
+
+/// Points farther than this (in units of the baseline) are at infinity for the cheirality
+/// test: OpenCV's `recoverPose` default `distanceThresh`.
+const CHEIRALITY_DISTANCE: f64 = 50.0;
+
+/// OpenCV 4.6's `recoverPose(E, points1, points2, I, R, t, mask)` on normalised points, without
+/// its per-point 4×4 SVDs (`triangulatePoints` was 15 % of a 300-frame orbit's mapper; perf,
+/// docs/BENCHMARKS.md "Video-scale speed"): `E` is decomposed as `decomposeEssentialMat` does
+/// (`R₁ = UWVᵀ`, `R₂ = UWᵀVᵀ`, `t = U₃`, `U` and `V` made proper), each of the four poses
+/// triangulates every RANSAC inlier and counts those in front of both cameras and nearer than
+/// [`CHEIRALITY_DISTANCE`], and the first pose with the most wins, in OpenCV's order.
+///
+/// The triangulation fixes the point's fourth coordinate at 1 and solves the DLT's 4×3 least
+/// squares (a 3×3 system) where OpenCV takes the 4×4 system's smallest singular vector; the two
+/// agree on the side of each camera a point lies on except for points at the thresholds, and
+/// the pose chosen is the same (tested against OpenCV). Returns `(R, t, count)`, `|t| = 1`.
+fn recover_pose(
+    e: &Matrix3<f64>,
+    n1: &[[f64; 2]],
+    n2: &[[f64; 2]],
+    ransac: &[bool],
+) -> Option<(Matrix3<f64>, Vector3<f64>, usize)> {
+    let svd = e.svd(true, true);
+    let (mut u, mut v_t) = (svd.u?, svd.v_t?);
+    // The smallest singular value's column of U is t; order the rest as OpenCV (descending).
+    let mut order = [0usize, 1, 2];
+    order.sort_by(|&a, &b| svd.singular_values[b].total_cmp(&svd.singular_values[a]));
+    u = Matrix3::from_columns(&order.map(|k| u.column(k).into_owned()));
+    v_t = Matrix3::from_rows(&order.map(|k| v_t.row(k).into_owned()));
+    if u.determinant() < 0.0 {
+        u = -u;
+    }
+    if v_t.determinant() < 0.0 {
+        v_t = -v_t;
+    }
+    let w = Matrix3::new(0.0, 1.0, 0.0, -1.0, 0.0, 0.0, 0.0, 0.0, 1.0);
+    let (r1, r2) = (u * w * v_t, u * w.transpose() * v_t);
+    let t: Vector3<f64> = u.column(2).into_owned();
+    let candidates = [(r1, t), (r2, t), (r1, -t), (r2, -t)];
+    let in_front = |r: &Matrix3<f64>, t: &Vector3<f64>, x1: &[f64; 2], x2: &[f64; 2]| {
+        // DLT rows: x₁P₀³ − P₀¹, y₁P₀³ − P₀², x₂P³ − P¹, y₂P³ − P², P₀ = [I | 0], P = [R | t].
+        let rows = [
+            [-1.0, 0.0, x1[0], 0.0],
+            [0.0, -1.0, x1[1], 0.0],
+            [
+                x2[0] * r[(2, 0)] - r[(0, 0)],
+                x2[0] * r[(2, 1)] - r[(0, 1)],
+                x2[0] * r[(2, 2)] - r[(0, 2)],
+                x2[0] * t[2] - t[0],
+            ],
+            [
+                x2[1] * r[(2, 0)] - r[(1, 0)],
+                x2[1] * r[(2, 1)] - r[(1, 1)],
+                x2[1] * r[(2, 2)] - r[(1, 2)],
+                x2[1] * t[2] - t[1],
+            ],
+        ];
+        let mut m = Matrix3::zeros();
+        let mut b = Vector3::zeros();
+        for row in &rows {
+            for i in 0..3 {
+                b[i] -= row[i] * row[3];
+                for j in 0..3 {
+                    m[(i, j)] += row[i] * row[j];
+                }
+            }
+        }
+        let Some(x) = m.try_inverse().map(|mi| mi * b) else {
+            return false;
+        };
+        let z2 = (r * x + t).z;
+        x.z > 0.0 && x.z < CHEIRALITY_DISTANCE && z2 > 0.0 && z2 < CHEIRALITY_DISTANCE
+    };
+    let counts = candidates.map(|(r, t)| {
+        n1.iter()
+            .zip(n2)
+            .zip(ransac)
+            .filter(|((x1, x2), inlier)| **inlier && in_front(&r, &t, x1, x2))
+            .count()
+    });
+    // OpenCV's order: the first of the most.
+    let best = (0..4).find(|&k| counts.iter().all(|&c| counts[k] >= c))?;
+    let (r, t) = candidates[best];
+    Some((r, t, counts[best]))
+}
+
+/// The homography RANSAC's iteration cap ([`TwoViewConfig::homography_min_fraction`]):
+/// `⌈ln(1 − c) / ln(1 − w⁴)⌉`, at least 1 and at most OpenCV's 10,000.
+#[must_use]
+pub fn homography_iterations(config: &TwoViewConfig) -> i32 {
+    let w4 = config.homography_min_fraction.clamp(0.0, 1.0).powi(4);
+    let c = config.confidence.clamp(0.0, 1.0 - 1e-12);
+    if w4 <= 0.0 {
+        return 10_000;
+    }
+    if w4 >= 1.0 {
+        return 1;
+    }
+    let k = ((1.0 - c).ln() / (1.0 - w4).ln()).ceil();
+    if k.is_finite() {
+        k.clamp(1.0, 10_000.0) as i32
+    } else {
+        10_000
+    }
 }
 
 pub use posediff_geometry::homography_rotation;
@@ -184,11 +300,11 @@ pub fn relative_pose_with_homography(
             inliers: (fraction * kp1.len() as f64).round() as usize,
         }));
     }
-    let normalise = |p: &[[f64; 2]], k_inv: &Matrix3<f64>| -> Vector<Point2d> {
+    let normalise = |p: &[[f64; 2]], k_inv: &Matrix3<f64>| -> Vec<[f64; 2]> {
         p.iter()
             .map(|q| {
                 let x = k_inv * Vector3::new(q[0], q[1], 1.0);
-                Point2d::new(x.x / x.z, x.y / x.z)
+                [x.x / x.z, x.y / x.z]
             })
             .collect()
     };
@@ -198,8 +314,8 @@ pub fn relative_pose_with_homography(
     let identity = Mat::from_slice_2d(&[[1.0f64, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])?;
     let mut mask = Mat::default();
     let e = opencv::calib3d::find_essential_mat(
-        &n1,
-        &n2,
+        &points_f64(&n1),
+        &points_f64(&n2),
         &identity,
         opencv::calib3d::RANSAC,
         config.confidence,
@@ -211,25 +327,19 @@ pub fn relative_pose_with_homography(
         return Ok(None);
     }
     let e3 = Mat::roi(&e, opencv::core::Rect::new(0, 0, 3, 3))?.try_clone()?;
-    let (mut r, mut t) = (Mat::default(), Mat::default());
-    let inliers = opencv::calib3d::recover_pose_estimated(
-        &e3, &n1, &n2, &identity, &mut r, &mut t, &mut mask,
-    )?;
-    let inliers = usize::try_from(inliers).unwrap_or(0);
+    let Some(e3) = to_matrix3(&e3)? else {
+        return Ok(None);
+    };
+    let ransac: Vec<bool> = mask.data_bytes()?.iter().map(|&m| m != 0).collect();
+    if ransac.len() != n1.len() {
+        return Ok(None);
+    }
+    let Some((rotation, translation, inliers)) = recover_pose(&e3, &n1, &n2, &ransac) else {
+        return Ok(None);
+    };
     if inliers < config.min_inliers {
         return Ok(None);
     }
-    let Some(rotation) = to_matrix3(&r)? else {
-        return Ok(None);
-    };
-    if t.rows() != 3 {
-        return Ok(None);
-    }
-    let translation = Vector3::new(
-        *t.at_2d::<f64>(0, 0)?,
-        *t.at_2d::<f64>(1, 0)?,
-        *t.at_2d::<f64>(2, 0)?,
-    );
     let norm = translation.norm();
     if !(norm > 0.0 && norm.is_finite()) {
         return Ok(None);
@@ -245,7 +355,28 @@ pub fn relative_pose_with_homography(
 mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
+
     use nalgebra::{Point3, Rotation3};
+
+    #[test]
+    fn the_homography_cap_finds_a_fraction_of_at_least_the_minimum() {
+        let cap = |w: f64| {
+            homography_iterations(&TwoViewConfig {
+                homography_min_fraction: w,
+                ..TwoViewConfig::default()
+            })
+        };
+        assert_eq!(cap(0.5), 108);
+        // At the cap, a sample of four inliers of fraction w is drawn with probability ≥ c.
+        for w in [0.3, 0.5, 0.9] {
+            let k = f64::from(cap(w));
+            assert!(1.0 - (1.0 - w.powi(4)).powf(k) >= 0.999);
+            assert!(1.0 - (1.0 - w.powi(4)).powf(k - 1.0) < 0.999);
+        }
+        assert_eq!(cap(1.0), 1);
+        assert_eq!(cap(0.0), 10_000);
+        assert_eq!(cap(0.01), 10_000, "OpenCV's cap bounds it");
+    }
 
     /// Matches in both images, `K`, and the true `R`, `t` of the pair.
     type Scene = (
@@ -277,6 +408,82 @@ mod tests {
             b.push([pb.x / pb.z, pb.y / pb.z]);
         }
         (a, b, k, r, t)
+    }
+
+    #[test]
+    fn the_pose_recovered_is_opencvs() {
+        for (baseline, noise_px) in [(1.0, 0.0), (1.0, 0.7), (0.3, 0.5)] {
+            let (mut a, mut b, k, r, _) = scene(baseline);
+            let mut s: u64 = 3;
+            let mut rnd = || {
+                s = s.wrapping_mul(6364136223846793005).wrapping_add(1);
+                (s >> 11) as f64 / (1u64 << 53) as f64 - 0.5
+            };
+            for p in a.iter_mut().chain(b.iter_mut()) {
+                p[0] += 2.0 * noise_px * rnd();
+                p[1] += 2.0 * noise_px * rnd();
+            }
+            // Twenty outliers.
+            b[..20].rotate_left(7);
+            let k_inv = k.try_inverse().unwrap();
+            let norm = |p: &[[f64; 2]]| -> Vec<[f64; 2]> {
+                p.iter()
+                    .map(|q| {
+                        let x = k_inv * Vector3::new(q[0], q[1], 1.0);
+                        [x.x / x.z, x.y / x.z]
+                    })
+                    .collect()
+            };
+            let (n1, n2) = (norm(&a), norm(&b));
+            let identity =
+                Mat::from_slice_2d(&[[1.0f64, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+                    .unwrap();
+            let mut mask = Mat::default();
+            let e = opencv::calib3d::find_essential_mat(
+                &points_f64(&n1),
+                &points_f64(&n2),
+                &identity,
+                opencv::calib3d::RANSAC,
+                0.999,
+                1.0 / 500.0,
+                10_000,
+                &mut mask,
+            )
+            .unwrap();
+            let e3 = Mat::roi(&e, opencv::core::Rect::new(0, 0, 3, 3))
+                .unwrap()
+                .try_clone()
+                .unwrap();
+            let ransac: Vec<bool> = mask.data_bytes().unwrap().iter().map(|&m| m != 0).collect();
+            let (ours_r, ours_t, ours_n) =
+                recover_pose(&to_matrix3(&e3).unwrap().unwrap(), &n1, &n2, &ransac).unwrap();
+            let (mut cv_r, mut cv_t) = (Mat::default(), Mat::default());
+            let cv_n = opencv::calib3d::recover_pose_estimated(
+                &e3,
+                &points_f64(&n1),
+                &points_f64(&n2),
+                &identity,
+                &mut cv_r,
+                &mut cv_t,
+                &mut mask,
+            )
+            .unwrap();
+            let cv_r = to_matrix3(&cv_r).unwrap().unwrap();
+            let cv_t = Vector3::new(
+                *cv_t.at_2d::<f64>(0, 0).unwrap(),
+                *cv_t.at_2d::<f64>(1, 0).unwrap(),
+                *cv_t.at_2d::<f64>(2, 0).unwrap(),
+            );
+            assert!((ours_r - cv_r).norm() < 1e-9, "R at baseline {baseline}");
+            assert!((ours_t - cv_t).norm() < 1e-9, "t at baseline {baseline}");
+            assert_eq!(
+                ours_n,
+                usize::try_from(cv_n).unwrap(),
+                "count at {baseline}"
+            );
+            assert!(ours_n >= 170, "{ours_n} of 200");
+            assert!((ours_r - r).norm() < 0.05);
+        }
     }
 
     #[test]

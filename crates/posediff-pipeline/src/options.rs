@@ -621,6 +621,13 @@ impl PipelineOptions {
         if !(0.0..=1.0).contains(&self.two_view.homography_fraction) {
             return bad("two_view.homography_fraction must be within 0-1");
         }
+        if !(self.two_view.homography_min_fraction > 0.0
+            && self.two_view.homography_min_fraction <= self.two_view.homography_fraction)
+        {
+            return bad(
+                "two_view.homography_min_fraction must be above 0 and at most two_view.homography_fraction",
+            );
+        }
         if let Some(fps) = self.video.fps
             && !(fps.is_finite() && fps > 0.0)
         {
