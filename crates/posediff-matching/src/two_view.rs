@@ -143,6 +143,47 @@ pub fn homography_fit(
     Ok(Some((h, mask_count(&mask)? as f64 / kp1.len() as f64)))
 }
 
+/// `K⁻¹ x` of each pixel, dehomogenised.
+fn normalised(p: &[[f64; 2]], k_inv: &Matrix3<f64>) -> Vec<[f64; 2]> {
+    p.iter()
+        .map(|q| {
+            let x = k_inv * Vector3::new(q[0], q[1], 1.0);
+            [x.x / x.z, x.y / x.z]
+        })
+        .collect()
+}
+
+/// OpenCV's five-point RANSAC on normalised matches: the essential matrix and its inlier mask
+/// (`None` when it finds none).
+fn essential_ransac(
+    n1: &[[f64; 2]],
+    n2: &[[f64; 2]],
+    threshold: f64,
+    confidence: f64,
+) -> Result<Option<(Matrix3<f64>, Vec<bool>)>> {
+    let identity = Mat::from_slice_2d(&[[1.0f64, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])?;
+    let mut mask = Mat::default();
+    let e = opencv::calib3d::find_essential_mat(
+        &points_f64(n1),
+        &points_f64(n2),
+        &identity,
+        opencv::calib3d::RANSAC,
+        confidence,
+        threshold,
+        10_000,
+        &mut mask,
+    )?;
+    if e.rows() < 3 || mask.empty() {
+        return Ok(None);
+    }
+    let e3 = Mat::roi(&e, opencv::core::Rect::new(0, 0, 3, 3))?.try_clone()?;
+    let Some(e3) = to_matrix3(&e3)? else {
+        return Ok(None);
+    };
+    let ransac: Vec<bool> = mask.data_bytes()?.iter().map(|&m| m != 0).collect();
+    Ok((ransac.len() == n1.len()).then_some((e3, ransac)))
+}
+
 /// Points farther than this (in units of the baseline) are at infinity for the cheirality
 /// test: OpenCV's `recoverPose` default `distanceThresh`.
 const CHEIRALITY_DISTANCE: f64 = 50.0;
@@ -300,40 +341,14 @@ pub fn relative_pose_with_homography(
             inliers: (fraction * kp1.len() as f64).round() as usize,
         }));
     }
-    let normalise = |p: &[[f64; 2]], k_inv: &Matrix3<f64>| -> Vec<[f64; 2]> {
-        p.iter()
-            .map(|q| {
-                let x = k_inv * Vector3::new(q[0], q[1], 1.0);
-                [x.x / x.z, x.y / x.z]
-            })
-            .collect()
-    };
-    let (n1, n2) = (normalise(kp1, &ka_inv), normalise(kp2, &kb_inv));
+    let (n1, n2) = (normalised(kp1, &ka_inv), normalised(kp2, &kb_inv));
     // The pixel threshold in normalised coordinates, by the mean focal.
     let focal = 0.25 * (k_a[(0, 0)] + k_a[(1, 1)] + k_b[(0, 0)] + k_b[(1, 1)]);
-    let identity = Mat::from_slice_2d(&[[1.0f64, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])?;
-    let mut mask = Mat::default();
-    let e = opencv::calib3d::find_essential_mat(
-        &points_f64(&n1),
-        &points_f64(&n2),
-        &identity,
-        opencv::calib3d::RANSAC,
-        config.confidence,
-        config.threshold_px / focal,
-        10_000,
-        &mut mask,
-    )?;
-    if e.rows() < 3 || mask.empty() {
-        return Ok(None);
-    }
-    let e3 = Mat::roi(&e, opencv::core::Rect::new(0, 0, 3, 3))?.try_clone()?;
-    let Some(e3) = to_matrix3(&e3)? else {
+    let Some((e3, ransac)) =
+        essential_ransac(&n1, &n2, config.threshold_px / focal, config.confidence)?
+    else {
         return Ok(None);
     };
-    let ransac: Vec<bool> = mask.data_bytes()?.iter().map(|&m| m != 0).collect();
-    if ransac.len() != n1.len() {
-        return Ok(None);
-    }
     let Some((rotation, translation, inliers)) = recover_pose(&e3, &n1, &n2, &ransac) else {
         return Ok(None);
     };
@@ -426,37 +441,22 @@ mod tests {
             // Twenty outliers.
             b[..20].rotate_left(7);
             let k_inv = k.try_inverse().unwrap();
-            let norm = |p: &[[f64; 2]]| -> Vec<[f64; 2]> {
-                p.iter()
-                    .map(|q| {
-                        let x = k_inv * Vector3::new(q[0], q[1], 1.0);
-                        [x.x / x.z, x.y / x.z]
-                    })
-                    .collect()
-            };
-            let (n1, n2) = (norm(&a), norm(&b));
-            let identity =
-                Mat::from_slice_2d(&[[1.0f64, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
-                    .unwrap();
-            let mut mask = Mat::default();
-            let e = opencv::calib3d::find_essential_mat(
-                &points_f64(&n1),
-                &points_f64(&n2),
-                &identity,
-                opencv::calib3d::RANSAC,
-                0.999,
-                1.0 / 500.0,
-                10_000,
-                &mut mask,
-            )
-            .unwrap();
-            let e3 = Mat::roi(&e, opencv::core::Rect::new(0, 0, 3, 3))
+            let (n1, n2) = (normalised(&a, &k_inv), normalised(&b, &k_inv));
+            let (e, ransac) = essential_ransac(&n1, &n2, 1.0 / 500.0, 0.999)
                 .unwrap()
-                .try_clone()
                 .unwrap();
-            let ransac: Vec<bool> = mask.data_bytes().unwrap().iter().map(|&m| m != 0).collect();
-            let (ours_r, ours_t, ours_n) =
-                recover_pose(&to_matrix3(&e3).unwrap().unwrap(), &n1, &n2, &ransac).unwrap();
+            let (ours_r, ours_t, ours_n) = recover_pose(&e, &n1, &n2, &ransac).unwrap();
+            let rows: [[f64; 3]; 3] = std::array::from_fn(|i| std::array::from_fn(|j| e[(i, j)]));
+            let e3 = Mat::from_slice_2d(&rows).unwrap();
+            let identity = Mat::eye(3, 3, opencv::core::CV_64F)
+                .unwrap()
+                .to_mat()
+                .unwrap();
+            let mut mask =
+                Mat::from_slice(&ransac.iter().map(|&m| u8::from(m)).collect::<Vec<_>>())
+                    .unwrap()
+                    .try_clone()
+                    .unwrap();
             let (mut cv_r, mut cv_t) = (Mat::default(), Mat::default());
             let cv_n = opencv::calib3d::recover_pose_estimated(
                 &e3,
