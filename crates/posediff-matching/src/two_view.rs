@@ -33,9 +33,14 @@ pub struct TwoViewConfig {
     /// pair whose best fraction is ≥ `w` at the same iteration either way, so such pairs get
     /// the same homography; pairs below `w` (general pairs, some 10–40 %) stop early. Measured
     /// on the 300-frame orbit of `cargo xtask bench-scale` (docs/BENCHMARKS.md, "Video-scale
-    /// speed"): the homography tests went from 15 % of the mapper's time to about 1 %, same
-    /// cameras.
+    /// speed"): `findHomography` was 15 % of the mapper's time with OpenCV's cap; with 0.5 the
+    /// mapper took 54.1 / 49.4 s instead of 60.7 / 62.3 s, same pairs and scores.
     pub homography_min_fraction: f64,
+    /// The cheirality test of the relative pose counts a triangulated match only nearer than
+    /// this, in units of the baseline, to both cameras (farther points are at infinity, their
+    /// depth sign is noise): OpenCV's `recoverPose` `distanceThresh`, whose default (50) this
+    /// keeps, so the poses are OpenCV's.
+    pub cheirality_distance: f64,
     /// A homography pair whose `K_b⁻¹HK_a` has singular values within this ratio of each other
     /// is a rotation (no measurable baseline).
     pub rotation_tolerance: f64,
@@ -50,6 +55,7 @@ impl Default for TwoViewConfig {
             confidence: 0.999,
             homography_fraction: 0.9,
             homography_min_fraction: 0.5,
+            cheirality_distance: 50.0,
             rotation_tolerance: 1.05,
             min_inliers: 15,
         }
@@ -184,16 +190,12 @@ fn essential_ransac(
     Ok((ransac.len() == n1.len()).then_some((e3, ransac)))
 }
 
-/// Points farther than this (in units of the baseline) are at infinity for the cheirality
-/// test: OpenCV's `recoverPose` default `distanceThresh`.
-const CHEIRALITY_DISTANCE: f64 = 50.0;
-
 /// OpenCV 4.6's `recoverPose(E, points1, points2, I, R, t, mask)` on normalised points, without
 /// its per-point 4×4 SVDs (`triangulatePoints` was 15 % of a 300-frame orbit's mapper; perf,
 /// docs/BENCHMARKS.md "Video-scale speed"): `E` is decomposed as `decomposeEssentialMat` does
 /// (`R₁ = UWVᵀ`, `R₂ = UWᵀVᵀ`, `t = U₃`, `U` and `V` made proper), each of the four poses
 /// triangulates every RANSAC inlier and counts those in front of both cameras and nearer than
-/// [`CHEIRALITY_DISTANCE`], and the first pose with the most wins, in OpenCV's order.
+/// `max_distance` ([`TwoViewConfig::cheirality_distance`]), and the first pose with the most wins, in OpenCV's order.
 ///
 /// The triangulation fixes the point's fourth coordinate at 1 and solves the DLT's 4×3 least
 /// squares (a 3×3 system) where OpenCV takes the 4×4 system's smallest singular vector; the two
@@ -204,6 +206,7 @@ fn recover_pose(
     n1: &[[f64; 2]],
     n2: &[[f64; 2]],
     ransac: &[bool],
+    max_distance: f64,
 ) -> Option<(Matrix3<f64>, Vector3<f64>, usize)> {
     let svd = e.svd(true, true);
     let (mut u, mut v_t) = (svd.u?, svd.v_t?);
@@ -254,7 +257,7 @@ fn recover_pose(
             return false;
         };
         let z2 = (r * x + t).z;
-        x.z > 0.0 && x.z < CHEIRALITY_DISTANCE && z2 > 0.0 && z2 < CHEIRALITY_DISTANCE
+        x.z > 0.0 && x.z < max_distance && z2 > 0.0 && z2 < max_distance
     };
     let counts = candidates.map(|(r, t)| {
         n1.iter()
@@ -349,7 +352,9 @@ pub fn relative_pose_with_homography(
     else {
         return Ok(None);
     };
-    let Some((rotation, translation, inliers)) = recover_pose(&e3, &n1, &n2, &ransac) else {
+    let Some((rotation, translation, inliers)) =
+        recover_pose(&e3, &n1, &n2, &ransac, config.cheirality_distance)
+    else {
         return Ok(None);
     };
     if inliers < config.min_inliers {
@@ -445,7 +450,14 @@ mod tests {
             let (e, ransac) = essential_ransac(&n1, &n2, 1.0 / 500.0, 0.999)
                 .unwrap()
                 .unwrap();
-            let (ours_r, ours_t, ours_n) = recover_pose(&e, &n1, &n2, &ransac).unwrap();
+            let (ours_r, ours_t, ours_n) = recover_pose(
+                &e,
+                &n1,
+                &n2,
+                &ransac,
+                TwoViewConfig::default().cheirality_distance,
+            )
+            .unwrap();
             let rows: [[f64; 3]; 3] = std::array::from_fn(|i| std::array::from_fn(|j| e[(i, j)]));
             let e3 = Mat::from_slice_2d(&rows).unwrap();
             let identity = Mat::eye(3, 3, opencv::core::CV_64F)

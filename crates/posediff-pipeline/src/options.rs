@@ -628,6 +628,11 @@ impl PipelineOptions {
                 "two_view.homography_min_fraction must be above 0 and at most two_view.homography_fraction",
             );
         }
+        if !(self.two_view.cheirality_distance.is_finite()
+            && self.two_view.cheirality_distance > 0.0)
+        {
+            return bad("two_view.cheirality_distance must be a positive number of baselines");
+        }
         if let Some(fps) = self.video.fps
             && !(fps.is_finite() && fps > 0.0)
         {

@@ -5,8 +5,8 @@ images into a database of its own (the CLI's ``posediff features --shard K/N``);
 merges them into one COLMAP database (``--from``) and selects the pairs once, storing the
 selection in it (``posediff match --select-only``); each task then matches every
 ``parts``-th pair of that selection on a copy of it (``posediff match --shard K/N``), and the
-driver merges those and maps. The merged database is COLMAP's ``database.db``, resumable like ``--database``'s,
-and the cameras are byte-identical to a single process's ``posediff estimate --database``::
+driver merges those and maps. The merged database is COLMAP's ``database.db``, resumable like
+``--database``'s, and the cameras are byte-identical to a single process's ``posediff estimate --database``::
 
     import ray
     import posediff.distributed

@@ -1492,15 +1492,7 @@ impl FeatureStore for Database {
     fn selection(&self, rules: &str) -> posediff_pipeline::Result<Option<Vec<(usize, usize)>>> {
         let names = self.run_names();
         let e = self.wrap();
-        let stored: Option<String> = self
-            .conn()
-            .query_row(
-                "SELECT value FROM posediff_store WHERE key = ?1",
-                params![format!("selection:{rules}")],
-                |r| r.get(0),
-            )
-            .optional()
-            .map_err(&e)?;
+        let stored = store_value(&self.conn(), &format!("selection:{rules}")).map_err(&e)?;
         let Some(text) = stored else {
             return Ok(None);
         };
