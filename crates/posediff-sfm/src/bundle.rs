@@ -650,7 +650,8 @@ pub fn bundle_adjust(
     )?;
     report.iterations = first + second;
     report.converged = t1.converged() && t2.converged();
-    report.termination = t2;
+    // The stage that did not converge, if one did not (else the last).
+    report.termination = if t1.converged() { t2 } else { t1 };
     let (at_end, phi) = folded(factors);
     let (mut sum, mut count) = (0.0, 0usize);
     for p in &points {

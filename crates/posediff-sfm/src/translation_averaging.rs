@@ -77,13 +77,27 @@ pub struct TranslationAveragingReport {
     pub converged: bool,
     /// Edges whose scale sits at the bound 1 at the end.
     pub scales_at_bound: usize,
+    /// Groups of images joined by zero-baseline ties that a direction edge spans inside (so
+    /// they are not one centre: e.g. a slow video whose short-baseline neighbours look like
+    /// pure rotations): their ties were not merged.
+    pub split_tie_groups: usize,
+    /// Members without a direction edge to the solved centres, placed at the centre of a
+    /// rotation-only partner in a split tie group.
+    pub attached: usize,
 }
 
 /// Camera centres of the images `members` from centre directions, `C_reference = 0`; `None`
 /// for images outside `members` and members not connected to the reference.
 ///
-/// Zero-baseline ties (`direction: None`) are hard: tied images are merged into one centre
-/// before the averaging, so they come out at exactly the same place.
+/// Zero-baseline ties (`direction: None`) are hard where they are consistent: a group of images
+/// joined by ties that no direction edge spans inside is merged into one centre before the
+/// averaging, so its images come out at exactly the same place (a panorama, a camera standing
+/// still). Ties are not transitive beyond that: a pair without measurable baseline says only
+/// that its baseline is small, and a chain of them (the neighbours of a slow video) adds up to
+/// a long one, which the direction edges inside the group measure. So in a group that a
+/// direction edge spans, the ties are not merged; its images are solved from their directions,
+/// and those that have none are placed at the centre of a tied partner
+/// ([`TranslationAveragingReport::attached`]).
 ///
 /// # Errors
 /// A reference outside `members`; normal equations that are not positive definite.
@@ -112,10 +126,30 @@ pub fn average_translations(
             && is_member[d.first]
             && is_member[d.second]
     };
-    let mut ties = UnionFind::new(n);
+    let tie_pairs: Vec<(usize, usize, f64)> = directions
+        .iter()
+        .filter(valid)
+        .filter(|d| d.direction.is_none())
+        .map(|d| (d.first, d.second, d.weight))
+        .collect();
+    let mut groups = UnionFind::new(n);
+    for &(a, b, _) in &tie_pairs {
+        groups.union(a, b);
+    }
+    // A group that a direction edge spans inside is not one centre.
+    let mut split = vec![false; n];
     for d in directions.iter().filter(valid) {
-        if d.direction.is_none() {
-            ties.union(d.first, d.second);
+        if d.direction.is_some_and(|v| v.norm() > 0.0) {
+            let g = groups.find(d.first);
+            if g == groups.find(d.second) {
+                split[g] = true;
+            }
+        }
+    }
+    let mut ties = UnionFind::new(n);
+    for &(a, b, _) in &tie_pairs {
+        if !split[groups.find(a)] {
+            ties.union(a, b);
         }
     }
     let edges: Vec<DirectionEdge> = directions
@@ -140,7 +174,10 @@ pub fn average_translations(
     }
     let root = reach.find(reference_rep);
     let mut rep_value: Vec<Option<Vector3<f64>>> = vec![None; n];
-    let mut report = TranslationAveragingReport::default();
+    let mut report = TranslationAveragingReport {
+        split_tie_groups: (0..n).filter(|&i| split[i] && groups.find(i) == i).count(),
+        ..TranslationAveragingReport::default()
+    };
     for &m in members.iter().filter(|&&m| m < n) {
         let r = ties.find(m);
         if reach.find(r) == root {
@@ -159,6 +196,30 @@ pub fn average_translations(
     let mut out = vec![None; n];
     for &m in members.iter().filter(|&&m| m < n) {
         out[m] = centres[ties.find(m)];
+    }
+    // Members of split groups left without a centre: at their strongest solved partner's,
+    // outwards from the solved ones along the ties (strongest first).
+    let mut ordered: Vec<&(usize, usize, f64)> = tie_pairs
+        .iter()
+        .filter(|(a, _, _)| split[groups.find(*a)])
+        .collect();
+    ordered.sort_by(|x, y| y.2.total_cmp(&x.2));
+    loop {
+        let mut placed = 0;
+        for &&(a, b, _) in &ordered {
+            let (from, to) = match (out[a], out[b]) {
+                (Some(_), None) => (a, b),
+                (None, Some(_)) => (b, a),
+                _ => continue,
+            };
+            out[to] = out[from];
+            placed += 1;
+        }
+        if placed == 0 {
+            break;
+        }
+        report.attached += placed;
+        report.unreachable = report.unreachable.saturating_sub(placed);
     }
     Ok((out, report))
 }
@@ -375,6 +436,57 @@ mod tests {
         let (c1, c2) = (got[1].unwrap(), got[2].unwrap());
         assert!((c1 - c2).norm() < 1e-6);
         assert!((c1 + Vector3::x()).norm() < 1e-6, "{c1}");
+    }
+
+    /// A chain of short-baseline pairs (0–1–2–3 tied) that direction edges span (0→3 and 1→3
+    /// measured): the ties are not merged into one centre; 2, which has no direction, sits
+    /// at a tied partner's centre.
+    #[test]
+    fn tie_chains_spanned_by_directions_are_not_one_centre() {
+        let tie = |first, second| CenterDirection {
+            first,
+            second,
+            direction: None,
+            weight: 1.0,
+        };
+        let dirs = [
+            tie(0, 1),
+            tie(1, 2),
+            tie(2, 3),
+            CenterDirection {
+                first: 0,
+                second: 3,
+                direction: Some(-Vector3::x()),
+                weight: 1.0,
+            },
+            CenterDirection {
+                first: 1,
+                second: 3,
+                direction: Some(-Vector3::x()),
+                weight: 1.0,
+            },
+        ];
+        let (got, report) = average_translations(
+            4,
+            &[0, 1, 2, 3],
+            &dirs,
+            0,
+            &TranslationAveragingOptions::default(),
+        )
+        .unwrap();
+        assert_eq!(
+            (report.split_tie_groups, report.attached),
+            (1, 1),
+            "{report:?}"
+        );
+        assert_eq!(report.unreachable, 0);
+        let c: Vec<Vector3<f64>> = got.into_iter().map(Option::unwrap).collect();
+        assert!((c[3] - c[0]).norm() > 0.5, "{c:?}");
+        assert!(
+            (c[3] - c[0]).normalize().dot(&Vector3::x()) > 0.999,
+            "{c:?}"
+        );
+        assert!(c[2] == c[1] || c[2] == c[3], "{c:?}");
     }
 
     #[test]
