@@ -116,6 +116,10 @@ pub struct GeometricReport {
     pub refine_inliers: usize,
     /// Matches used by the refinement.
     pub refine_matches: usize,
+    /// Each pair's matches thinned to at most this many for the refinement
+    /// (`mapper.sampson.max_matches_per_pair`, the set above `thin_above_matches`); `None`:
+    /// all used.
+    pub refine_per_pair_cap: Option<usize>,
     /// RMS Sampson distance of those inliers, px.
     pub refine_inlier_rms_px: f64,
     /// Bridges of the view graph: pairs that no cycle confirms (0: resection not run).
@@ -181,6 +185,7 @@ impl GeometricReport {
         self.refine_termination = r.termination.as_str().into();
         self.refine_inliers = r.inliers;
         self.refine_matches = r.matches;
+        self.refine_per_pair_cap = r.per_pair_cap;
         self.refine_inlier_rms_px = r.inlier_rms_px;
     }
 
@@ -266,8 +271,14 @@ impl GeometricReport {
             iterations: t.iterations,
             converged: t.converged,
             termination: format!(
-                "{} centres, {} edges, {} scales at the bound, {} unreachable",
-                t.centres, t.edges, t.scales_at_bound, t.unreachable
+                "{} centres, {} edges, {} scales at the bound, {} unreachable, \
+                 {} tie groups split, {} attached to a tied partner",
+                t.centres,
+                t.edges,
+                t.scales_at_bound,
+                t.unreachable,
+                t.split_tie_groups,
+                t.attached
             ),
         };
         if let Some(r) = &m.sampson {

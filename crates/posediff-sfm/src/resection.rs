@@ -45,7 +45,7 @@ use crate::bundle::{project, triangulate};
 use crate::camera::CameraPose;
 use crate::error::{Result, SfmError};
 use crate::intrinsics::ImageIntrinsics;
-use crate::sampson_refine::{pair_fundamental, sampson_residual};
+use crate::sampson_refine::{pair_fundamental, sampson_distance};
 use crate::solver::GeometrySolver;
 use crate::tracks::{Observation, Track};
 use crate::view_graph::{bridges, side_of};
@@ -441,8 +441,7 @@ impl Context<'_> {
         kp_a.iter()
             .zip(kp_b.iter())
             .filter(|(x, y)| {
-                sampson_residual(&f, **x, **y)
-                    .is_some_and(|(r, _)| r.abs() <= self.options.epipolar_px)
+                sampson_distance(&f, **x, **y).is_some_and(|r| r.abs() <= self.options.epipolar_px)
             })
             .count()
     }

@@ -47,6 +47,18 @@ pub struct SampsonRefineOptions {
     pub gate_scales: Option<f64>,
     /// Linear solver.
     pub solver: Solver,
+    /// Where the pairs hold more than `thin_above_matches` matches in all, each pair takes
+    /// part with at most this many (evenly spaced in its match order); `None`: all. The
+    /// refinement only initialises the bundle adjustment and its time is linear in the
+    /// matches: on a 300-frame forward walk (3.1 M matches, 760 per pair) 128 took the mapper
+    /// from 96.6 s to 62 s at the same mAA(30) 0.998, on a 300-frame orbit (1.7 M) the
+    /// initialisation from 31 s to 19 s at mAA(30) 1.000 (`docs/BENCHMARKS.md`, issue 43).
+    pub max_matches_per_pair: Option<usize>,
+    /// Sets with no more matches than this stay whole. The 16-image temple (3,820 matches) is
+    /// so sensitive that thinning its few pairs above 128 moved it from mAA(30) 0.966 to 0.744;
+    /// a budget of 500,000 in all instead left the focal starts' 60-image subsets of the
+    /// forward walk whole and the mapper took 92 s there.
+    pub thin_above_matches: usize,
 }
 
 impl Default for SampsonRefineOptions {
@@ -58,8 +70,30 @@ impl Default for SampsonRefineOptions {
             tolerance: 1e-10,
             gate_scales: Some(3.0),
             solver: Solver::Sparse,
+            max_matches_per_pair: Some(128),
+            thin_above_matches: 100_000,
         }
     }
+}
+
+/// At most `max` of the pair's matches, evenly spaced in its match order; `None` where the
+/// pair has no more than that (use it as it is).
+fn thinned(p: &PairMatches, max: usize) -> Option<PairMatches> {
+    let n = p.len();
+    if n <= max {
+        return None;
+    }
+    let keep: Vec<usize> = (0..max).map(|i| i * n / max).collect();
+    let pick = |v: &[[f64; 2]]| keep.iter().map(|&k| v[k]).collect();
+    let pick_id = |v: &[u32]| keep.iter().map(|&k| v[k]).collect();
+    Some(PairMatches {
+        first: p.first,
+        second: p.second,
+        kp1: pick(&p.kp1),
+        kp2: pick(&p.kp2),
+        idx1: pick_id(&p.idx1),
+        idx2: pick_id(&p.idx2),
+    })
 }
 
 /// What the refinement did.
@@ -79,6 +113,9 @@ pub struct SampsonRefineReport {
     pub inliers: usize,
     /// Matches used.
     pub matches: usize,
+    /// Each pair thinned to at most this many matches (`max_matches_per_pair`, the set above
+    /// `thin_above_matches`); `None`: all used.
+    pub per_pair_cap: Option<usize>,
     /// RMS of `r` over those inliers, pixels.
     pub inlier_rms_px: f64,
 }
@@ -141,6 +178,21 @@ pub fn pair_fundamental_jacobian(
 
 fn row_major(m: &Matrix3<f64>) -> [f64; 9] {
     [0, 1, 2, 3, 4, 5, 6, 7, 8].map(|k| m[(k / 3, k % 3)])
+}
+
+/// Signed Sampson distance of one match (what [`sampson_residual`] returns first, without
+/// the gradient: the costs evaluate millions of these per step).
+#[inline]
+pub fn sampson_distance(f: &[f64; 9], x1: [f64; 2], x2: [f64; 2]) -> Option<f64> {
+    let p2 = [x2[0], x2[1], 1.0];
+    let l2 = [0, 1, 2].map(|r| f[3 * r] * x1[0] + f[3 * r + 1] * x1[1] + f[3 * r + 2]);
+    let l1 = [0, 1].map(|c| f[c] * p2[0] + f[3 + c] * p2[1] + f[6 + c]);
+    let e = p2[0] * l2[0] + p2[1] * l2[1] + l2[2];
+    let d = l2[0] * l2[0] + l2[1] * l2[1] + l1[0] * l1[0] + l1[1] * l1[1];
+    if d.is_nan() || d <= 1e-300 || !e.is_finite() {
+        return None;
+    }
+    Some(e / d.sqrt())
 }
 
 /// Signed Sampson distance of one match and its gradient with respect to `F` (row-major).
@@ -227,7 +279,7 @@ fn cost_of(
             ));
             let mut sum = CauchySum::new(loss.cauchy);
             for (x1, x2) in p.kp1.iter().zip(&p.kp2) {
-                if let Some((r, _)) = sampson_residual(&f, *x1, *x2) {
+                if let Some(r) = sampson_distance(&f, *x1, *x2) {
                     sum.add(loss.clamped(r).powi(2));
                 }
             }
@@ -476,11 +528,29 @@ pub fn refine_sampson(
             p.first, p.second
         )));
     }
+    if options.max_matches_per_pair == Some(0) {
+        return Err(SfmError::InvalidInput(
+            "max_matches_per_pair must be at least 1 (or none: all matches)".into(),
+        ));
+    }
     let layout = ParameterLayout::new(cameras, reference, options.refine_focal);
     let used: Vec<&PairMatches> = pairs
         .iter()
         .copied()
         .filter(|p| !p.is_empty() && cameras[p.first].is_some() && cameras[p.second].is_some())
+        .collect();
+    let total: usize = used.iter().map(|p| p.len()).sum();
+    let cap = options
+        .max_matches_per_pair
+        .filter(|_| total > options.thin_above_matches);
+    let thin: Vec<Option<PairMatches>> = used
+        .iter()
+        .map(|p| cap.and_then(|m| thinned(p, m)))
+        .collect();
+    let used: Vec<&PairMatches> = used
+        .iter()
+        .zip(&thin)
+        .map(|(p, t)| t.as_ref().unwrap_or(p))
         .collect();
     let block_pairs: Vec<(usize, usize)> = used
         .iter()
@@ -552,7 +622,7 @@ pub fn refine_sampson(
             &a, &b, *phi, intrinsics, p.first, p.second,
         ));
         for (x1, x2) in p.kp1.iter().zip(&p.kp2) {
-            if let Some((r, _)) = sampson_residual(&f, *x1, *x2) {
+            if let Some(r) = sampson_distance(&f, *x1, *x2) {
                 used += 1;
                 if r.abs() < 3.0 * options.cauchy_px {
                     inliers += 1;
@@ -563,6 +633,7 @@ pub fn refine_sampson(
     }
     report.inliers = inliers;
     report.matches = used;
+    report.per_pair_cap = cap;
     report.inlier_rms_px = if inliers > 0 {
         (sum / inliers as f64).sqrt()
     } else {
@@ -581,7 +652,8 @@ mod tests {
     fn sampson_gradient_matches_finite_differences() {
         let f = [1e-6, 2e-5, -3e-3, -1e-5, 3e-6, 4e-3, 2e-3, -5e-3, 1.0];
         let (x1, x2) = ([100.0, 50.0], [120.0, 40.0]);
-        let (_, g) = sampson_residual(&f, x1, x2).unwrap();
+        let (r, g) = sampson_residual(&f, x1, x2).unwrap();
+        assert_eq!(sampson_distance(&f, x1, x2), Some(r));
         for k in 0..9 {
             let h = 1e-7 * f[k].abs().max(1e-6);
             let mut p = f;

@@ -162,6 +162,65 @@ fn recovers_exact_cameras_and_focal() {
     }
 }
 
+/// With at most 20 of each pair's 80 matches (evenly spaced) the exact solution is still the
+/// minimum and the report counts the matches used; below `thin_above_matches` nothing is
+/// thinned; a cap of 0 is an error.
+#[test]
+fn a_cap_on_the_matches_per_pair_keeps_the_exact_solution() {
+    let s = scene(6, 0);
+    let mut cams = perturbed(&s.cameras);
+    let mut phi = s.phi * 1.1;
+    let pairs = s.matches.iter().filter(|p| !p.is_empty()).count();
+    let total: usize = s.matches.iter().map(|p| p.len()).sum();
+    let options = SampsonRefineOptions {
+        max_matches_per_pair: Some(20),
+        thin_above_matches: 0,
+        ..SampsonRefineOptions::default()
+    };
+    let report = refine_sampson(
+        &refs(&s.matches),
+        &s.intrinsics,
+        &mut cams,
+        &mut phi,
+        0,
+        &options,
+    )
+    .unwrap();
+    assert!(s.matches.iter().all(|p| p.len() > 20));
+    assert_eq!(report.matches, 20 * pairs, "{report:?}");
+    assert_eq!(report.per_pair_cap, Some(20));
+    assert!(report.converged, "{report:?}");
+    assert!((phi / s.phi - 1.0).abs() < 1e-6, "phi {phi}");
+    assert!(worst_rotation(&cams, &s.cameras) < 1e-4);
+    let whole = refine_sampson(
+        &refs(&s.matches),
+        &s.intrinsics,
+        &mut perturbed(&s.cameras),
+        &mut phi,
+        0,
+        &SampsonRefineOptions {
+            thin_above_matches: total,
+            ..options
+        },
+    )
+    .unwrap();
+    assert_eq!((whole.matches, whole.per_pair_cap), (total, None));
+    let zero = SampsonRefineOptions {
+        max_matches_per_pair: Some(0),
+        ..SampsonRefineOptions::default()
+    };
+    let err = refine_sampson(
+        &refs(&s.matches),
+        &s.intrinsics,
+        &mut perturbed(&s.cameras),
+        &mut phi,
+        0,
+        &zero,
+    )
+    .unwrap_err();
+    assert!(err.to_string().contains("max_matches_per_pair"), "{err}");
+}
+
 #[test]
 fn gross_outliers_do_not_pull_the_solution() {
     let s = scene(5, 7);
