@@ -180,33 +180,39 @@ fn row_major(m: &Matrix3<f64>) -> [f64; 9] {
     [0, 1, 2, 3, 4, 5, 6, 7, 8].map(|k| m[(k / 3, k % 3)])
 }
 
-/// Signed Sampson distance of one match (what [`sampson_residual`] returns first, without
-/// the gradient: the costs evaluate millions of these per step).
+/// The epipolar lines of a match (`l2 = F x₁`, the first two entries of `l1 = Fᵀ x₂`), its
+/// algebraic error `e = x₂ᵀ F x₁` and the Sampson denominator `d`; `None` where `d` vanishes
+/// or a value is not finite.
 #[inline]
-pub fn sampson_distance(f: &[f64; 9], x1: [f64; 2], x2: [f64; 2]) -> Option<f64> {
-    let p2 = [x2[0], x2[1], 1.0];
+fn sampson_terms(
+    f: &[f64; 9],
+    x1: [f64; 2],
+    x2: [f64; 2],
+) -> Option<([f64; 3], [f64; 2], f64, f64)> {
     let l2 = [0, 1, 2].map(|r| f[3 * r] * x1[0] + f[3 * r + 1] * x1[1] + f[3 * r + 2]);
-    let l1 = [0, 1].map(|c| f[c] * p2[0] + f[3 + c] * p2[1] + f[6 + c]);
-    let e = p2[0] * l2[0] + p2[1] * l2[1] + l2[2];
+    let l1 = [0, 1].map(|c| f[c] * x2[0] + f[3 + c] * x2[1] + f[6 + c]);
+    let e = x2[0] * l2[0] + x2[1] * l2[1] + l2[2];
     let d = l2[0] * l2[0] + l2[1] * l2[1] + l1[0] * l1[0] + l1[1] * l1[1];
     if d.is_nan() || d <= 1e-300 || !e.is_finite() {
         return None;
     }
+    Some((l2, l1, e, d))
+}
+
+/// Signed Sampson distance of one match (what [`sampson_residual`] returns first, without
+/// the gradient: the costs evaluate millions of these per step).
+#[inline]
+pub fn sampson_distance(f: &[f64; 9], x1: [f64; 2], x2: [f64; 2]) -> Option<f64> {
+    let (_, _, e, d) = sampson_terms(f, x1, x2)?;
     Some(e / d.sqrt())
 }
 
 /// Signed Sampson distance of one match and its gradient with respect to `F` (row-major).
 #[inline]
 pub fn sampson_residual(f: &[f64; 9], x1: [f64; 2], x2: [f64; 2]) -> Option<(f64, [f64; 9])> {
+    let (l2, l1, e, d) = sampson_terms(f, x1, x2)?;
     let p1 = [x1[0], x1[1], 1.0];
     let p2 = [x2[0], x2[1], 1.0];
-    let l2 = [0, 1, 2].map(|r| f[3 * r] * p1[0] + f[3 * r + 1] * p1[1] + f[3 * r + 2]);
-    let l1 = [0, 1].map(|c| f[c] * p2[0] + f[3 + c] * p2[1] + f[6 + c]);
-    let e = p2[0] * l2[0] + p2[1] * l2[1] + l2[2];
-    let d = l2[0] * l2[0] + l2[1] * l2[1] + l1[0] * l1[0] + l1[1] * l1[1];
-    if d.is_nan() || d <= 1e-300 || !e.is_finite() {
-        return None;
-    }
     let sd = d.sqrt();
     let r = e / sd;
     let mut g = [0.0; 9];
