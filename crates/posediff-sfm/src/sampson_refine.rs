@@ -50,9 +50,10 @@ pub struct SampsonRefineOptions {
     /// Where the pairs hold more than `thin_above_matches` matches in all, each pair takes
     /// part with at most this many (evenly spaced in its match order); `None`: all. The
     /// refinement only initialises the bundle adjustment and its time is linear in the
-    /// matches: on a 300-frame forward walk (3.1 M matches, 760 per pair) 128 took the mapper
-    /// from 96.6 s to 62 s at the same mAA(30) 0.998, on a 300-frame orbit (1.7 M) the
-    /// initialisation from 31 s to 19 s at mAA(30) 1.000 (`docs/BENCHMARKS.md`, issue 43).
+    /// matches: on a 300-frame forward walk (3.1 M matches, 760 per pair) 128 (above 100,000
+    /// in all) took `posediff map` from 96.6 s to 67.7 s at the same mAA(30) 0.998, on a
+    /// 300-frame orbit (1.7 M) from 61.7–70.0 s to 50.8 s at mAA(30) 1.000
+    /// (`docs/BENCHMARKS.md`, issue 43).
     pub max_matches_per_pair: Option<usize>,
     /// Sets with no more matches than this stay whole. The 16-image temple (3,820 matches) is
     /// so sensitive that thinning its few pairs above 128 moved it from mAA(30) 0.966 to 0.744;
