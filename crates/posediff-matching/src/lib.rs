@@ -12,7 +12,8 @@
 //! The keypoints of a match are in each original image's pixels; map them into the model's
 //! 224 crop with [`posediff_geometry::CenterCrop::to_model`].
 #![deny(missing_docs)]
-#![forbid(unsafe_code)]
+// Unsafe only in `mnn::vnni` (the AVX-512 VNNI kernel's loads and its dispatch).
+#![deny(unsafe_code)]
 
 pub mod error;
 pub mod features;

@@ -10,6 +10,9 @@ use nalgebra::DMatrix;
 
 use crate::features::Descriptors;
 
+#[cfg(target_arch = "x86_64")]
+mod vnni;
+
 /// Query rows per block of the distance computation.
 const BLOCK_ROWS: usize = 256;
 
@@ -88,6 +91,35 @@ pub fn mutual_nearest_neighbours(
 /// order of the comparisons is the plain row-by-row scan's (strict `<`: the first of equal
 /// distances wins, in rows and in columns), so the result is the same.
 fn l2_best(a: &[f32], b: &[f32], dim: usize) -> (Vec<RowBest>, Vec<usize>) {
+    #[cfg(target_arch = "x86_64")]
+    if let Some(found) = l2_best_bytes(a, b, dim) {
+        return found;
+    }
+    l2_best_f32(a, b, dim)
+}
+
+/// [`l2_best`] of byte-valued descriptors (SIFT) by the exact integer kernel ([`vnni`]), when
+/// the CPU has AVX-512 VNNI and every value is a whole number 0–255; `None` otherwise.
+#[cfg(target_arch = "x86_64")]
+fn l2_best_bytes(a: &[f32], b: &[f32], dim: usize) -> Option<(Vec<RowBest>, Vec<usize>)> {
+    if !vnni::available() || dim == 0 || a.len() < dim || b.len() < dim {
+        return None;
+    }
+    let (ab, bb) = (vnni::as_bytes(a)?, vnni::as_bytes(b)?);
+    let (rows, cols) = vnni::best(&ab, &bb, dim)?;
+    let rows = rows
+        .into_iter()
+        .map(|(j, d1, d2)| RowBest {
+            j: j as usize,
+            d1: d1 as f32,
+            d2: d2.map_or(f32::INFINITY, |d| d as f32),
+        })
+        .collect();
+    Some((rows, cols.into_iter().map(|c| c as usize).collect()))
+}
+
+/// [`l2_best`] by F32 matrix products (any descriptor values).
+fn l2_best_f32(a: &[f32], b: &[f32], dim: usize) -> (Vec<RowBest>, Vec<usize>) {
     let (n, m) = (a.len() / dim, b.len() / dim);
     let mut rows = vec![RowBest::EMPTY; n];
     let mut col_best = vec![(f32::INFINITY, usize::MAX); m];
@@ -326,6 +358,84 @@ mod tests {
         assert!(mutual_nearest_neighbours(&empty, &one, None).is_empty());
         assert!(mutual_nearest_neighbours(&one, &empty, None).is_empty());
         assert!(mutual_nearest_neighbours(&one, &a, None).is_empty());
+    }
+}
+
+#[cfg(all(test, target_arch = "x86_64"))]
+mod bytes {
+    use super::*;
+
+    /// Byte-valued descriptors (SIFT-like: sparse, whole numbers 0–255), with repeats so that
+    /// equal distances (ties) occur in rows and in columns.
+    fn byte_descriptors(n: usize, dim: usize, seed: u64, repeat: usize) -> Vec<f32> {
+        let mut s = seed;
+        let mut next = || {
+            s = s
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1_442_695_040_888_963_407);
+            (s >> 33) as u32
+        };
+        let distinct: Vec<Vec<f32>> = (0..n.div_ceil(repeat))
+            .map(|_| {
+                (0..dim)
+                    .map(|_| {
+                        let v = next();
+                        if v % 3 == 0 { 0.0 } else { (v % 256) as f32 }
+                    })
+                    .collect()
+            })
+            .collect();
+        (0..n)
+            .flat_map(|i| distinct[i % distinct.len()].clone())
+            .collect()
+    }
+
+    /// The VNNI kernel gives exactly the F32 path's row bests (column, nearest, second) and
+    /// column bests, ties included, for sizes that are not multiples of its tiles and widths
+    /// that are not multiples of four. Reported as skipped (ignored) on hosts without AVX-512
+    /// VNNI, where the kernel cannot run.
+    #[test]
+    #[cfg_attr(
+        not(vnni_host),
+        ignore = "needs a CPU with AVX-512 VNNI (e.g. Intel Ice Lake or later, AMD Zen 4)"
+    )]
+    fn the_byte_kernel_is_the_f32_path_exactly() {
+        assert!(
+            vnni::available(),
+            "the CPU has AVX-512 VNNI but it was not detected"
+        );
+        for (n, m, dim, repeat) in [
+            (1, 1, 128, 1),
+            (9, 33, 128, 1),
+            (300, 517, 128, 7),
+            (517, 300, 128, 1),
+            (64, 70, 6, 5),
+            (20, 3, 130, 2),
+        ] {
+            let a = byte_descriptors(n, dim, 11 + n as u64, repeat);
+            let mut b = byte_descriptors(m, dim, 5 + m as u64, repeat);
+            // Some columns are copies of rows: distance 0, and ties between the copies.
+            for k in 0..m.min(n) / 4 {
+                b[k * dim..(k + 1) * dim].copy_from_slice(&a[2 * k * dim..(2 * k + 1) * dim]);
+            }
+            let Some((rows, cols)) = l2_best_bytes(&a, &b, dim) else {
+                panic!("the byte path refused {n}×{m}×{dim}");
+            };
+            let (want_rows, want_cols) = l2_best_f32(&a, &b, dim);
+            assert_eq!(cols, want_cols, "{n}×{m}×{dim}: column bests");
+            for (i, (r, w)) in rows.iter().zip(&want_rows).enumerate() {
+                assert_eq!(
+                    (r.j, r.d1, r.d2),
+                    (w.j, w.d1, w.d2),
+                    "{n}×{m}×{dim}: row {i}"
+                );
+            }
+            assert_eq!(rows.len(), n);
+        }
+        // Values that are not bytes go to the F32 path.
+        assert!(l2_best_bytes(&[0.5; 128], &[1.0; 128], 128).is_none());
+        assert!(l2_best_bytes(&[256.0; 128], &[1.0; 128], 128).is_none());
+        assert!(l2_best_bytes(&[-1.0; 128], &[1.0; 128], 128).is_none());
     }
 }
 
