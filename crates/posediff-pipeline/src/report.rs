@@ -120,6 +120,9 @@ pub struct GeometricReport {
     /// (`mapper.sampson.max_matches_per_pair`, the set above `thin_above_matches`); `None`:
     /// all used.
     pub refine_per_pair_cap: Option<usize>,
+    /// The refinement's convergence tolerance (`mapper.sampson.tolerance`, or
+    /// `large_set_tolerance` where the set is above `thin_above_matches`).
+    pub refine_tolerance: f64,
     /// RMS Sampson distance of those inliers, px.
     pub refine_inlier_rms_px: f64,
     /// Bridges of the view graph: pairs that no cycle confirms (0: resection not run).
@@ -186,6 +189,7 @@ impl GeometricReport {
         self.refine_inliers = r.inliers;
         self.refine_matches = r.matches;
         self.refine_per_pair_cap = r.per_pair_cap;
+        self.refine_tolerance = r.tolerance;
         self.refine_inlier_rms_px = r.inlier_rms_px;
     }
 

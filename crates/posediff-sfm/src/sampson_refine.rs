@@ -60,6 +60,15 @@ pub struct SampsonRefineOptions {
     /// a budget of 500,000 in all instead left the focal starts' 60-image subsets of the
     /// forward walk whole and the mapper took 92 s there.
     pub thin_above_matches: usize,
+    /// Where the set holds more than `thin_above_matches` matches (the sets that are thinned),
+    /// converged at this relative cost decrease instead of `tolerance`. The refinement only
+    /// initialises the bundle adjustment; on the 300-frame forward walk (and on its focal
+    /// starts' 60-image subsets) the last hundred of ~120–190 iterations each lowered the cost
+    /// by less than 1e-6, relatively. At 1e-6 `posediff map` took 26 s instead of 36 s there,
+    /// 26.8 s against 27.5 s on the orbit, with the same cameras to 0.01° and the same mAA(30)
+    /// (docs/BENCHMARKS.md, "Video-scale speed", third session). Small sets keep `tolerance`:
+    /// 1e-6 everywhere cost apple (all frames) 0.957 → 0.950 in `bench-real`.
+    pub large_set_tolerance: f64,
 }
 
 impl Default for SampsonRefineOptions {
@@ -73,6 +82,7 @@ impl Default for SampsonRefineOptions {
             solver: Solver::Sparse,
             max_matches_per_pair: Some(128),
             thin_above_matches: 100_000,
+            large_set_tolerance: 1e-6,
         }
     }
 }
@@ -117,6 +127,9 @@ pub struct SampsonRefineReport {
     /// Each pair thinned to at most this many matches (`max_matches_per_pair`, the set above
     /// `thin_above_matches`); `None`: all used.
     pub per_pair_cap: Option<usize>,
+    /// The convergence tolerance used (`tolerance`, or `large_set_tolerance` above
+    /// `thin_above_matches`).
+    pub tolerance: f64,
     /// RMS of `r` over those inliers, pixels.
     pub inlier_rms_px: f64,
 }
@@ -535,6 +548,16 @@ pub fn refine_sampson(
             p.first, p.second
         )));
     }
+    for (name, t) in [
+        ("tolerance", options.tolerance),
+        ("large_set_tolerance", options.large_set_tolerance),
+    ] {
+        if !(t.is_finite() && t >= 0.0) {
+            return Err(SfmError::InvalidInput(format!(
+                "{name} must be a relative decrease of 0 or more, not {t}"
+            )));
+        }
+    }
     if options.max_matches_per_pair == Some(0) {
         return Err(SfmError::InvalidInput(
             "max_matches_per_pair must be at least 1 (or none: all matches)".into(),
@@ -547,9 +570,13 @@ pub fn refine_sampson(
         .filter(|p| !p.is_empty() && cameras[p.first].is_some() && cameras[p.second].is_some())
         .collect();
     let total: usize = used.iter().map(|p| p.len()).sum();
-    let cap = options
-        .max_matches_per_pair
-        .filter(|_| total > options.thin_above_matches);
+    let large = total > options.thin_above_matches;
+    let cap = options.max_matches_per_pair.filter(|_| large);
+    let tolerance = if large {
+        options.large_set_tolerance
+    } else {
+        options.tolerance
+    };
     let thin: Vec<Option<PairMatches>> = used
         .iter()
         .map(|p| cap.and_then(|m| thinned(p, m)))
@@ -593,7 +620,7 @@ pub fn refine_sampson(
     let mut state: State = (cameras.to_vec(), *phi);
     let lm = LmOptions {
         max_iterations: options.max_iterations,
-        tolerance: options.tolerance,
+        tolerance,
         ..LmOptions::default()
     };
     let first = minimize(&mut problem, &mut state, &lm)?;
@@ -641,6 +668,7 @@ pub fn refine_sampson(
     report.inliers = inliers;
     report.matches = used;
     report.per_pair_cap = cap;
+    report.tolerance = tolerance;
     report.inlier_rms_px = if inliers > 0 {
         (sum / inliers as f64).sqrt()
     } else {

@@ -189,6 +189,10 @@ fn a_cap_on_the_matches_per_pair_keeps_the_exact_solution() {
     assert!(s.matches.iter().all(|p| p.len() > 20));
     assert_eq!(report.matches, 20 * pairs, "{report:?}");
     assert_eq!(report.per_pair_cap, Some(20));
+    assert_eq!(
+        report.tolerance, options.large_set_tolerance,
+        "a thinned set is large"
+    );
     assert!(report.converged, "{report:?}");
     assert!((phi / s.phi - 1.0).abs() < 1e-6, "phi {phi}");
     assert!(worst_rotation(&cams, &s.cameras) < 1e-4);
@@ -205,6 +209,10 @@ fn a_cap_on_the_matches_per_pair_keeps_the_exact_solution() {
     )
     .unwrap();
     assert_eq!((whole.matches, whole.per_pair_cap), (total, None));
+    assert_eq!(
+        whole.tolerance, options.tolerance,
+        "a whole set keeps the tight tolerance"
+    );
     let zero = SampsonRefineOptions {
         max_matches_per_pair: Some(0),
         ..SampsonRefineOptions::default()
