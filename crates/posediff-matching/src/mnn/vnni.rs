@@ -52,12 +52,14 @@ pub(super) fn available() -> bool {
 pub(super) fn as_bytes(v: &[f32]) -> Option<Vec<u8>> {
     // The saturating cast round-trips exactly the whole numbers 0–255 (not NaN, fractions,
     // negatives or values above 255), and vectorises where `fract` is a libm call per value.
+    // No short cut on the first failure: a fold over chunks of 64 vectorises.
     let bytes: Vec<u8> = v.iter().map(|&x| x as u8).collect();
-    bytes
-        .iter()
-        .zip(v)
-        .all(|(&b, &x)| f32::from(b) == x)
-        .then_some(bytes)
+    let whole = bytes.chunks(64).zip(v.chunks(64)).all(|(b, x)| {
+        b.iter()
+            .zip(x)
+            .fold(true, |ok, (&b, &x)| ok & (f32::from(b) == x))
+    });
+    whole.then_some(bytes)
 }
 
 /// Row bests `(column, nearest, second)` as squared distances (`None` for distances of
@@ -101,11 +103,14 @@ fn pack_b(b: &[u8], dim: usize, width: usize) -> (Vec<u8>, Vec<i32>) {
     // `REAL_BELOW`, so it is never a real row's nearest and never a second.
     let mut packed = vec![0u8; tiles * groups * COLS * 4];
     let mut norms = vec![FAR; tiles * COLS];
+    let mut word = vec![0u8; width];
     for (j, col) in b.chunks_exact(dim).enumerate() {
         let (t, c) = (j / COLS, j % COLS);
-        for (k, &x) in col.iter().enumerate() {
-            let (g, q) = (k / 4, k % 4);
-            packed[((t * groups + g) * COLS + c) * 4 + q] = x ^ 0x80;
+        word[..dim].copy_from_slice(col);
+        for (g, four) in word.chunks_exact(4).enumerate() {
+            let at = ((t * groups + g) * COLS + c) * 4;
+            let shifted = u32::from_le_bytes([four[0], four[1], four[2], four[3]]) ^ 0x8080_8080;
+            packed[at..at + 4].copy_from_slice(&shifted.to_le_bytes());
         }
         norms[j] = col.iter().map(|&x| i32::from(x) * i32::from(x)).sum();
     }
@@ -140,23 +145,8 @@ fn best_avx512(a: &[u8], b: &[u8], dim: usize) -> (RowBests, Vec<u32>) {
             jb[r] = _mm512_set1_epi32(-1);
         }
         for t in 0..tiles {
-            let mut acc = [[_mm512_setzero_si512(); 2]; ROWS];
-            let base = t * groups * COLS * 4;
-            for (g, w) in words.iter().enumerate() {
-                let at = base + g * COLS * 4;
-                // SAFETY: `at + 128 ≤ tiles·groups·COLS·4 ≤ pb.len()` (asserted above).
-                let (b0, b1) = unsafe {
-                    (
-                        _mm512_loadu_si512(pb.as_ptr().add(at).cast()),
-                        _mm512_loadu_si512(pb.as_ptr().add(at + 64).cast()),
-                    )
-                };
-                for r in 0..ROWS {
-                    let x = _mm512_set1_epi32(w[r]);
-                    acc[r][0] = _mm512_dpbusd_epi32(acc[r][0], x, b0);
-                    acc[r][1] = _mm512_dpbusd_epi32(acc[r][1], x, b1);
-                }
-            }
+            let tile = &pb[t * groups * COLS * 4..(t + 1) * groups * COLS * 4];
+            let acc = dots(&words, tile);
             for (c, half) in [0usize, 1].into_iter().zip([0i32, 16]) {
                 let j0 = t * COLS + 16 * c;
                 // SAFETY: `j0 + 16 ≤ tiles·COLS`, the length of `norms`, `col_d` and `col_i`.
@@ -195,6 +185,31 @@ fn best_avx512(a: &[u8], b: &[u8], dim: usize) -> (RowBests, Vec<u32>) {
     }
     col_i.truncate(m);
     (rows, col_i)
+}
+
+/// The dot products (less `128 Σa`) of a block's rows with one tile's 32 columns: `words[g]`
+/// holds the rows' bytes `4g..4g + 4`, `tile` the columns' in the packed layout. Kept out of
+/// line so that its sixteen accumulators stay in registers (inlined into the scan, whose row
+/// bests need 24 more, they were spilled to the stack on every step).
+#[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
+#[inline(never)]
+fn dots(words: &[[i32; ROWS]], tile: &[u8]) -> [[__m512i; 2]; ROWS] {
+    let mut acc = [[_mm512_setzero_si512(); 2]; ROWS];
+    for (w, b) in words.iter().zip(tile.chunks_exact(COLS * 4)) {
+        // SAFETY: `b` is `COLS·4 = 128` bytes: two 64-byte loads.
+        let (b0, b1) = unsafe {
+            (
+                _mm512_loadu_si512(b.as_ptr().cast()),
+                _mm512_loadu_si512(b.as_ptr().add(64).cast()),
+            )
+        };
+        for r in 0..ROWS {
+            let x = _mm512_set1_epi32(w[r]);
+            acc[r][0] = _mm512_dpbusd_epi32(acc[r][0], x, b0);
+            acc[r][1] = _mm512_dpbusd_epi32(acc[r][1], x, b1);
+        }
+    }
+    acc
 }
 
 /// The sixteen `i32` lanes of `v`.
