@@ -21,7 +21,7 @@ use rayon::prelude::*;
 use crate::camera::{CameraPose, ParameterLayout, gauge_scale};
 use crate::error::Result;
 use crate::intrinsics::ImageIntrinsics;
-use crate::linalg::{BlockSystem, Solver};
+use crate::linalg::{BlockSystem, BlockValues, Solver};
 use crate::lm::{CauchySum, LeastSquares, LmOptions, Termination, minimize};
 use crate::sampson_refine::check_inputs;
 use crate::tracks::{Observation, Track};
@@ -248,6 +248,96 @@ impl PointBlocks {
     }
 }
 
+/// Points the Schur complement is split into ([`Problem::solve`]): enough runs for the
+/// threads of a large machine, few enough that their copies of the reduced system stay small.
+const SCHUR_PARTS: usize = 8;
+
+/// The reduced camera system of `linear`'s points at damping `lambda`, into a part of
+/// `system`'s pattern, with each point's `C⁻¹`; `None` when a point's `C` is not invertible.
+fn eliminate(
+    system: &BlockSystem,
+    linear: &[PointLinearisation],
+    blocks: &[PointBlocks],
+    lambda: f64,
+) -> Option<(BlockValues, Vec<Matrix3<f64>>)> {
+    let mut part = system.zero_part();
+    let mut inverses = Vec::with_capacity(linear.len());
+    // Per entry of a point: E = Σ J_uᵀ W J_p (rows beyond the block's size unused), E C⁻¹
+    // and the gradient; buffers reused from point to point.
+    let mut es: Vec<SMatrix<f64, 6, 3>> = Vec::new();
+    let mut ecs: Vec<SMatrix<f64, 6, 3>> = Vec::new();
+    let mut gs: Vec<SVector<f64, 6>> = Vec::new();
+    // Per point: the direct terms J_uᵀ W J_v of each observation, then minus the point's
+    // elimination, S = A − Σ E C⁻¹ Eᵀ and rhs = −g + Σ E C⁻¹ g_p, each lower block once.
+    for (lin, blocks) in linear.iter().zip(blocks) {
+        let mut c = lin.c;
+        for k in 0..3 {
+            c[(k, k)] = c[(k, k)] * (1.0 + lambda) + 1e-12;
+        }
+        let Some(c_inv) = c.try_inverse() else {
+            // Not invertible at this damping: more damping makes it so.
+            return None;
+        };
+        let entries = blocks.entries.len();
+        es.clear();
+        es.resize(entries, SMatrix::zeros());
+        gs.clear();
+        gs.resize(entries, SVector::zeros());
+        for o in &lin.obs {
+            let (camera, focal) = blocks.obs[o.index];
+            if let Some(u) = camera {
+                let e = o.jc.transpose() * o.jp * o.w;
+                es[u] += e;
+                let gc = o.jc.transpose() * o.r * o.w;
+                gs[u] += gc;
+                let h = o.jc.transpose() * o.jc * o.w;
+                let b = blocks.entries[u];
+                system.add_block_in(&mut part, blocks.slots[pair_index(u, u)], b, b, |i, j| {
+                    h[(i, j)]
+                });
+            }
+            if let Some(v) = focal {
+                let e = o.jf.transpose() * o.jp * o.w;
+                for j in 0..3 {
+                    es[v][(0, j)] += e[(0, j)];
+                }
+                gs[v][0] += o.jf.dot(&o.r) * o.w;
+                let h = o.jf.norm_squared() * o.w;
+                let b = blocks.entries[v];
+                system.add_block_in(&mut part, blocks.slots[pair_index(v, v)], b, b, |_, _| h);
+                if let Some(u) = camera {
+                    let h = o.jf.transpose() * o.jc * o.w;
+                    let bu = blocks.entries[u];
+                    system.add_block_in(
+                        &mut part,
+                        blocks.slots[pair_index(u, v)],
+                        b,
+                        bu,
+                        |_, j| h[(0, j)],
+                    );
+                }
+            }
+        }
+        let cg = c_inv * lin.g;
+        ecs.clear();
+        ecs.extend(es.iter().map(|e| e * c_inv));
+        for u in 0..entries {
+            let bu = blocks.entries[u];
+            let v = es[u] * cg;
+            let g = gs[u];
+            system.add_rhs_in(&mut part, bu, |i| -g[i] + v[i]);
+            for (w, (ew, &bw)) in es.iter().zip(&blocks.entries).enumerate().take(u + 1) {
+                let m = ecs[u] * ew.transpose();
+                system.add_block_in(&mut part, blocks.slots[pair_index(u, w)], bu, bw, |i, j| {
+                    -m[(i, j)]
+                });
+            }
+        }
+        inverses.push(c_inv);
+    }
+    Some((part, inverses))
+}
+
 struct Problem<'a> {
     intrinsics: &'a ImageIntrinsics,
     /// Each point's observations (borrowed from the points being adjusted).
@@ -356,75 +446,28 @@ impl LeastSquares for Problem<'_> {
     }
 
     fn solve(&mut self, lambda: f64) -> Result<Option<Vec<f64>>> {
-        self.system.clear();
+        // The points in `SCHUR_PARTS` runs, each eliminated into its own copy of the reduced
+        // system's values by one task, then added in order: the same sum on any thread count.
+        let chunk = self.linear.len().div_ceil(SCHUR_PARTS).max(1);
+        let system = &self.system;
+        let parts: Vec<Option<(BlockValues, Vec<Matrix3<f64>>)>> = self
+            .linear
+            .par_chunks(chunk)
+            .zip(self.blocks.par_chunks(chunk))
+            .map(|(linear, blocks)| eliminate(system, linear, blocks, lambda))
+            .collect();
         let mut inverses = Vec::with_capacity(self.linear.len());
-        // Per entry of a point: E = Σ J_uᵀ W J_p (rows beyond the block's size unused), E C⁻¹
-        // and the gradient; buffers reused from point to point.
-        let mut es: Vec<SMatrix<f64, 6, 3>> = Vec::new();
-        let mut ecs: Vec<SMatrix<f64, 6, 3>> = Vec::new();
-        let mut gs: Vec<SVector<f64, 6>> = Vec::new();
-        // Per point: the direct terms J_uᵀ W J_v of each observation, then minus the point's
-        // elimination, S = A − Σ E C⁻¹ Eᵀ and rhs = −g + Σ E C⁻¹ g_p, each lower block once.
-        for (lin, blocks) in self.linear.iter().zip(&self.blocks) {
-            let mut c = lin.c;
-            for k in 0..3 {
-                c[(k, k)] = c[(k, k)] * (1.0 + lambda) + 1e-12;
-            }
-            let Some(c_inv) = c.try_inverse() else {
-                // Not invertible at this damping: more damping makes it so.
+        let mut values = Vec::with_capacity(parts.len());
+        for part in parts {
+            // A point not invertible at this damping: more damping makes it so.
+            let Some((v, inv)) = part else {
                 return Ok(None);
             };
-            let entries = blocks.entries.len();
-            es.clear();
-            es.resize(entries, SMatrix::zeros());
-            gs.clear();
-            gs.resize(entries, SVector::zeros());
-            for o in &lin.obs {
-                let (camera, focal) = blocks.obs[o.index];
-                if let Some(u) = camera {
-                    let e = o.jc.transpose() * o.jp * o.w;
-                    es[u] += e;
-                    let gc = o.jc.transpose() * o.r * o.w;
-                    gs[u] += gc;
-                    let h = o.jc.transpose() * o.jc * o.w;
-                    let b = blocks.entries[u];
-                    self.system
-                        .add_block_at(blocks.slots[pair_index(u, u)], b, b, |i, j| h[(i, j)]);
-                }
-                if let Some(v) = focal {
-                    let e = o.jf.transpose() * o.jp * o.w;
-                    for j in 0..3 {
-                        es[v][(0, j)] += e[(0, j)];
-                    }
-                    gs[v][0] += o.jf.dot(&o.r) * o.w;
-                    let h = o.jf.norm_squared() * o.w;
-                    let b = blocks.entries[v];
-                    self.system
-                        .add_block_at(blocks.slots[pair_index(v, v)], b, b, |_, _| h);
-                    if let Some(u) = camera {
-                        let h = o.jf.transpose() * o.jc * o.w;
-                        let bu = blocks.entries[u];
-                        self.system
-                            .add_block_at(blocks.slots[pair_index(u, v)], b, bu, |_, j| h[(0, j)]);
-                    }
-                }
-            }
-            let cg = c_inv * lin.g;
-            ecs.clear();
-            ecs.extend(es.iter().map(|e| e * c_inv));
-            for u in 0..entries {
-                let bu = blocks.entries[u];
-                let v = es[u] * cg;
-                let g = gs[u];
-                self.system.add_rhs(bu, |i| -g[i] + v[i]);
-                for (w, (ew, &bw)) in es.iter().zip(&blocks.entries).enumerate().take(u + 1) {
-                    let m = ecs[u] * ew.transpose();
-                    self.system
-                        .add_block_at(blocks.slots[pair_index(u, w)], bu, bw, |i, j| -m[(i, j)]);
-                }
-            }
-            inverses.push(c_inv);
+            values.push(v);
+            inverses.extend(inv);
         }
+        self.system.set_parts(&values);
+        drop(values);
         let Some(delta) = self.system.solve_regularised(lambda)? else {
             return Ok(None);
         };

@@ -33,6 +33,60 @@ pub enum Solver {
     Dense,
 }
 
+/// The values of a [`BlockSystem`]'s pattern filled apart from it ([`BlockSystem::zero_part`]).
+#[derive(Debug, Clone)]
+pub struct BlockValues {
+    values: Vec<f64>,
+    rhs: Vec<f64>,
+}
+
+/// Adds block `(bi, bj)`'s `m` to `values` at `base` (the stored lower triangle).
+fn add_block_values(
+    sizes: &[usize],
+    values: &mut [f64],
+    base: usize,
+    bi: usize,
+    bj: usize,
+    m: impl Fn(usize, usize) -> f64,
+) {
+    let (hi, lo, swap) = if bi >= bj {
+        (bi, bj, false)
+    } else {
+        (bj, bi, true)
+    };
+    let at = |r: usize, c: usize| if swap { m(c, r) } else { m(r, c) };
+    if hi == lo {
+        let mut k = base;
+        for r in 0..sizes[hi] {
+            for c in 0..=r {
+                values[k] += at(r, c);
+                k += 1;
+            }
+        }
+    } else {
+        let cols = sizes[lo];
+        for r in 0..sizes[hi] {
+            for c in 0..cols {
+                values[base + r * cols + c] += at(r, c);
+            }
+        }
+    }
+}
+
+/// Adds `v(k)` to block `b`'s entries of `rhs`.
+fn add_rhs_values(
+    offsets: &[usize],
+    sizes: &[usize],
+    rhs: &mut [f64],
+    b: usize,
+    v: impl Fn(usize) -> f64,
+) {
+    let o = offsets[b];
+    for k in 0..sizes[b] {
+        rhs[o + k] += v(k);
+    }
+}
+
 /// A symmetric system `H x = b` whose non-zeros lie in fixed blocks; only the lower triangle
 /// is stored.
 pub struct BlockSystem {
@@ -193,35 +247,51 @@ impl BlockSystem {
         bj: usize,
         m: impl Fn(usize, usize) -> f64,
     ) {
-        let (hi, lo, swap) = if bi >= bj {
-            (bi, bj, false)
-        } else {
-            (bj, bi, true)
-        };
-        let at = |r: usize, c: usize| if swap { m(c, r) } else { m(r, c) };
-        if hi == lo {
-            let mut k = base;
-            for r in 0..self.sizes[hi] {
-                for c in 0..=r {
-                    self.values[k] += at(r, c);
-                    k += 1;
-                }
-            }
-        } else {
-            let cols = self.sizes[lo];
-            for r in 0..self.sizes[hi] {
-                for c in 0..cols {
-                    self.values[base + r * cols + c] += at(r, c);
-                }
-            }
-        }
+        add_block_values(&self.sizes, &mut self.values, base, bi, bj, m);
     }
 
     /// Adds `v(k)` to the right-hand side of block `b`.
     pub fn add_rhs(&mut self, b: usize, v: impl Fn(usize) -> f64) {
-        let o = self.offsets[b];
-        for k in 0..self.sizes[b] {
-            self.rhs[o + k] += v(k);
+        add_rhs_values(&self.offsets, &self.sizes, &mut self.rhs, b, v);
+    }
+
+    /// Zero values and right-hand side of this pattern, to be filled apart from the system
+    /// (one part per task) and added into it by [`Self::set_parts`].
+    pub fn zero_part(&self) -> BlockValues {
+        BlockValues {
+            values: vec![0.0; self.values.len()],
+            rhs: vec![0.0; self.rhs.len()],
+        }
+    }
+
+    /// [`Self::add_block_at`] into a part.
+    pub fn add_block_in(
+        &self,
+        part: &mut BlockValues,
+        base: usize,
+        bi: usize,
+        bj: usize,
+        m: impl Fn(usize, usize) -> f64,
+    ) {
+        add_block_values(&self.sizes, &mut part.values, base, bi, bj, m);
+    }
+
+    /// [`Self::add_rhs`] into a part.
+    pub fn add_rhs_in(&self, part: &mut BlockValues, b: usize, v: impl Fn(usize) -> f64) {
+        add_rhs_values(&self.offsets, &self.sizes, &mut part.rhs, b, v);
+    }
+
+    /// The matrix and right-hand side set to the sum of `parts` (added in their order, so the
+    /// result does not depend on which thread filled which part).
+    pub fn set_parts<'p>(&mut self, parts: impl IntoIterator<Item = &'p BlockValues>) {
+        self.clear();
+        for p in parts {
+            for (v, x) in self.values.iter_mut().zip(&p.values) {
+                *v += x;
+            }
+            for (v, x) in self.rhs.iter_mut().zip(&p.rhs) {
+                *v += x;
+            }
         }
     }
 
@@ -316,6 +386,55 @@ mod tests {
     use super::*;
 
     /// A block tridiagonal SPD system solved sparse and dense against a hand-checked residual.
+    #[test]
+    fn parts_filled_apart_add_up_to_the_system() {
+        let sizes = [3, 2, 3, 1];
+        let pairs = [(0, 1), (2, 1), (3, 0), (3, 2)];
+        let fill = |s: &mut BlockSystem, b: usize| {
+            s.add_block(b, b, |r, c| if r == c { 4.0 + b as f64 } else { 0.5 })
+                .unwrap();
+            s.add_rhs(b, |k| (b + k) as f64 - 1.5);
+        };
+        let mut whole = BlockSystem::new("test", &sizes, pairs, Solver::Sparse).unwrap();
+        for b in 0..4 {
+            fill(&mut whole, b);
+        }
+        for &(a, b) in &pairs {
+            whole
+                .add_block(a, b, |r, c| 0.1 * (r as f64 + 1.0) - 0.05 * c as f64)
+                .unwrap();
+        }
+        // The same terms split over two parts (the off-diagonal blocks by their swapped
+        // transposes in the second), and stale values in the system that set_parts replaces.
+        let mut split = BlockSystem::new("test", &sizes, pairs, Solver::Sparse).unwrap();
+        fill(&mut split, 0);
+        let (mut first, mut second) = (split.zero_part(), split.zero_part());
+        for b in 0..4 {
+            let part = if b % 2 == 0 { &mut first } else { &mut second };
+            let base = split.slot(b, b).unwrap();
+            split.add_block_in(
+                part,
+                base,
+                b,
+                b,
+                |r, c| {
+                    if r == c { 4.0 + b as f64 } else { 0.5 }
+                },
+            );
+            split.add_rhs_in(part, b, |k| (b + k) as f64 - 1.5);
+        }
+        for &(a, b) in &pairs {
+            let base = split.slot(a, b).unwrap();
+            split.add_block_in(&mut second, base, b, a, |c, r| {
+                0.1 * (r as f64 + 1.0) - 0.05 * c as f64
+            });
+        }
+        split.set_parts([&first, &second]);
+        assert_eq!(split.values, whole.values);
+        assert_eq!(split.rhs(), whole.rhs());
+        assert_eq!(split.solve().unwrap(), whole.solve().unwrap());
+    }
+
     #[test]
     fn sparse_and_dense_agree_and_solve() {
         let sizes = [3, 2, 3, 1];
