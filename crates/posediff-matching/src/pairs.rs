@@ -13,6 +13,7 @@ use std::fmt;
 use std::str::FromStr;
 
 use nalgebra::DMatrix;
+use rayon::prelude::*;
 
 use crate::error::{MatchingError, Result};
 use crate::features::{Descriptors, ImageFeatures};
@@ -307,18 +308,31 @@ fn float_rows(d: &Descriptors, max_rows: usize) -> (Vec<f32>, usize) {
     }
 }
 
-/// Index of the nearest centre of each row (squared L2 via one matrix product).
-fn assign(rows: &DMatrix<f32>, centres: &DMatrix<f32>) -> Vec<usize> {
+/// Rows per task of [`assign`].
+const ASSIGN_ROWS: usize = 1024;
+
+/// Index of the nearest centre of each row of `rows` (row-major, `dim` wide): squared L2 via
+/// matrix products, `ASSIGN_ROWS` rows per task in parallel (each row's products are the
+/// same whichever task computes them).
+fn assign(rows: &[f32], dim: usize, centres: &DMatrix<f32>) -> Vec<usize> {
     let norms: Vec<f32> = centres.row_iter().map(|c| c.norm_squared()).collect();
-    let dots = rows * centres.transpose();
-    (0..rows.nrows())
-        .map(|i| {
-            (0..centres.nrows())
-                .map(|c| (c, norms[c] - 2.0 * dots[(i, c)]))
-                .min_by(|a, b| a.1.total_cmp(&b.1))
-                .map_or(0, |(c, _)| c)
+    let ct = centres.transpose();
+    let chunks: Vec<Vec<usize>> = rows
+        .par_chunks(ASSIGN_ROWS * dim.max(1))
+        .map(|chunk| {
+            let block = DMatrix::from_row_slice(chunk.len() / dim.max(1), dim, chunk);
+            let dots = &block * &ct;
+            (0..block.nrows())
+                .map(|i| {
+                    (0..centres.nrows())
+                        .map(|c| (c, norms[c] - 2.0 * dots[(i, c)]))
+                        .min_by(|a, b| a.1.total_cmp(&b.1))
+                        .map_or(0, |(c, _)| c)
+                })
+                .collect()
         })
-        .collect()
+        .collect();
+    chunks.concat()
 }
 
 /// A tf-idf bag of visual words over a set of images: the vocabulary (k-means on their
@@ -364,17 +378,17 @@ impl BagOfWords {
         }
         let samples = sample.len() / dim;
         let words = options.words.min(samples).max(1);
-        let train = DMatrix::from_row_slice(samples, dim, &sample);
         let step = (samples / words).max(1);
-        let mut centres = DMatrix::from_fn(words, dim, |c, d| train[((c * step) % samples, d)]);
+        let mut centres =
+            DMatrix::from_fn(words, dim, |c, d| sample[((c * step) % samples) * dim + d]);
         for _ in 0..options.iterations {
-            let labels = assign(&train, &centres);
+            let labels = assign(&sample, dim, &centres);
             let mut sums = DMatrix::<f32>::zeros(words, dim);
             let mut counts = vec![0usize; words];
-            for (i, &l) in labels.iter().enumerate() {
+            for (row, &l) in sample.chunks_exact(dim).zip(&labels) {
                 counts[l] += 1;
-                for d in 0..dim {
-                    sums[(l, d)] += train[(i, d)];
+                for (d, &x) in row.iter().enumerate() {
+                    sums[(l, d)] += x;
                 }
             }
             for c in 0..words {
@@ -387,12 +401,18 @@ impl BagOfWords {
         }
         // Histograms, idf, normalisation.
         let mut hist = DMatrix::<f32>::zeros(n, words);
-        for (i, (data, w)) in per_image.iter().enumerate() {
-            if *w != dim || data.is_empty() {
-                continue;
-            }
-            let rows = DMatrix::from_row_slice(data.len() / dim, dim, data);
-            for l in assign(&rows, &centres) {
+        let labels: Vec<Vec<usize>> = per_image
+            .par_iter()
+            .map(|(data, w)| {
+                if *w != dim || data.is_empty() {
+                    Vec::new()
+                } else {
+                    assign(data, dim, &centres)
+                }
+            })
+            .collect();
+        for (i, labels) in labels.iter().enumerate() {
+            for &l in labels {
                 hist[(i, l)] += 1.0;
             }
         }
@@ -449,8 +469,7 @@ impl BagOfWords {
         let mut hist = vec![0.0f32; self.idf.len()];
         let (data, w) = float_rows(&features.descriptors, self.per_image);
         if w == self.dim && !data.is_empty() {
-            let rows = DMatrix::from_row_slice(data.len() / w, w, &data);
-            for l in assign(&rows, &self.centres) {
+            for l in assign(&data, w, &self.centres) {
                 hist[l] += 1.0;
             }
         }
