@@ -436,6 +436,8 @@ mod bytes {
         assert!(l2_best_bytes(&[0.5; 128], &[1.0; 128], 128).is_none());
         assert!(l2_best_bytes(&[256.0; 128], &[1.0; 128], 128).is_none());
         assert!(l2_best_bytes(&[-1.0; 128], &[1.0; 128], 128).is_none());
+        // Too wide for the kernel's i32 distances to stay below its padding's.
+        assert!(l2_best_bytes(&[1.0; 4096], &[1.0; 4096], 4096).is_none());
     }
 }
 

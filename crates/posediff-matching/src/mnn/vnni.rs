@@ -32,9 +32,12 @@ const ROWS: usize = 8;
 const COLS: usize = 32;
 /// Added to the distances of padding rows and columns: twice it still fits an `i32`.
 const FAR: i32 = 1 << 29;
-/// Every real distance is below this (at most `‖a‖² + ‖b‖² ≤ 2·128·255² < 2²⁴`), every
-/// distance to a padding row or column above it (at least `FAR − 256·128·255 > 2²⁸`).
+/// Every real distance is below this (at most `‖a‖² + ‖b‖² ≤ 2·dim·255² < 2²⁸` for
+/// `dim ≤ MAX_DIM`), every distance to a padding row or column above it (at least
+/// `FAR − 256·dim·255 > 2²⁸`).
 const REAL_BELOW: i32 = FAR / 2;
+/// The widest descriptors the kernel takes (wider ones go to the F32 path).
+const MAX_DIM: usize = 2048;
 
 /// Whether this CPU runs the kernel (AVX-512 F, BW and VNNI) and `POSEDIFF_NO_VNNI` is
 /// unset. Asked once per process.
@@ -69,7 +72,7 @@ pub(super) type RowBests = Vec<(u32, i32, Option<i32>)>;
 
 /// See [`RowBests`]; `n`, `m` ≥ 1 and `dim` ≥ 1.
 pub(super) fn best(a: &[u8], b: &[u8], dim: usize) -> Option<(RowBests, Vec<u32>)> {
-    if !available() || dim == 0 || a.is_empty() || b.is_empty() {
+    if !available() || dim == 0 || dim > MAX_DIM || a.len() < dim || b.len() < dim {
         return None;
     }
     // SAFETY: the features `best_avx512` is compiled for were detected by `available`.
