@@ -745,8 +745,6 @@ impl GlobalMapper {
             .collect::<Result<_>>()?;
         report.times.two_view += clock.elapsed().as_secs_f64();
         let clock = Instant::now();
-        let mut rotation_only_pairs = 0;
-        let mut tied = HashSet::new();
         let mut rotations = Vec::new();
         let mut directions_local = Vec::new();
         for (p, pose) in matched.iter().zip(poses) {
@@ -757,11 +755,7 @@ impl GlobalMapper {
                     translation,
                     inliers,
                 } => (rotation, Some(translation), inliers),
-                RelativePose::RotationOnly { rotation, inliers } => {
-                    rotation_only_pairs += 1;
-                    tied.insert((p.first, p.second));
-                    (rotation, None, inliers)
-                }
+                RelativePose::RotationOnly { rotation, inliers } => (rotation, None, inliers),
             };
             rotations.push(RelativeRotation {
                 first: p.first,
@@ -772,6 +766,14 @@ impl GlobalMapper {
             directions_local.push(translation);
         }
         let pairs_with_pose = rotations.len();
+        // The rotation-only pairs (no direction), left out of the Sampson refinement below.
+        let tied: HashSet<(usize, usize)> = rotations
+            .iter()
+            .zip(&directions_local)
+            .filter(|(_, t)| t.is_none())
+            .map(|(r, _)| (r.first, r.second))
+            .collect();
+        let rotation_only_pairs = tied.len();
 
         // Pairs that every triangle through them contradicts are dropped first; then rotation
         // averaging on the largest component, inconsistent pairs dropped, once.

@@ -9,6 +9,8 @@
 //!
 //! Conventions: a direction `v` (unit, world frame) says `C_first − C_second ∝ v`.
 
+use std::collections::BinaryHeap;
+
 use nalgebra::{Matrix3, Vector3};
 
 use crate::error::{Result, SfmError};
@@ -197,31 +199,75 @@ pub fn average_translations(
     for &m in members.iter().filter(|&&m| m < n) {
         out[m] = centres[ties.find(m)];
     }
-    // Members of split groups left without a centre: at their strongest solved partner's,
-    // outwards from the solved ones along the ties (strongest first).
-    let mut ordered: Vec<&(usize, usize, f64)> = tie_pairs
-        .iter()
-        .filter(|(a, _, _)| split[groups.find(*a)])
-        .collect();
-    ordered.sort_by(|x, y| y.2.total_cmp(&x.2));
-    loop {
-        let mut placed = 0;
-        for &&(a, b, _) in &ordered {
-            let (from, to) = match (out[a], out[b]) {
-                (Some(_), None) => (a, b),
-                (None, Some(_)) => (b, a),
-                _ => continue,
-            };
+    // Members of split groups left without a centre: outwards from the solved ones along the
+    // ties, the strongest tie first (a maximum spanning forest grown from the solved members
+    // by a heap, as Prim's: each tie is pushed and popped once).
+    let mut ties_of: Vec<Vec<(usize, f64)>> = vec![Vec::new(); n];
+    for &(a, b, w) in tie_pairs.iter().filter(|(a, _, _)| split[groups.find(*a)]) {
+        ties_of[a].push((b, w));
+        ties_of[b].push((a, w));
+    }
+    let mut heap = BinaryHeap::new();
+    let push = |heap: &mut BinaryHeap<Tie>, out: &[Option<Vector3<f64>>], from: usize| {
+        for &(to, weight) in &ties_of[from] {
+            if out[to].is_none() {
+                heap.push(Tie { weight, from, to });
+            }
+        }
+    };
+    for from in 0..n {
+        if out[from].is_some() {
+            push(&mut heap, &out, from);
+        }
+    }
+    let mut placed = 0;
+    while let Some(Tie { from, to, .. }) = heap.pop() {
+        if out[to].is_none() {
             out[to] = out[from];
             placed += 1;
+            push(&mut heap, &out, to);
         }
-        if placed == 0 {
-            break;
-        }
-        report.attached += placed;
-        report.unreachable = report.unreachable.saturating_sub(placed);
     }
+    report.attached += placed;
+    report.unreachable = report.unreachable.saturating_sub(placed);
     Ok((out, report))
+}
+
+/// A tie from a placed image to one without a centre, ordered by weight (the strongest
+/// first), then by the lower images (so the order does not depend on the heap's).
+#[derive(Debug, Clone, Copy)]
+struct Tie {
+    weight: f64,
+    from: usize,
+    to: usize,
+}
+
+impl Tie {
+    fn key(&self) -> (std::cmp::Reverse<usize>, std::cmp::Reverse<usize>) {
+        (std::cmp::Reverse(self.to), std::cmp::Reverse(self.from))
+    }
+}
+
+impl PartialEq for Tie {
+    fn eq(&self, other: &Self) -> bool {
+        self.cmp(other).is_eq()
+    }
+}
+
+impl Eq for Tie {}
+
+impl PartialOrd for Tie {
+    fn partial_cmp(&self, other: &Self) -> Option<std::cmp::Ordering> {
+        Some(self.cmp(other))
+    }
+}
+
+impl Ord for Tie {
+    fn cmp(&self, other: &Self) -> std::cmp::Ordering {
+        self.weight
+            .total_cmp(&other.weight)
+            .then_with(|| self.key().cmp(&other.key()))
+    }
 }
 
 /// A direction edge of the tie-merged graph: `C_a − C_b ∝ v`, unit `v`.
