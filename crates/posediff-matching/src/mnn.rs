@@ -102,7 +102,8 @@ fn l2_best(a: &[f32], b: &[f32], dim: usize) -> (Vec<RowBest>, Vec<usize>) {
 /// the CPU has AVX-512 VNNI and every value is a whole number 0–255; `None` otherwise.
 #[cfg(target_arch = "x86_64")]
 fn l2_best_bytes(a: &[f32], b: &[f32], dim: usize) -> Option<(Vec<RowBest>, Vec<usize>)> {
-    if !vnni::available() || dim == 0 || a.len() < dim || b.len() < dim {
+    // Asked first so that a CPU without VNNI converts nothing; the sizes are `best`'s check.
+    if !vnni::available() {
         return None;
     }
     let (ab, bb) = (vnni::as_bytes(a)?, vnni::as_bytes(b)?);

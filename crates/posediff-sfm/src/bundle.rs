@@ -467,7 +467,6 @@ impl LeastSquares for Problem<'_> {
             inverses.extend(inv);
         }
         self.system.set_parts(&values);
-        drop(values);
         let Some(delta) = self.system.solve_regularised(lambda)? else {
             return Ok(None);
         };

@@ -65,12 +65,13 @@ pub(super) fn as_bytes(v: &[f32]) -> Option<Vec<u8>> {
     whole.then_some(bytes)
 }
 
-/// Row bests `(column, nearest, second)` as squared distances (`None` for distances of
-/// padding: no second column) and each column's nearest row, of `a` (`n × dim` bytes) against
-/// `b` (`m × dim`). `None` when the CPU lacks the instructions.
+/// Per row of `a`: `(column, nearest, second)` as squared distances (`None`: no second
+/// column).
 pub(super) type RowBests = Vec<(u32, i32, Option<i32>)>;
 
-/// See [`RowBests`]; `n`, `m` ≥ 1 and `dim` ≥ 1.
+/// The row bests and each column's nearest row of `a` (`n × dim` bytes) against `b`
+/// (`m × dim`); `None` when the CPU lacks the instructions, `dim` is 0 or above `MAX_DIM`, or
+/// either side is empty.
 pub(super) fn best(a: &[u8], b: &[u8], dim: usize) -> Option<(RowBests, Vec<u32>)> {
     if !available() || dim == 0 || dim > MAX_DIM || a.len() < dim || b.len() < dim {
         return None;
@@ -133,15 +134,15 @@ fn best_avx512(a: &[u8], b: &[u8], dim: usize) -> (RowBests, Vec<u32>) {
     let mut rows = Vec::with_capacity(n);
     let iota = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
     let (mut d1, mut d2, mut jb) = ([iota; ROWS], [iota; ROWS], [iota; ROWS]);
+    let mut words: Vec<[i32; ROWS]> = vec![[0; ROWS]; groups];
     for i0 in (0..n).step_by(ROWS) {
         // The four bytes of each group of the block's rows, as broadcastable i32s.
-        let a_words = |r: usize, g: usize| {
-            let at = (i0 + r) * width + 4 * g;
-            i32::from_le_bytes([pa[at], pa[at + 1], pa[at + 2], pa[at + 3]])
-        };
-        let words: Vec<[i32; ROWS]> = (0..groups)
-            .map(|g| std::array::from_fn(|r| a_words(r, g)))
-            .collect();
+        for (g, w) in words.iter_mut().enumerate() {
+            *w = std::array::from_fn(|r| {
+                let at = (i0 + r) * width + 4 * g;
+                i32::from_le_bytes([pa[at], pa[at + 1], pa[at + 2], pa[at + 3]])
+            });
+        }
         for r in 0..ROWS {
             d1[r] = _mm512_set1_epi32(i32::MAX);
             d2[r] = _mm512_set1_epi32(i32::MAX);
