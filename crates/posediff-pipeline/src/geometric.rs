@@ -28,7 +28,7 @@ use crate::error::{PosediffError, Result};
 pub use crate::ggs::{model_frame_matches, official_ggs};
 pub use crate::orientation::{STRONG_PAIR, TURN_PARTNERS, TURN_TESTS};
 use crate::orientation::{turn_components, turn_left_out};
-use crate::report::{DistortionOutcome, Warning};
+use crate::report::{DistortionOutcome, LensRefinementOutcome, Warning};
 use crate::store::{Shard, SharedStore, Stored};
 use crate::two_view::{OpenCvTwoView, TwoViewCache};
 
@@ -301,6 +301,28 @@ impl RadialLens {
     }
 }
 
+/// The camera layout of unknown intrinsics and each image's focal guess `s` (the prior), the
+/// frame a [`RadialLens`] is calibrated in.
+fn lens_frame(
+    sizes: &[ImageSize],
+    config: &GeometricConfig,
+) -> Result<(ImageIntrinsics, Vec<f64>)> {
+    let layout = camera_layout(
+        sizes,
+        &config.intrinsics,
+        config.options.cameras.mode,
+        &config.hints,
+        config.options.mapper.focal_prior,
+    )?
+    .intrinsics;
+    let scale: Vec<f64> = layout
+        .scale
+        .iter()
+        .map(|s| s * config.options.mapper.focal_prior)
+        .collect();
+    Ok((layout, scale))
+}
+
 /// The lens calibration before the mapper: with unknown intrinsics and `cameras.distortion`
 /// on, each camera group's radial coefficient from the verified matches; `None` when off,
 /// given intrinsics, or no distortion measured (then the report says which).
@@ -315,19 +337,7 @@ fn calibrate_lens(
     if !matches!(config.intrinsics, KnownIntrinsics::Unknown) {
         return Ok((None, DistortionOutcome::off()));
     }
-    let layout = camera_layout(
-        sizes,
-        &config.intrinsics,
-        config.options.cameras.mode,
-        &config.hints,
-        config.options.mapper.focal_prior,
-    )?
-    .intrinsics;
-    let scale: Vec<f64> = layout
-        .scale
-        .iter()
-        .map(|s| s * config.options.mapper.focal_prior)
-        .collect();
+    let (layout, scale) = lens_frame(sizes, config)?;
     let corner: Vec<f64> = sizes
         .iter()
         .zip(&layout.principal)
@@ -354,6 +364,7 @@ fn calibrate_lens(
         cost_pinhole: calibration.cost_pinhole,
         cost: calibration.cost,
         k1: Vec::new(),
+        refinement: None,
     };
     if !outcome.measured {
         return Ok((None, outcome));
@@ -371,6 +382,174 @@ fn calibrate_lens(
         })
         .collect::<std::result::Result<_, _>>()?;
     Ok((Some(RadialLens { lenses }), outcome))
+}
+
+/// The index of `path` among `images`.
+fn image_index(images: &[PathBuf], path: &std::path::Path) -> Result<usize> {
+    images
+        .iter()
+        .position(|p| p.as_path() == path)
+        .ok_or_else(|| {
+            PosediffError::InvalidArgument(format!(
+                "{} is not an image of this estimate",
+                path.display()
+            ))
+        })
+}
+
+/// The lens refined after the mapper (`cameras.lens_refinement`): each camera's SIMPLE_RADIAL
+/// coefficient by a bundle adjustment of the estimate's points on the photos' pixels
+/// ([`posediff_sfm::lens_refinement`]), starting from `lens` (pinhole without one). Returns the
+/// refined lens of every image when it is kept, and what the refinement did.
+fn refine_lens_after_mapping(
+    sizes: &[ImageSize],
+    estimate: &GeometricEstimate,
+    lens: Option<&RadialLens>,
+    config: &GeometricConfig,
+    options: &posediff_sfm::lens_refinement::LensRefinementOptions,
+) -> Result<(Option<RadialLens>, LensRefinementOutcome)> {
+    let (frame, scale) = lens_frame(sizes, config)?;
+    let group = &estimate.report.cameras.image_camera;
+    let n = sizes.len();
+    if group.len() != n {
+        return Err(PosediffError::InvalidArgument(format!(
+            "lens refinement: {} camera assignments for {n} images",
+            group.len()
+        )));
+    }
+    let groups = group.iter().max().map_or(0, |g| g + 1);
+    // Each image's focal (the estimated one; else its group's ratio to the frame's guess).
+    let mut ratio = vec![None; groups];
+    for (i, c) in estimate.cameras.iter().enumerate() {
+        if let (None, Some(c)) = (ratio[group[i]], c) {
+            ratio[group[i]] = Some(c.intrinsics.fx() / scale[i]);
+        }
+    }
+    let focal: Vec<f64> = (0..n)
+        .map(|i| match &estimate.cameras[i] {
+            Some(c) => c.intrinsics.fx(),
+            None => scale[i] * ratio[group[i]].unwrap_or(1.0),
+        })
+        .collect();
+    let intrinsics = ImageIntrinsics {
+        principal: frame.principal.clone(),
+        scale: focal.clone(),
+        group: group.clone(),
+    };
+    let cameras: Vec<Option<CameraPose>> = estimate
+        .cameras
+        .iter()
+        .map(|c| {
+            c.as_ref().map(|c| {
+                let r = c.cam_from_world.rotation;
+                CameraPose {
+                    rotation: Rotation3::from_matrix_unchecked(r),
+                    center: -(r.transpose() * c.cam_from_world.translation),
+                }
+            })
+        })
+        .collect();
+    // The start: each camera's coefficient at its focal (0 without a lens).
+    let mut start = vec![0.0; groups];
+    if let Some(lens) = lens {
+        let mut seen = vec![false; groups];
+        for (i, c) in estimate.cameras.iter().enumerate() {
+            if let (false, Some(c)) = (seen[group[i]], c) {
+                seen[group[i]] = true;
+                start[group[i]] = lens.coefficient(i, c.intrinsics.fx());
+            }
+        }
+    }
+    // The points' observations back in the photos' pixels.
+    let points: Vec<Point> = estimate
+        .points
+        .iter()
+        .map(|p| {
+            let mut p = p.clone();
+            if let Some(lens) = lens {
+                for o in &mut p.observations {
+                    let x = lens.lenses[o.image].distort_pixel(&nalgebra::Vector2::from(o.xy));
+                    o.xy = [x.x, x.y];
+                }
+            }
+            p
+        })
+        .collect();
+    let bundle = config.options.mapper.bundle.unwrap_or_default();
+    let refined = posediff_sfm::lens_refinement::refine_lens(
+        &points,
+        &intrinsics,
+        &cameras,
+        &start,
+        &bundle,
+        options,
+    )?;
+    let a = &refined.adjustment;
+    let mut outcome = LensRefinementOutcome {
+        kept: refined.kept,
+        reason: refined.reason.map(Into::into),
+        points: a.points,
+        observations: a.observations,
+        cost_before: a.cost_before,
+        cost_after: a.cost_after,
+        rms_before_px: a.rms_before_px,
+        rms_after_px: a.rms_after_px,
+        iterations: a.iterations,
+        k: refined.k.clone(),
+    };
+    if !refined.kept {
+        return Ok((None, outcome));
+    }
+    // Each image's lens in its frame: COLMAP's k at the focal f is k_s (f / s)² at s.
+    let mut lenses = Vec::with_capacity(n);
+    for i in 0..n {
+        let (s, c) = (scale[i], frame.principal[i]);
+        let ks = refined.k[group[i]] * (s / focal[i]).powi(2);
+        let camera = LensCamera::new(CameraModel::SimpleRadial, vec![s, c[0], c[1], ks])?;
+        // The lens must be invertible over the whole photo: a coefficient that folds inside
+        // it is no lens of this camera.
+        let (w, h) = (f64::from(sizes[i].width()), f64::from(sizes[i].height()));
+        let folds = [[0.0, 0.0], [w, 0.0], [0.0, h], [w, h]].iter().any(|p| {
+            camera
+                .undistort_pixel(&nalgebra::Vector2::from(*p))
+                .is_err()
+        });
+        if folds {
+            outcome.kept = false;
+            outcome.reason = Some(format!(
+                "the refined lens folds inside image {i} (k = {})",
+                refined.k[group[i]]
+            ));
+            return Ok((None, outcome));
+        }
+        lenses.push(camera);
+    }
+    Ok((Some(RadialLens { lenses }), outcome))
+}
+
+impl RadialLens {
+    /// `pairs` undistorted by `self` moved to `other`'s undistortion: each match back to its
+    /// photo pixel through `self` (pinhole when `None`) and undistorted by `other`.
+    fn moved_pairs(this: Option<&Self>, other: &Self, pairs: &[PairMatches]) -> Vec<PairMatches> {
+        let mv = |i: usize, x: &[f64; 2]| {
+            let photo = match this {
+                Some(l) => {
+                    let p = l.lenses[i].distort_pixel(&nalgebra::Vector2::from(*x));
+                    [p.x, p.y]
+                }
+                None => *x,
+            };
+            other.undistort_pixel(i, photo).unwrap_or(photo)
+        };
+        pairs
+            .iter()
+            .map(|p| PairMatches {
+                kp1: p.kp1.iter().map(|x| mv(p.first, x)).collect(),
+                kp2: p.kp2.iter().map(|x| mv(p.second, x)).collect(),
+                ..p.clone()
+            })
+            .collect()
+    }
 }
 
 impl From<SfmError> for PosediffError {
@@ -455,15 +634,7 @@ pub fn estimate_geometric_counted(
     let undistorting = lens.as_ref().map(|lens| Adjusted {
         inner: Box::new(matcher.as_ref()),
         adjust: Box::new(move |path, features| {
-            let i = images
-                .iter()
-                .position(|p| p.as_path() == path)
-                .ok_or_else(|| {
-                    PosediffError::InvalidArgument(format!(
-                        "{} is not an image of this estimate",
-                        path.display()
-                    ))
-                })?;
+            let i = image_index(images, path)?;
             for p in &mut features.keypoints {
                 if let Some(u) = lens.undistort_pixel(i, *p) {
                     *p = u;
@@ -547,10 +718,33 @@ pub fn estimate_geometric_counted(
             times[2] += clock.elapsed().as_secs_f64();
         }
     }
-    estimate.report.turned_images = turned_images;
     // The matching is over: the lens is the estimate's now.
     drop(undistorting);
+    let mut lens = lens;
     let mut distortion = distortion;
+    let mut distortion_seconds = distortion_seconds;
+    if let Some(options) = &config.options.cameras.lens_refinement
+        && matches!(config.intrinsics, KnownIntrinsics::Unknown)
+        && !estimate.points.is_empty()
+    {
+        let clock = Instant::now();
+        let (refined, outcome) =
+            refine_lens_after_mapping(&sizes, &estimate, lens.as_ref(), config, options)?;
+        distortion_seconds += clock.elapsed().as_secs_f64();
+        if let Some(refined) = refined {
+            let earlier = estimate.report.times;
+            // The matches undistorted with the refined lens and mapped again (new two-view
+            // results: the coordinates moved).
+            let pairs = RadialLens::moved_pairs(lens.as_ref(), &refined, &estimate.pairs);
+            counter.stage("mapping", 0);
+            estimate =
+                map_supported_matches(&sizes, pairs, None, config, &TwoViewCache::default())?;
+            estimate.report.times.add_mapping(&earlier);
+            lens = Some(refined);
+        }
+        distortion.refinement = Some(outcome);
+    }
+    estimate.report.turned_images = turned_images;
     if let Some(lens) = &lens {
         // Each camera's COLMAP k at its focal, from its first estimated image.
         let mut k1 = vec![None; estimate.report.cameras.count];

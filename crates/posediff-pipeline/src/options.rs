@@ -382,6 +382,11 @@ pub struct CameraOptions {
     /// undistorted once and the cameras are SIMPLE_RADIAL in the exports. `null`: pinhole
     /// cameras, no calibration.
     pub distortion: Option<posediff_sfm::distortion_calibration::DistortionCalibrationOptions>,
+    /// The radial distortion of each camera refined after the mapper by a bundle adjustment on
+    /// the photos' own pixels ([`posediff_sfm::lens_refinement`]); when it is kept, the matches
+    /// are undistorted with it and mapped again. `null`: the lens stays as calibrated before
+    /// the mapper.
+    pub lens_refinement: Option<posediff_sfm::lens_refinement::LensRefinementOptions>,
 }
 
 impl Default for CameraOptions {
@@ -389,6 +394,7 @@ impl Default for CameraOptions {
         Self {
             mode: CameraMode::default(),
             distortion: Some(Default::default()),
+            lens_refinement: Some(Default::default()),
         }
     }
 }

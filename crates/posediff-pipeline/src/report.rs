@@ -379,6 +379,34 @@ pub struct DistortionOutcome {
     /// Per camera, COLMAP's SIMPLE_RADIAL `k` at its estimated focal (`null`: none of its
     /// images estimated); empty when none measured.
     pub k1: Vec<Option<f64>>,
+    /// The lens refined by the bundle adjustment after the mapper (`cameras.lens_refinement`);
+    /// `null` when it did not run (off, given intrinsics, no points).
+    pub refinement: Option<LensRefinementOutcome>,
+}
+
+/// run.json's `cameras.distortion.refinement`.
+#[derive(Debug, Clone, PartialEq, Default, Serialize)]
+pub struct LensRefinementOutcome {
+    /// Whether the refined lens was kept (and the matches mapped again with it).
+    pub kept: bool,
+    /// Why it was not kept (`null` when kept).
+    pub reason: Option<String>,
+    /// Points and observations adjusted.
+    pub points: usize,
+    /// See `points`.
+    pub observations: usize,
+    /// Robust reprojection cost before and after (pixels²).
+    pub cost_before: f64,
+    /// See `cost_before`.
+    pub cost_after: f64,
+    /// RMS reprojection error in the photos' pixels before and after.
+    pub rms_before_px: f64,
+    /// See `rms_before_px`.
+    pub rms_after_px: f64,
+    /// Levenberg–Marquardt steps.
+    pub iterations: usize,
+    /// Per camera, the refined SIMPLE_RADIAL `k` at the focal of that adjustment (kept or not).
+    pub k: Vec<f64>,
 }
 
 impl DistortionOutcome {

@@ -14,6 +14,11 @@
 //!
 //! Jacobians are analytic: `x_c = exp(ω) R (X − C)` gives `∂x_c/∂ω = −[x_c]ₓ`,
 //! `∂x_c/∂C = −R`, `∂x_c/∂X = R`, and `∂uv/∂log φ = uv − pp`.
+//!
+//! [`adjust_lens`] adds each camera group's radial coefficient `k` (COLMAP's SIMPLE_RADIAL:
+//! `uv = pp + f x (1 + k |x|²)` with `x = x_c / z_c`, on the photos' own pixels), one more
+//! block of the reduced system per group: `∂uv/∂x = f ((1 + k r²) I + 2 k x xᵀ)` and
+//! `∂uv/∂k = f r² x`.
 
 use nalgebra::{Matrix3, SMatrix, SVector, Vector3};
 use rayon::prelude::*;
@@ -22,7 +27,7 @@ use crate::camera::{CameraPose, ParameterLayout, gauge_scale};
 use crate::error::Result;
 use crate::intrinsics::ImageIntrinsics;
 use crate::linalg::{BlockSystem, BlockValues, Solver};
-use crate::lm::{CauchySum, LeastSquares, LmOptions, Termination, minimize};
+use crate::lm::{CauchySum, LeastSquares, LmOptions, LmReport, Termination, minimize};
 use crate::sampson_refine::check_inputs;
 use crate::tracks::{Observation, Track};
 
@@ -125,6 +130,26 @@ pub fn project(
     (xc.z > 1e-12).then(|| ([f * xc.x / xc.z + pp[0], f * xc.y / xc.z + pp[1]], xc))
 }
 
+/// [`project`] through a SIMPLE_RADIAL lens with coefficient `k` (COLMAP's, on `x_c / z_c`);
+/// `k = 0` is [`project`] exactly.
+pub fn project_radial(
+    c: &CameraPose,
+    f: f64,
+    pp: [f64; 2],
+    k: f64,
+    x: &Vector3<f64>,
+) -> Option<([f64; 2], Vector3<f64>)> {
+    if k == 0.0 {
+        return project(c, f, pp, x);
+    }
+    let xc = c.rotation * (x - c.center);
+    (xc.z > 1e-12).then(|| {
+        let (u, v) = (xc.x / xc.z, xc.y / xc.z);
+        let g = 1.0 + k * (u * u + v * v);
+        ([f * g * u + pp[0], f * g * v + pp[1]], xc)
+    })
+}
+
 /// Linear triangulation from normalised rays (faer SVD); `None` when degenerate, behind a
 /// camera or narrower than `min_angle` (radians).
 pub fn triangulate(
@@ -171,6 +196,8 @@ struct ObservationLinearisation {
     jc: SMatrix<f64, 2, 6>,
     /// `∂uv/∂log φ_g` of the image's group.
     jf: SVector<f64, 2>,
+    /// `∂uv/∂k_g`, the group's radial coefficient.
+    jk: SVector<f64, 2>,
     /// `∂uv/∂X`.
     jp: SMatrix<f64, 2, 3>,
     r: SVector<f64, 2>,
@@ -185,15 +212,50 @@ struct PointLinearisation {
     obs: Vec<ObservationLinearisation>,
 }
 
-/// Cameras, each group's focal factor, points.
-type State = (Vec<Option<CameraPose>>, Vec<f64>, Vec<Vector3<f64>>);
+/// Cameras, each group's focal factor, each group's radial coefficient, points.
+type State = (
+    Vec<Option<CameraPose>>,
+    Vec<f64>,
+    Vec<f64>,
+    Vec<Vector3<f64>>,
+);
+
+/// Where each group's radial coefficient sits when it is refined: after the layout's cameras
+/// and focals, one parameter and one block per free group.
+#[derive(Debug, Clone, Default)]
+struct LensLayout {
+    /// Per group, the index of its `k` (`None`: fixed).
+    param: Vec<Option<usize>>,
+    /// Per group, its block (`None`: fixed).
+    block: Vec<Option<usize>>,
+}
+
+impl LensLayout {
+    /// The coefficients of the groups with `free[g]` after `layout`'s parameters and blocks;
+    /// returns the parameter count and the block sizes with them.
+    fn new(layout: &ParameterLayout, free: &[bool]) -> (Self, usize, Vec<usize>) {
+        let mut n_params = layout.n_params;
+        let mut sizes = layout.block_sizes.clone();
+        let mut lens = Self::default();
+        for &f in free {
+            lens.param.push(f.then_some(n_params));
+            lens.block.push(f.then_some(sizes.len()));
+            if f {
+                n_params += 1;
+                sizes.push(1);
+            }
+        }
+        (lens, n_params, sizes)
+    }
+}
 
 /// The blocks of the reduced system one point touches (its free cameras and the free focals
-/// of their groups), and where their products live; fixed per adjustment.
+/// and coefficients of their groups), and where their products live; fixed per adjustment.
 #[derive(Debug, Clone, Default)]
 struct PointBlocks {
-    /// Per observation: its camera's and its group focal's entry in `entries` (`None`: fixed).
-    obs: Vec<(Option<usize>, Option<usize>)>,
+    /// Per observation: its camera's, its group focal's and its group coefficient's entry in
+    /// `entries` (`None`: fixed).
+    obs: Vec<(Option<usize>, Option<usize>, Option<usize>)>,
     /// The distinct blocks touched.
     entries: Vec<usize>,
     /// The slot of each entry pair `(u, v)`, `v ≤ u`, at `u (u + 1) / 2 + v`.
@@ -206,7 +268,12 @@ fn pair_index(u: usize, v: usize) -> usize {
 }
 
 impl PointBlocks {
-    fn new(obs: &[Observation], intrinsics: &ImageIntrinsics, layout: &ParameterLayout) -> Self {
+    fn new(
+        obs: &[Observation],
+        intrinsics: &ImageIntrinsics,
+        layout: &ParameterLayout,
+        lens: &LensLayout,
+    ) -> Self {
         let mut entries: Vec<usize> = Vec::new();
         let mut entry = |block: Option<usize>| {
             block.map(|b| match entries.iter().position(|&e| e == b) {
@@ -220,9 +287,11 @@ impl PointBlocks {
         let obs = obs
             .iter()
             .map(|o| {
+                let g = intrinsics.group[o.image];
                 let camera = entry(layout.block[o.image]);
-                let focal = entry(layout.focal_block[intrinsics.group[o.image]]);
-                (camera, focal)
+                let focal = entry(layout.focal_block[g]);
+                let coefficient = entry(lens.block.get(g).copied().flatten());
+                (camera, focal, coefficient)
             })
             .collect();
         Self {
@@ -284,7 +353,7 @@ fn eliminate(
         gs.clear();
         gs.resize(entries, SVector::zeros());
         for o in &lin.obs {
-            let (camera, focal) = blocks.obs[o.index];
+            let (camera, focal, coefficient) = blocks.obs[o.index];
             if let Some(u) = camera {
                 let e = o.jc.transpose() * o.jp * o.w;
                 es[u] += e;
@@ -317,6 +386,32 @@ fn eliminate(
                     );
                 }
             }
+            if let Some(l) = coefficient {
+                let e = o.jk.transpose() * o.jp * o.w;
+                for j in 0..3 {
+                    es[l][(0, j)] += e[(0, j)];
+                }
+                gs[l][0] += o.jk.dot(&o.r) * o.w;
+                let h = o.jk.norm_squared() * o.w;
+                let b = blocks.entries[l];
+                system.add_block_in(&mut part, blocks.slots[pair_index(l, l)], b, b, |_, _| h);
+                if let Some(u) = camera {
+                    let h = o.jk.transpose() * o.jc * o.w;
+                    let bu = blocks.entries[u];
+                    system.add_block_in(
+                        &mut part,
+                        blocks.slots[pair_index(u, l)],
+                        b,
+                        bu,
+                        |_, j| h[(0, j)],
+                    );
+                }
+                if let Some(v) = focal {
+                    let h = o.jk.dot(&o.jf) * o.w;
+                    let bv = blocks.entries[v];
+                    system.add_block_in(&mut part, blocks.slots[pair_index(v, l)], b, bv, |_, _| h);
+                }
+            }
         }
         let cg = c_inv * lin.g;
         ecs.clear();
@@ -343,6 +438,10 @@ struct Problem<'a> {
     /// Each point's observations (borrowed from the points being adjusted).
     observations: Vec<&'a [Observation]>,
     layout: ParameterLayout,
+    /// The radial coefficients refined (none by [`bundle_adjust`]).
+    lens: LensLayout,
+    /// Parameters in all: the layout's and the free coefficients.
+    n_params: usize,
     reference: usize,
     cauchy: f64,
     system: BlockSystem,
@@ -363,10 +462,10 @@ impl LeastSquares for Problem<'_> {
     type State = State;
 
     fn n_params(&self) -> usize {
-        self.layout.n_params
+        self.n_params
     }
 
-    fn cost(&self, (cams, factors, points): &State) -> f64 {
+    fn cost(&self, (cams, factors, ks, points): &State) -> f64 {
         let per_point: Vec<f64> = self
             .observations
             .par_iter()
@@ -376,8 +475,9 @@ impl LeastSquares for Problem<'_> {
                 for o in obs.iter() {
                     let Some(c) = cams[o.image] else { continue };
                     let f = self.focal(factors, o.image);
+                    let k = ks[self.intrinsics.group[o.image]];
                     total.add(
-                        match project(&c, f, self.intrinsics.principal[o.image], x) {
+                        match project_radial(&c, f, self.intrinsics.principal[o.image], k, x) {
                             Some((uv, _)) => (uv[0] - o.xy[0]).powi(2) + (uv[1] - o.xy[1]).powi(2),
                             None => 1e6,
                         },
@@ -389,7 +489,7 @@ impl LeastSquares for Problem<'_> {
         per_point.iter().sum()
     }
 
-    fn linearize(&mut self, (cams, factors, points): &State) -> Result<()> {
+    fn linearize(&mut self, (cams, factors, ks, points): &State) -> Result<()> {
         let c2 = self.cauchy * self.cauchy;
         let this = &*self;
         let linear = this
@@ -406,26 +506,42 @@ impl LeastSquares for Problem<'_> {
                     let Some(cam) = cams[o.image] else { continue };
                     let f = this.focal(factors, o.image);
                     let pp = this.intrinsics.principal[o.image];
-                    let Some((uv, xc)) = project(&cam, f, pp, x) else {
+                    let k = ks[this.intrinsics.group[o.image]];
+                    let Some((uv, xc)) = project_radial(&cam, f, pp, k, x) else {
                         continue;
                     };
                     let r = SVector::<f64, 2>::new(uv[0] - o.xy[0], uv[1] - o.xy[1]);
                     let w = 1.0 / (1.0 + r.norm_squared() / c2);
                     let iz = 1.0 / xc.z;
-                    let d = SMatrix::<f64, 2, 3>::new(
-                        f * iz,
-                        0.0,
-                        -f * xc.x * iz * iz,
-                        0.0,
-                        f * iz,
-                        -f * xc.y * iz * iz,
-                    );
+                    let (u, v) = (xc.x * iz, xc.y * iz);
+                    let r2 = u * u + v * v;
+                    let d = if k == 0.0 {
+                        SMatrix::<f64, 2, 3>::new(
+                            f * iz,
+                            0.0,
+                            -f * xc.x * iz * iz,
+                            0.0,
+                            f * iz,
+                            -f * xc.y * iz * iz,
+                        )
+                    } else {
+                        // ∂uv/∂x = f ((1 + k r²) I + 2 k x xᵀ), ∂x/∂x_c = [I | −x] / z.
+                        let g = 1.0 + k * r2;
+                        let a = SMatrix::<f64, 2, 2>::new(
+                            g + 2.0 * k * u * u,
+                            2.0 * k * u * v,
+                            2.0 * k * u * v,
+                            g + 2.0 * k * v * v,
+                        ) * f;
+                        a * SMatrix::<f64, 2, 3>::new(iz, 0.0, -u * iz, 0.0, iz, -v * iz)
+                    };
                     let jp = d * cam.rotation.matrix();
                     let skew = Matrix3::new(0.0, -xc.z, xc.y, xc.z, 0.0, -xc.x, -xc.y, xc.x, 0.0);
                     let mut jc = SMatrix::<f64, 2, 6>::zeros();
                     jc.fixed_view_mut::<2, 3>(0, 0).copy_from(&(d * (-skew)));
                     jc.fixed_view_mut::<2, 3>(0, 3).copy_from(&(-jp));
                     let jf = SVector::<f64, 2>::new(uv[0] - pp[0], uv[1] - pp[1]);
+                    let jk = SVector::<f64, 2>::new(f * r2 * u, f * r2 * v);
                     lin.c += jp.transpose() * jp * w;
                     lin.g += jp.transpose() * r * w;
                     lin.obs.push(ObservationLinearisation {
@@ -433,6 +549,7 @@ impl LeastSquares for Problem<'_> {
                         index,
                         jc,
                         jf,
+                        jk,
                         jp,
                         r,
                         w,
@@ -472,6 +589,7 @@ impl LeastSquares for Problem<'_> {
         };
         // Back-substitution: δp = −C⁻¹ (g_p + Σ J_pᵀ W (J_c δc + J_f δf)).
         let layout = &self.layout;
+        let lens = &self.lens;
         let group = &self.intrinsics.group;
         self.point_steps = self
             .linear
@@ -487,6 +605,9 @@ impl LeastSquares for Problem<'_> {
                     if let Some(fi) = layout.focal[group[o.image]] {
                         duv += o.jf * delta[fi];
                     }
+                    if let Some(ki) = lens.param.get(group[o.image]).copied().flatten() {
+                        duv += o.jk * delta[ki];
+                    }
                     v += o.jp.transpose() * duv * o.w;
                 }
                 -(c_inv * v)
@@ -495,8 +616,16 @@ impl LeastSquares for Problem<'_> {
         Ok(Some(delta))
     }
 
-    fn apply(&self, (cams, factors, points): &State, step: &[f64]) -> State {
+    fn apply(&self, (cams, factors, ks, points): &State, step: &[f64]) -> State {
         let (mut moved, factors) = self.layout.apply(cams, factors, step);
+        let ks = ks
+            .iter()
+            .enumerate()
+            .map(|(g, k)| match self.lens.param.get(g).copied().flatten() {
+                Some(i) => k + step[i],
+                None => *k,
+            })
+            .collect();
         let mut points: Vec<Vector3<f64>> = points
             .iter()
             .zip(&self.point_steps)
@@ -510,17 +639,16 @@ impl LeastSquares for Problem<'_> {
                 *x = origin + (*x - origin) * s;
             }
         }
-        (moved, factors, points)
+        (moved, factors, ks, points)
     }
 }
 
-/// Keeps the observations within `max_error_px` of their projection; points with fewer than
-/// two left are dropped.
+/// Keeps the observations within `max_error_px` of their projection (through each group's
+/// radial coefficient `ks[g]`); points with fewer than two left are dropped.
 fn filter(
     points: Vec<Point>,
     cameras: &[Option<CameraPose>],
-    intrinsics: &ImageIntrinsics,
-    phi: f64,
+    (intrinsics, phi, ks): (&ImageIntrinsics, f64, &[f64]),
     max_error_px: f64,
 ) -> Vec<Point> {
     points
@@ -528,10 +656,11 @@ fn filter(
         .filter_map(|mut p| {
             p.observations.retain(|o| {
                 cameras[o.image].is_some_and(|c| {
-                    project(
+                    project_radial(
                         &c,
                         intrinsics.focal(phi, o.image),
                         intrinsics.principal[o.image],
+                        ks[intrinsics.group[o.image]],
                         &p.xyz,
                     )
                     .is_some_and(|(uv, _)| (uv[0] - o.xy[0]).hypot(uv[1] - o.xy[1]) <= max_error_px)
@@ -542,30 +671,37 @@ fn filter(
         .collect()
 }
 
-/// One adjustment of `points` (in place) with the cameras and each group's focal factor.
+/// One adjustment of `points` (in place) with the cameras, each group's focal factor and,
+/// when `refine_lens`, each group's radial coefficient `ks[g]`.
 fn adjust(
     points: &mut [Point],
     intrinsics: &ImageIntrinsics,
     cameras: &mut [Option<CameraPose>],
-    factors: &mut [f64],
+    (factors, ks): (&mut [f64], &mut [f64]),
     reference: usize,
     options: &BundleOptions,
-) -> Result<(usize, Termination)> {
-    // A group's focal is refined when one of its images is observed by a camera.
-    let mut free = vec![false; factors.len()];
-    if options.refine_focal {
-        for p in points.iter() {
-            for o in &p.observations {
-                if cameras[o.image].is_some() {
-                    free[intrinsics.group[o.image]] = true;
-                }
+    refine_lens: bool,
+) -> Result<LmReport> {
+    // A group's focal (and coefficient) is refined when one of its images is observed by a
+    // camera.
+    let mut observed = vec![false; factors.len()];
+    for p in points.iter() {
+        for o in &p.observations {
+            if cameras[o.image].is_some() {
+                observed[intrinsics.group[o.image]] = true;
             }
         }
     }
+    let free: Vec<bool> = observed
+        .iter()
+        .map(|&o| o && options.refine_focal)
+        .collect();
     let layout = ParameterLayout::with_focals(cameras, reference, &free);
+    let free_lens: Vec<bool> = observed.iter().map(|&o| o && refine_lens).collect();
+    let (lens, n_params, block_sizes) = LensLayout::new(&layout, &free_lens);
     let mut blocks: Vec<PointBlocks> = points
         .iter()
-        .map(|p| PointBlocks::new(&p.observations, intrinsics, &layout))
+        .map(|p| PointBlocks::new(&p.observations, intrinsics, &layout, &lens))
         .collect();
     let mut block_pairs: Vec<(usize, usize)> =
         blocks.iter().flat_map(PointBlocks::block_pairs).collect();
@@ -573,7 +709,7 @@ fn adjust(
     block_pairs.dedup();
     let system = BlockSystem::new(
         "bundle adjustment (reduced camera system)",
-        &layout.block_sizes,
+        &block_sizes,
         block_pairs,
         options.solver,
     )?;
@@ -586,6 +722,8 @@ fn adjust(
         intrinsics,
         observations,
         layout,
+        lens,
+        n_params,
         reference,
         cauchy: options.cauchy_px,
         system,
@@ -596,6 +734,7 @@ fn adjust(
     let mut state: State = (
         cameras.to_vec(),
         factors.to_vec(),
+        ks.to_vec(),
         points.iter().map(|p| p.xyz).collect(),
     );
     let lm = LmOptions {
@@ -607,10 +746,11 @@ fn adjust(
     drop(problem);
     cameras.copy_from_slice(&state.0);
     factors.copy_from_slice(&state.1);
-    for (p, x) in points.iter_mut().zip(state.2) {
+    ks.copy_from_slice(&state.2);
+    for (p, x) in points.iter_mut().zip(state.3) {
         p.xyz = x;
     }
-    Ok((report.iterations, report.termination))
+    Ok(report)
 }
 
 /// Adjusts `cameras` (`None`: not estimated) and the focal factors in place on `tracks`:
@@ -666,7 +806,13 @@ pub fn bundle_adjust(
             })
         })
         .collect();
-    let mut points = filter(points, cameras, &at_start, phi, options.max_error_px);
+    let pinhole = vec![0.0; groups];
+    let mut points = filter(
+        points,
+        cameras,
+        (&at_start, phi, &pinhole),
+        options.max_error_px,
+    );
     let mut report = BundleReport {
         tracks: tracks.len(),
         converged: true,
@@ -676,37 +822,56 @@ pub fn bundle_adjust(
     if points.is_empty() {
         return Ok((points, report));
     }
-    let (first, t1) = adjust(
+    let mut ks = pinhole.clone();
+    let first = adjust(
         &mut points,
         intrinsics,
         cameras,
-        factors,
+        (factors, &mut ks),
         reference,
         options,
+        false,
     )?;
     let (between, phi) = folded(factors);
-    points = filter(points, cameras, &between, phi, options.max_error_px);
-    let (second, t2) = adjust(
+    points = filter(points, cameras, (&between, phi, &ks), options.max_error_px);
+    let second = adjust(
         &mut points,
         intrinsics,
         cameras,
-        factors,
+        (factors, &mut ks),
         reference,
         options,
+        false,
     )?;
-    report.iterations = first + second;
+    let (t1, t2) = (first.termination, second.termination);
+    report.iterations = first.iterations + second.iterations;
     report.converged = t1.converged() && t2.converged();
     // The stage that did not converge, if one did not (else the last).
     report.termination = if t1.converged() { t2 } else { t1 };
     let (at_end, phi) = folded(factors);
+    let (rms, count) = rms_error(&points, cameras, (&at_end, phi, &ks));
+    report.points = points.len();
+    report.observations = count;
+    report.rms_px = rms;
+    Ok((points, report))
+}
+
+/// The RMS reprojection error of `points`' observations with a camera (pixels), and their
+/// count.
+fn rms_error(
+    points: &[Point],
+    cameras: &[Option<CameraPose>],
+    (intrinsics, phi, ks): (&ImageIntrinsics, f64, &[f64]),
+) -> (f64, usize) {
     let (mut sum, mut count) = (0.0, 0usize);
-    for p in &points {
+    for p in points {
         for o in &p.observations {
             if let Some(c) = cameras[o.image]
-                && let Some((uv, _)) = project(
+                && let Some((uv, _)) = project_radial(
                     &c,
-                    at_end.focal(phi, o.image),
-                    at_end.principal[o.image],
+                    intrinsics.focal(phi, o.image),
+                    intrinsics.principal[o.image],
+                    ks[intrinsics.group[o.image]],
                     &p.xyz,
                 )
             {
@@ -715,12 +880,94 @@ pub fn bundle_adjust(
             }
         }
     }
-    report.points = points.len();
-    report.observations = count;
-    report.rms_px = if count > 0 {
+    let rms = if count > 0 {
         (sum / count as f64).sqrt()
     } else {
         0.0
+    };
+    (rms, count)
+}
+
+/// What [`adjust_lens`] did.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct LensAdjustment {
+    /// Points adjusted.
+    pub points: usize,
+    /// Observations used.
+    pub observations: usize,
+    /// The robust (Cauchy) cost before and after.
+    pub cost_before: f64,
+    /// See `cost_before`.
+    pub cost_after: f64,
+    /// RMS reprojection error before and after, pixels.
+    pub rms_before_px: f64,
+    /// See `rms_before_px`.
+    pub rms_after_px: f64,
+    /// Accepted steps.
+    pub iterations: usize,
+    /// Why it stopped.
+    pub termination: Termination,
+}
+
+/// One bundle adjustment of already triangulated `points` whose observations are in the
+/// photos' own pixels, with each camera group's radial coefficient `ks[g]` (COLMAP's
+/// SIMPLE_RADIAL `k`, on `x_c / z_c`) refined beside the cameras, the focal factors (when
+/// [`BundleOptions::refine_focal`]) and the points; observations farther than
+/// `max_error_px` from their projection at the start are left out. Everything is updated in
+/// place; the reference camera is held fixed.
+///
+/// # Errors
+/// As [`bundle_adjust`]; `ks` of another length than the groups.
+pub fn adjust_lens(
+    points: Vec<Point>,
+    intrinsics: &ImageIntrinsics,
+    cameras: &mut [Option<CameraPose>],
+    factors: &mut [f64],
+    ks: &mut [f64],
+    reference: usize,
+    options: &BundleOptions,
+) -> Result<(Vec<Point>, LensAdjustment)> {
+    let groups = intrinsics.groups();
+    for (what, len) in [
+        ("focal factors (one per camera group)", factors.len()),
+        ("radial coefficients (one per camera group)", ks.len()),
+    ] {
+        if len != groups {
+            return Err(crate::error::SfmError::LengthMismatch {
+                what,
+                left: groups,
+                right: len,
+            });
+        }
+    }
+    for &phi in factors.iter() {
+        check_inputs(cameras.len(), intrinsics, cameras, phi, reference)?;
+    }
+    let mut folded = intrinsics.clone();
+    let phi = folded.fold_factors(factors);
+    let mut points = filter(points, cameras, (&folded, phi, ks), options.max_error_px);
+    let (rms_before_px, _) = rms_error(&points, cameras, (&folded, phi, ks));
+    let lm = adjust(
+        &mut points,
+        intrinsics,
+        cameras,
+        (factors, ks),
+        reference,
+        options,
+        true,
+    )?;
+    let mut folded = intrinsics.clone();
+    let phi = folded.fold_factors(factors);
+    let (rms_after_px, observations) = rms_error(&points, cameras, (&folded, phi, ks));
+    let report = LensAdjustment {
+        points: points.len(),
+        observations,
+        cost_before: lm.initial_cost,
+        cost_after: lm.final_cost,
+        rms_before_px,
+        rms_after_px,
+        iterations: lm.iterations,
+        termination: lm.termination,
     };
     Ok((points, report))
 }
@@ -750,9 +997,16 @@ mod tests {
         assert_eq!(spread(obs[..4].to_vec(), 5).len(), 4);
     }
 
-    /// The analytic reprojection Jacobian against central differences.
+    /// The analytic reprojection Jacobian against central differences, through a pinhole and
+    /// through a radial lens (the coefficient's column too).
     #[test]
     fn reprojection_jacobian_matches_finite_differences() {
+        for k in [0.0, -0.12, 0.05] {
+            check_jacobian(k);
+        }
+    }
+
+    fn check_jacobian(k: f64) {
         let intrinsics = ImageIntrinsics::new(vec![[320.0, 240.0]], vec![640.0]);
         let cam = CameraPose {
             rotation: Rotation3::from_euler_angles(0.1, -0.2, 0.3),
@@ -766,53 +1020,181 @@ mod tests {
             xy: [0.0, 0.0],
         }];
         let layout = ParameterLayout::new(&[Some(cam)], usize::MAX, true);
+        let (lens, n_params, sizes) = LensLayout::new(&layout, &[true]);
+        assert_eq!((n_params, sizes.as_slice()), (8, &[6, 1, 1][..]));
         let mut problem = Problem {
             intrinsics: &intrinsics,
             observations: vec![&obs],
             layout,
+            lens,
+            n_params,
             reference: usize::MAX,
             cauchy: 1.0,
-            system: BlockSystem::new("t", &[6, 1], [(0, 1)], Solver::Dense).unwrap(),
+            system: BlockSystem::new("t", &sizes, [(0, 1), (0, 2), (1, 2)], Solver::Dense).unwrap(),
             linear: Vec::new(),
             point_steps: Vec::new(),
             blocks: Vec::new(),
         };
         problem
-            .linearize(&(vec![Some(cam)], vec![phi], vec![x]))
+            .linearize(&(vec![Some(cam)], vec![phi], vec![k], vec![x]))
             .unwrap();
         let lin = problem.linear[0].obs[0];
-        let uv = |theta: &[f64; 10]| {
+        let uv = |theta: &[f64; 11]| {
             let c = cam.moved(&theta[0..6]);
             let p = x + Vector3::new(theta[7], theta[8], theta[9]);
-            project(
+            project_radial(
                 &c,
                 intrinsics.focal(phi * theta[6].exp(), 0),
                 [320.0, 240.0],
+                k + theta[10],
                 &p,
             )
             .unwrap()
             .0
         };
         let h = 1e-6;
-        for q in 0..10 {
-            let (mut plus, mut minus) = ([0.0; 10], [0.0; 10]);
+        for q in 0..11 {
+            let (mut plus, mut minus) = ([0.0; 11], [0.0; 11]);
             plus[q] = h;
             minus[q] = -h;
             let (a, b) = (uv(&plus), uv(&minus));
             for row in 0..2 {
                 let fd = (a[row] - b[row]) / (2.0 * h);
-                let analytic = if q < 6 {
-                    lin.jc[(row, q)]
-                } else if q == 6 {
-                    lin.jf[row]
-                } else {
-                    lin.jp[(row, q - 7)]
+                let analytic = match q {
+                    0..6 => lin.jc[(row, q)],
+                    6 => lin.jf[row],
+                    10 => lin.jk[row],
+                    _ => lin.jp[(row, q - 7)],
                 };
                 assert!(
                     (fd - analytic).abs() <= 1e-6 * fd.abs().max(1.0),
-                    "param {q} row {row}: {fd} vs {analytic}"
+                    "k {k}, param {q} row {row}: {fd} vs {analytic}"
                 );
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod lens_tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+    use nalgebra::Rotation3;
+
+    /// A ring of cameras around a cloud of points, seen through a SIMPLE_RADIAL lens with
+    /// coefficient `k`: the points with their exact observations (photo pixels).
+    fn ring(k: f64) -> (Vec<Option<CameraPose>>, ImageIntrinsics, Vec<Point>) {
+        let cameras: Vec<Option<CameraPose>> = (0..8)
+            .map(|i| {
+                let a = f64::from(i) * 0.35;
+                let center = Vector3::new(4.0 * a.sin(), 0.4 * a.cos(), -4.0 * a.cos());
+                Some(CameraPose {
+                    rotation: Rotation3::look_at_lh(&(-center), &Vector3::y()),
+                    center,
+                })
+            })
+            .collect();
+        let intrinsics = ImageIntrinsics::new(vec![[320.0, 240.0]; 8], vec![500.0; 8]);
+        let mut state = 12345u64;
+        let mut next = || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
+        };
+        let points = (0..300)
+            .map(|_| {
+                let xyz = Vector3::new(1.5 * next(), 1.2 * next(), 1.5 * next());
+                let observations = cameras
+                    .iter()
+                    .enumerate()
+                    .filter_map(|(image, c)| {
+                        let (uv, _) =
+                            project_radial(c.as_ref().unwrap(), 500.0, [320.0, 240.0], k, &xyz)?;
+                        Some(Observation {
+                            image,
+                            keypoint: 0,
+                            xy: uv,
+                        })
+                    })
+                    .collect();
+                Point { xyz, observations }
+            })
+            .collect();
+        (cameras, intrinsics, points)
+    }
+
+    /// From a pinhole start and a focal 3 % off, the lens, the focal and the cameras come back
+    /// exactly; the pinhole start's error is pixels.
+    #[test]
+    fn the_radial_coefficient_is_recovered_with_the_focal() {
+        let (truth, intrinsics, points) = ring(-0.1);
+        let mut cameras = truth.clone();
+        for c in cameras.iter_mut().skip(1).flatten() {
+            c.center += Vector3::new(0.01, -0.02, 0.01);
+        }
+        let (mut factors, mut ks) = (vec![1.03], vec![0.0]);
+        let options = BundleOptions {
+            max_error_px: 1e3,
+            tolerance: 1e-12,
+            ..BundleOptions::default()
+        };
+        let (kept, report) = adjust_lens(
+            points,
+            &intrinsics,
+            &mut cameras,
+            &mut factors,
+            &mut ks,
+            0,
+            &options,
+        )
+        .unwrap();
+        assert!(report.rms_before_px > 1.0, "{report:?}");
+        assert!(report.rms_after_px < 1e-3, "{report:?}");
+        assert!(report.cost_after < 1e-3 * report.cost_before, "{report:?}");
+        assert!((ks[0] + 0.1).abs() < 1e-4, "k {}", ks[0]);
+        assert!(
+            (factors[0] - 1.0).abs() < 1e-4,
+            "focal factor {}",
+            factors[0]
+        );
+        assert_eq!(kept.len(), 300);
+        // Up to the gauge (unit mean distance from the reference): rotations exact.
+        for (c, t) in cameras.iter().zip(&truth) {
+            let (c, t) = (c.unwrap(), t.unwrap());
+            let angle = (c.rotation.matrix() - t.rotation.matrix()).norm();
+            assert!(angle < 1e-5, "{angle} {report:?}");
+        }
+    }
+
+    /// The pinhole adjustment is the lens adjustment at `k = 0` held fixed: on pinhole data
+    /// the coefficient stays at zero and nothing is gained.
+    #[test]
+    fn a_pinhole_scene_keeps_a_zero_coefficient() {
+        let (truth, intrinsics, points) = ring(0.0);
+        let mut cameras = truth.clone();
+        let (mut factors, mut ks) = (vec![1.0], vec![0.0]);
+        let (_, report) = adjust_lens(
+            points,
+            &intrinsics,
+            &mut cameras,
+            &mut factors,
+            &mut ks,
+            0,
+            &BundleOptions::default(),
+        )
+        .unwrap();
+        assert!(ks[0].abs() < 1e-6, "k {}", ks[0]);
+        assert!(report.rms_before_px < 1e-6 && report.rms_after_px < 1e-6);
+        let wrong = adjust_lens(
+            Vec::new(),
+            &intrinsics,
+            &mut cameras,
+            &mut factors,
+            &mut [0.0, 0.0],
+            0,
+            &BundleOptions::default(),
+        );
+        assert!(wrong.is_err());
     }
 }

@@ -14,6 +14,7 @@
 //! | tracks by union-find over keypoint ids | [`tracks`] |
 //! | resection of the cameras on view-graph bridges (PnP on the other side's tracks) | [`resection`] |
 //! | bundle adjustment (Schur complement) | [`bundle`] |
+//! | radial distortion from the tracks (the lens in the bundle adjustment, photo pixels) | [`lens_refinement`] |
 //! | sparse points for export (any cameras) | [`points`] |
 //! | all of it, with one options struct per stage | [`mapper`] |
 //! | the geometry the mapper asks of its caller (two-view, resection) | [`solver`] |
@@ -37,6 +38,7 @@ pub mod distortion_calibration;
 pub mod error;
 pub mod focal;
 pub mod intrinsics;
+pub mod lens_refinement;
 pub mod linalg;
 pub mod lm;
 pub mod mapper;

@@ -1,0 +1,122 @@
+//! Radial distortion from the tracks, after the mapper: each camera group's SIMPLE_RADIAL
+//! coefficient refined by a bundle adjustment on the photos' own pixels
+//! ([`crate::bundle::adjust_lens`]), as COLMAP's and GLOMAP's bundle adjustments refine it.
+//!
+//! The calibration before the mapper ([`crate::distortion_calibration`]) sees pairs only, and a
+//! pair's fundamental matrix absorbs most of a distortion that both views share: where the
+//! verified matches lie in the middle of the photos it measures nothing. A track seen by many
+//! cameras of one group cannot absorb it. The coefficient is kept only when it lowers the
+//! robust reprojection cost by `min_improvement`, so a pinhole set stays pinhole; the caller
+//! then undistorts the matches with it and maps again.
+
+use crate::bundle::{BundleOptions, LensAdjustment, Point, adjust_lens};
+use crate::camera::CameraPose;
+use crate::error::Result;
+use crate::intrinsics::ImageIntrinsics;
+
+/// Settings of [`refine_lens`]; chosen on the shared sets and their wide-angle copies
+/// (`posediff variant --radial=-0.12:0.02`, docs/BENCHMARKS.md, "Real cameras: the lens in the
+/// bundle adjustment").
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(default, deny_unknown_fields)
+)]
+pub struct LensRefinementOptions {
+    /// Points adjusted at most, evenly spaced over the mapper's (a few thousand determine one
+    /// coefficient per camera; the poses are adjusted again by the second mapping).
+    pub max_points: usize,
+    /// Relative decrease of the robust reprojection cost needed to keep the coefficients when
+    /// the start is pinhole (no distortion measured before the mapper). 0.1: on the apple's
+    /// wide-angle copy the cost falls by 27 % (kept: mAA(30) 0.402 → 0.474); on the temple's
+    /// by 1.5 % and on the original temple by 2.4 %, towards `k ≈ −0.4…−0.5` that its central
+    /// points cannot determine (kept, the original's mAA(30) falls 0.966 → 0.725). A start
+    /// that is already a measured lens is refined whenever the cost falls at all.
+    pub min_improvement: f64,
+    /// Largest `|k|` kept (COLMAP's coefficient on `x_c / z_c`; a strong wide-angle lens is
+    /// about −0.3): beyond it the adjustment has gone astray and the lens is left as it was.
+    pub max_k: f64,
+}
+
+impl Default for LensRefinementOptions {
+    fn default() -> Self {
+        Self {
+            max_points: 20_000,
+            min_improvement: 0.1,
+            max_k: 1.0,
+        }
+    }
+}
+
+/// What [`refine_lens`] found.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct LensRefinement {
+    /// Per camera group, the refined coefficient (the start's where its images saw no point).
+    pub k: Vec<f64>,
+    /// Whether the coefficients are kept (they lowered the cost enough and stayed in range).
+    pub kept: bool,
+    /// Why they are not kept (`None` when kept).
+    pub reason: Option<&'static str>,
+    /// The adjustment.
+    pub adjustment: LensAdjustment,
+}
+
+/// Each group's radial coefficient from `points` (observations in the photos' pixels) seen by
+/// `cameras` with focal `intrinsics.focal(1.0, i)` (the estimated focal in `scale`), starting
+/// from `k` (per group). The cameras and points given are not changed.
+///
+/// # Errors
+/// As [`adjust_lens`]: inputs of the wrong length, no reference camera, a reduced system that
+/// is not positive definite at any damping.
+pub fn refine_lens(
+    points: &[Point],
+    intrinsics: &ImageIntrinsics,
+    cameras: &[Option<CameraPose>],
+    k: &[f64],
+    bundle: &BundleOptions,
+    options: &LensRefinementOptions,
+) -> Result<LensRefinement> {
+    let pinhole = k.iter().all(|k| *k == 0.0);
+    let mut ks = k.to_vec();
+    let Some(reference) = cameras.iter().position(Option::is_some) else {
+        return Ok(LensRefinement {
+            k: ks,
+            kept: false,
+            reason: Some("no camera estimated"),
+            adjustment: LensAdjustment::default(),
+        });
+    };
+    let step = points.len().div_ceil(options.max_points.max(1)).max(1);
+    let subset: Vec<Point> = points.iter().step_by(step).cloned().collect();
+    let mut cameras = cameras.to_vec();
+    let mut factors = vec![1.0; intrinsics.groups()];
+    let (_, adjustment) = adjust_lens(
+        subset,
+        intrinsics,
+        &mut cameras,
+        &mut factors,
+        &mut ks,
+        reference,
+        bundle,
+    )?;
+    let reason = if adjustment.observations == 0 {
+        Some("no observation")
+    } else if !ks.iter().all(|k| k.is_finite() && k.abs() <= options.max_k) {
+        Some("a coefficient beyond max_k")
+    } else if adjustment.cost_after > adjustment.cost_before {
+        Some("the reprojection cost did not fall")
+    } else if pinhole
+        && adjustment.cost_after > (1.0 - options.min_improvement) * adjustment.cost_before
+    {
+        Some("the reprojection cost fell by less than min_improvement from a pinhole start")
+    } else {
+        None
+    };
+    Ok(LensRefinement {
+        k: ks,
+        kept: reason.is_none(),
+        reason,
+        adjustment,
+    })
+}
