@@ -528,17 +528,23 @@ fn refine_lens_after_mapping(
 }
 
 impl RadialLens {
-    /// `pairs` undistorted by `self` moved to `other`'s undistortion: each match back to its
-    /// photo pixel through `self` (pinhole when `None`) and undistorted by `other`.
+    /// Image `i`'s undistorted pixel `x` back in the photo's pixels through `this` (pinhole:
+    /// unchanged).
+    fn photo_pixel(this: Option<&Self>, i: usize, x: &[f64; 2]) -> [f64; 2] {
+        match this {
+            Some(l) => {
+                let p = l.lenses[i].distort_pixel(&nalgebra::Vector2::from(*x));
+                [p.x, p.y]
+            }
+            None => *x,
+        }
+    }
+
+    /// `pairs` undistorted by `this` moved to `other`'s undistortion: each match back to its
+    /// photo pixel through `this` (pinhole when `None`) and undistorted by `other`.
     fn moved_pairs(this: Option<&Self>, other: &Self, pairs: &[PairMatches]) -> Vec<PairMatches> {
         let mv = |i: usize, x: &[f64; 2]| {
-            let photo = match this {
-                Some(l) => {
-                    let p = l.lenses[i].distort_pixel(&nalgebra::Vector2::from(*x));
-                    [p.x, p.y]
-                }
-                None => *x,
-            };
+            let photo = Self::photo_pixel(this, i, x);
             other.undistort_pixel(i, photo).unwrap_or(photo)
         };
         pairs
@@ -728,19 +734,36 @@ pub fn estimate_geometric_counted(
         && !estimate.points.is_empty()
     {
         let clock = Instant::now();
-        let (refined, outcome) =
+        let (refined, mut outcome) =
             refine_lens_after_mapping(&sizes, &estimate, lens.as_ref(), config, options)?;
         distortion_seconds += clock.elapsed().as_secs_f64();
         if let Some(refined) = refined {
             let earlier = estimate.report.times;
             // The matches undistorted with the refined lens and mapped again (new two-view
-            // results: the coordinates moved).
+            // results: the coordinates moved). The mapping with the lens before is kept when
+            // this one fails or estimates fewer images.
             let pairs = RadialLens::moved_pairs(lens.as_ref(), &refined, &estimate.pairs);
             counter.stage("mapping", 0);
-            estimate =
-                map_supported_matches(&sizes, pairs, None, config, &TwoViewCache::default())?;
-            estimate.report.times.add_mapping(&earlier);
-            lens = Some(refined);
+            let estimated = estimate.cameras.iter().flatten().count();
+            match map_supported_matches(&sizes, pairs, None, config, &TwoViewCache::default()) {
+                Ok(mut again) if again.cameras.iter().flatten().count() >= estimated => {
+                    again.report.times.add_mapping(&earlier);
+                    estimate = again;
+                    lens = Some(refined);
+                }
+                Ok(again) => {
+                    estimate.report.times.add_mapping(&again.report.times);
+                    outcome.kept = false;
+                    outcome.reason = Some(format!(
+                        "mapped again with it, {} of {estimated} images were estimated",
+                        again.cameras.iter().flatten().count()
+                    ));
+                }
+                Err(e) => {
+                    outcome.kept = false;
+                    outcome.reason = Some(format!("mapping again with it failed: {e}"));
+                }
+            }
         }
         distortion.refinement = Some(outcome);
     }

@@ -671,8 +671,8 @@ fn filter(
         .collect()
 }
 
-/// One adjustment of `points` (in place) with the cameras, each group's focal factor and,
-/// when `refine_lens`, each group's radial coefficient `ks[g]`.
+/// One adjustment of `points` (in place) with the cameras, each group's focal factor and
+/// the radial coefficients `ks[g]` of the groups with `refine_lens[g]` (an empty slice: none).
 fn adjust(
     points: &mut [Point],
     intrinsics: &ImageIntrinsics,
@@ -680,7 +680,7 @@ fn adjust(
     (factors, ks): (&mut [f64], &mut [f64]),
     reference: usize,
     options: &BundleOptions,
-    refine_lens: bool,
+    refine_lens: &[bool],
 ) -> Result<LmReport> {
     // A group's focal (and coefficient) is refined when one of its images is observed by a
     // camera.
@@ -697,7 +697,11 @@ fn adjust(
         .map(|&o| o && options.refine_focal)
         .collect();
     let layout = ParameterLayout::with_focals(cameras, reference, &free);
-    let free_lens: Vec<bool> = observed.iter().map(|&o| o && refine_lens).collect();
+    let free_lens: Vec<bool> = observed
+        .iter()
+        .enumerate()
+        .map(|(g, &o)| o && refine_lens.get(g).copied().unwrap_or(false))
+        .collect();
     let (lens, n_params, block_sizes) = LensLayout::new(&layout, &free_lens);
     let mut blocks: Vec<PointBlocks> = points
         .iter()
@@ -830,7 +834,7 @@ pub fn bundle_adjust(
         (factors, &mut ks),
         reference,
         options,
-        false,
+        &[],
     )?;
     let (between, phi) = folded(factors);
     points = filter(points, cameras, (&between, phi, &ks), options.max_error_px);
@@ -841,7 +845,7 @@ pub fn bundle_adjust(
         (factors, &mut ks),
         reference,
         options,
-        false,
+        &[],
     )?;
     let (t1, t2) = (first.termination, second.termination);
     report.iterations = first.iterations + second.iterations;
@@ -911,19 +915,18 @@ pub struct LensAdjustment {
 
 /// One bundle adjustment of already triangulated `points` whose observations are in the
 /// photos' own pixels, with each camera group's radial coefficient `ks[g]` (COLMAP's
-/// SIMPLE_RADIAL `k`, on `x_c / z_c`) refined beside the cameras, the focal factors (when
-/// [`BundleOptions::refine_focal`]) and the points; observations farther than
+/// SIMPLE_RADIAL `k`, on `x_c / z_c`) refined where `free[g]`, beside the cameras, the focal
+/// factors (when [`BundleOptions::refine_focal`]) and the points; observations farther than
 /// `max_error_px` from their projection at the start are left out. Everything is updated in
 /// place; the reference camera is held fixed.
 ///
 /// # Errors
-/// As [`bundle_adjust`]; `ks` of another length than the groups.
+/// As [`bundle_adjust`]; `ks` or `free` of another length than the groups.
 pub fn adjust_lens(
     points: Vec<Point>,
     intrinsics: &ImageIntrinsics,
     cameras: &mut [Option<CameraPose>],
-    factors: &mut [f64],
-    ks: &mut [f64],
+    (factors, ks, free): (&mut [f64], &mut [f64], &[bool]),
     reference: usize,
     options: &BundleOptions,
 ) -> Result<(Vec<Point>, LensAdjustment)> {
@@ -931,6 +934,10 @@ pub fn adjust_lens(
     for (what, len) in [
         ("focal factors (one per camera group)", factors.len()),
         ("radial coefficients (one per camera group)", ks.len()),
+        (
+            "free radial coefficients (one per camera group)",
+            free.len(),
+        ),
     ] {
         if len != groups {
             return Err(crate::error::SfmError::LengthMismatch {
@@ -954,7 +961,7 @@ pub fn adjust_lens(
         (factors, ks),
         reference,
         options,
-        true,
+        free,
     )?;
     let mut folded = intrinsics.clone();
     let phi = folded.fold_factors(factors);
@@ -1143,8 +1150,7 @@ mod lens_tests {
             points,
             &intrinsics,
             &mut cameras,
-            &mut factors,
-            &mut ks,
+            (&mut factors, &mut ks, &[true]),
             0,
             &options,
         )
@@ -1178,8 +1184,7 @@ mod lens_tests {
             points,
             &intrinsics,
             &mut cameras,
-            &mut factors,
-            &mut ks,
+            (&mut factors, &mut ks, &[true]),
             0,
             &BundleOptions::default(),
         )
@@ -1190,11 +1195,35 @@ mod lens_tests {
             Vec::new(),
             &intrinsics,
             &mut cameras,
-            &mut factors,
-            &mut [0.0, 0.0],
+            (&mut factors, &mut [0.0, 0.0], &[true, true]),
             0,
             &BundleOptions::default(),
         );
         assert!(wrong.is_err());
+    }
+
+    /// The refinement's verdicts: the ring's lens is found and kept from a pinhole start; a
+    /// camera with fewer than `min_images` estimated images keeps its coefficient (held fixed
+    /// in the adjustment), and a pinhole scene stays pinhole (the cost cannot fall).
+    #[test]
+    fn the_refinement_keeps_a_lens_only_where_the_images_determine_it() {
+        use crate::lens_refinement::{LensRefinementOptions, refine_lens};
+        let (cameras, intrinsics, points) = ring(-0.1);
+        let options = LensRefinementOptions::default();
+        let bundle = BundleOptions::default();
+        let found = refine_lens(&points, &intrinsics, &cameras, &[0.0], &bundle, &options).unwrap();
+        assert!(found.kept, "{found:?}");
+        assert!((found.k[0] + 0.1).abs() < 1e-4, "{found:?}");
+        let too_few = LensRefinementOptions {
+            min_images: 9,
+            ..options
+        };
+        let held =
+            refine_lens(&points, &intrinsics, &cameras, &[-0.05], &bundle, &too_few).unwrap();
+        assert!(!held.kept && held.k == [-0.05], "{held:?}");
+        let (cameras, intrinsics, points) = ring(0.0);
+        let pinhole =
+            refine_lens(&points, &intrinsics, &cameras, &[0.0], &bundle, &options).unwrap();
+        assert!(!pinhole.kept && pinhole.reason.is_some(), "{pinhole:?}");
     }
 }
