@@ -460,10 +460,17 @@ fn refine_lens_after_mapping(
             }
         }
     }
-    // The points' observations back in the photos' pixels.
+    // The points adjusted (evenly spaced, `max_points` at most: only those are copied), their
+    // observations back in the photos' pixels.
+    let step = estimate
+        .points
+        .len()
+        .div_ceil(options.max_points.max(1))
+        .max(1);
     let points: Vec<Point> = estimate
         .points
         .iter()
+        .step_by(step)
         .map(|p| {
             let mut p = p.clone();
             if let Some(lens) = lens {
