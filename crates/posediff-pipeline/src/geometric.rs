@@ -236,14 +236,21 @@ impl RadialLens {
             .map(Into::into)
     }
 
-    /// COLMAP's SIMPLE_RADIAL `k` of image `i` at its estimated focal `focal` (pixels).
+    /// COLMAP's SIMPLE_RADIAL `k` (RADIAL's `k₁`) of image `i` at its estimated focal `focal`
+    /// (pixels).
     pub fn coefficient(&self, i: usize, focal: f64) -> f64 {
+        self.coefficients(i, focal)[0]
+    }
+
+    /// COLMAP's RADIAL `[k₁, k₂]` of image `i` at its estimated focal `focal` (pixels; `k₂ = 0`
+    /// for a SIMPLE_RADIAL lens): a coefficient of `r^{2n}` scales as `(f / s)^{2n}`.
+    pub fn coefficients(&self, i: usize, focal: f64) -> [f64; 2] {
         let lens = &self.lenses[i];
-        posediff_sfm::distortion_calibration::coefficient_at(
-            lens.distortion()[0],
-            lens.focal().0,
-            focal,
-        )
+        let d = lens.distortion();
+        let ratio = focal / lens.focal().0;
+        let k1 = posediff_sfm::distortion_calibration::coefficient_at(d[0], 1.0, ratio);
+        let k2 = d.get(1).map_or(0.0, |k2| k2 * ratio.powi(4));
+        [k1, k2]
     }
 
     /// Image `i`'s lens around its estimated pinhole intrinsics `k`: SIMPLE_RADIAL
@@ -265,10 +272,13 @@ impl RadialLens {
                 k.cy()
             )));
         }
-        Ok(LensCamera::new(
-            CameraModel::SimpleRadial,
-            vec![k.fx(), k.cx(), k.cy(), self.coefficient(i, k.fx())],
-        )?)
+        let model = self.lenses[i].model();
+        let [k1, k2] = self.coefficients(i, k.fx());
+        let params = match model {
+            CameraModel::Radial => vec![k.fx(), k.cx(), k.cy(), k1, k2],
+            _ => vec![k.fx(), k.cx(), k.cy(), k1],
+        };
+        Ok(LensCamera::new(model, params)?)
     }
 
     /// Undistorts every keypoint of `features` (in place; once: the caller's invariant).
@@ -364,6 +374,7 @@ fn calibrate_lens(
         cost_pinhole: calibration.cost_pinhole,
         cost: calibration.cost,
         k1: Vec::new(),
+        k2: Vec::new(),
         refinement: None,
     };
     if !outcome.measured {
@@ -449,14 +460,14 @@ fn refine_lens_after_mapping(
             })
         })
         .collect();
-    // The start: each camera's coefficient at its focal (0 without a lens).
-    let mut start = vec![0.0; groups];
+    // The start: each camera's coefficients at its focal (0 without a lens).
+    let mut start = vec![[0.0; 2]; groups];
     if let Some(lens) = lens {
         let mut seen = vec![false; groups];
         for (i, c) in estimate.cameras.iter().enumerate() {
             if let (false, Some(c)) = (seen[group[i]], c) {
                 seen[group[i]] = true;
-                start[group[i]] = lens.coefficient(i, c.intrinsics.fx());
+                start[group[i]] = lens.coefficients(i, c.intrinsics.fx());
             }
         }
     }
@@ -507,12 +518,23 @@ fn refine_lens_after_mapping(
     if !refined.kept {
         return Ok((None, outcome));
     }
-    // Each image's lens in its frame: COLMAP's k at the focal f is k_s (f / s)² at s.
+    // Each image's lens in its frame: COLMAP's k₁ at the focal f is k₁ (s / f)² at s, k₂ is
+    // k₂ (s / f)⁴.
     let mut lenses = Vec::with_capacity(n);
     for i in 0..n {
         let (s, c) = (scale[i], frame.principal[i]);
-        let ks = refined.k[group[i]] * (s / focal[i]).powi(2);
-        let camera = LensCamera::new(CameraModel::SimpleRadial, vec![s, c[0], c[1], ks])?;
+        let [k1, k2] = refined.k[group[i]];
+        let ratio = s / focal[i];
+        let camera = match options.model {
+            posediff_sfm::lens_refinement::LensModel::SimpleRadial => LensCamera::new(
+                CameraModel::SimpleRadial,
+                vec![s, c[0], c[1], k1 * ratio.powi(2)],
+            )?,
+            posediff_sfm::lens_refinement::LensModel::Radial => LensCamera::new(
+                CameraModel::Radial,
+                vec![s, c[0], c[1], k1 * ratio.powi(2), k2 * ratio.powi(4)],
+            )?,
+        };
         // The lens must be invertible over the whole photo: a coefficient that folds inside
         // it is no lens of this camera.
         let (w, h) = (f64::from(sizes[i].width()), f64::from(sizes[i].height()));
@@ -524,7 +546,7 @@ fn refine_lens_after_mapping(
         if folds {
             outcome.kept = false;
             outcome.reason = Some(format!(
-                "the refined lens folds inside image {i} (k = {})",
+                "the refined lens folds inside image {i} (k = {:?})",
                 refined.k[group[i]]
             ));
             return Ok((None, outcome));
@@ -777,13 +799,16 @@ pub fn estimate_geometric_counted(
     estimate.report.turned_images = turned_images;
     if let Some(lens) = &lens {
         // Each camera's COLMAP k at its focal, from its first estimated image.
-        let mut k1 = vec![None; estimate.report.cameras.count];
+        let mut k = vec![None; estimate.report.cameras.count];
         for (i, &g) in estimate.report.cameras.image_camera.iter().enumerate() {
-            if let (None, Some(c)) = (k1[g], estimate.cameras[i]) {
-                k1[g] = Some(lens.coefficient(i, c.intrinsics.fx()));
+            if let (None, Some(c)) = (k[g], estimate.cameras[i]) {
+                k[g] = Some(lens.coefficients(i, c.intrinsics.fx()));
             }
         }
-        distortion.k1 = k1;
+        distortion.k1 = k.iter().map(|k| k.map(|k| k[0])).collect();
+        if lens.lenses.iter().any(|l| l.model() == CameraModel::Radial) {
+            distortion.k2 = k.iter().map(|k| k.map(|k| k[1])).collect();
+        }
     }
     estimate.report.cameras.distortion = distortion;
     estimate.report.times.distortion = distortion_seconds;

@@ -379,6 +379,9 @@ pub struct DistortionOutcome {
     /// Per camera, COLMAP's SIMPLE_RADIAL `k` at its estimated focal (`null`: none of its
     /// images estimated); empty when none measured.
     pub k1: Vec<Option<f64>>,
+    /// Per camera, RADIAL's `k₂` at its estimated focal; empty unless the lens is RADIAL
+    /// (`cameras.lens_refinement.model = "radial"`).
+    pub k2: Vec<Option<f64>>,
     /// The lens refined by the bundle adjustment after the mapper (`cameras.lens_refinement`);
     /// `null` when it did not run (off, given intrinsics, no points).
     pub refinement: Option<LensRefinementOutcome>,
@@ -405,8 +408,9 @@ pub struct LensRefinementOutcome {
     pub rms_after_px: f64,
     /// Levenberg–Marquardt steps.
     pub iterations: usize,
-    /// Per camera, the refined SIMPLE_RADIAL `k` at the focal of that adjustment (kept or not).
-    pub k: Vec<f64>,
+    /// Per camera, the refined `[k₁, k₂]` at the focal of that adjustment, kept or not (`k₂ = 0`
+    /// with SIMPLE_RADIAL).
+    pub k: Vec<[f64; 2]>,
 }
 
 impl DistortionOutcome {

@@ -15,10 +15,11 @@
 //! Jacobians are analytic: `x_c = exp(ω) R (X − C)` gives `∂x_c/∂ω = −[x_c]ₓ`,
 //! `∂x_c/∂C = −R`, `∂x_c/∂X = R`, and `∂uv/∂log φ = uv − pp`.
 //!
-//! [`adjust_lens`] adds each camera group's radial coefficient `k` (COLMAP's SIMPLE_RADIAL:
-//! `uv = pp + f x (1 + k |x|²)` with `x = x_c / z_c`, on the photos' own pixels), one more
-//! block of the reduced system per group: `∂uv/∂x = f ((1 + k r²) I + 2 k x xᵀ)` and
-//! `∂uv/∂k = f r² x`.
+//! [`adjust_lens`] adds each camera group's radial coefficients (COLMAP's SIMPLE_RADIAL and
+//! RADIAL: `uv = pp + f x (1 + k₁ r² + k₂ r⁴)` with `x = x_c / z_c`, `r = |x|`, on the photos'
+//! own pixels), one more block of the reduced system per group (one or two coefficients):
+//! `∂uv/∂x = f ((1 + k₁ r² + k₂ r⁴) I + (2 k₁ + 4 k₂ r²) x xᵀ)`, `∂uv/∂k₁ = f r² x` and
+//! `∂uv/∂k₂ = f r⁴ x`.
 
 use nalgebra::{Matrix3, SMatrix, SVector, Vector3};
 use rayon::prelude::*;
@@ -130,22 +131,27 @@ pub fn project(
     (xc.z > 1e-12).then(|| ([f * xc.x / xc.z + pp[0], f * xc.y / xc.z + pp[1]], xc))
 }
 
-/// [`project`] through a SIMPLE_RADIAL lens with coefficient `k` (COLMAP's, on `x_c / z_c`);
-/// `k = 0` is [`project`] exactly.
+/// A camera's radial coefficients `[k₁, k₂]` (COLMAP's, on `x_c / z_c`; SIMPLE_RADIAL's `k` is
+/// `k₁` with `k₂ = 0`).
+pub type Radial = [f64; 2];
+
+/// [`project`] through a RADIAL lens with coefficients `k` (COLMAP's, on `x_c / z_c`);
+/// `k = [0, 0]` is [`project`] exactly.
 pub fn project_radial(
     c: &CameraPose,
     f: f64,
     pp: [f64; 2],
-    k: f64,
+    k: Radial,
     x: &Vector3<f64>,
 ) -> Option<([f64; 2], Vector3<f64>)> {
-    if k == 0.0 {
+    if k == [0.0, 0.0] {
         return project(c, f, pp, x);
     }
     let xc = c.rotation * (x - c.center);
     (xc.z > 1e-12).then(|| {
         let (u, v) = (xc.x / xc.z, xc.y / xc.z);
-        let g = 1.0 + k * (u * u + v * v);
+        let r2 = u * u + v * v;
+        let g = 1.0 + k[0] * r2 + k[1] * r2 * r2;
         ([f * g * u + pp[0], f * g * v + pp[1]], xc)
     })
 }
@@ -196,8 +202,8 @@ struct ObservationLinearisation {
     jc: SMatrix<f64, 2, 6>,
     /// `∂uv/∂log φ_g` of the image's group.
     jf: SVector<f64, 2>,
-    /// `∂uv/∂k_g`, the group's radial coefficient.
-    jk: SVector<f64, 2>,
+    /// `∂uv/∂[k₁, k₂]` of the group's radial coefficients.
+    jk: SMatrix<f64, 2, 2>,
     /// `∂uv/∂X`.
     jp: SMatrix<f64, 2, 3>,
     r: SVector<f64, 2>,
@@ -212,37 +218,38 @@ struct PointLinearisation {
     obs: Vec<ObservationLinearisation>,
 }
 
-/// Cameras, each group's focal factor, each group's radial coefficient, points.
+/// Cameras, each group's focal factor, each group's radial coefficients, points.
 type State = (
     Vec<Option<CameraPose>>,
     Vec<f64>,
-    Vec<f64>,
+    Vec<Radial>,
     Vec<Vector3<f64>>,
 );
 
-/// Where each group's radial coefficient sits when it is refined: after the layout's cameras
-/// and focals, one parameter and one block per free group.
+/// Where each group's radial coefficients sit when they are refined: after the layout's
+/// cameras and focals, one block of one (`k₁`) or two (`k₁, k₂`) parameters per free group.
 #[derive(Debug, Clone, Default)]
 struct LensLayout {
-    /// Per group, the index of its `k` (`None`: fixed).
-    param: Vec<Option<usize>>,
+    /// Per group, the index of its `k₁` and how many coefficients are free (`None`: fixed).
+    param: Vec<Option<(usize, usize)>>,
     /// Per group, its block (`None`: fixed).
     block: Vec<Option<usize>>,
 }
 
 impl LensLayout {
-    /// The coefficients of the groups with `free[g]` after `layout`'s parameters and blocks;
-    /// returns the parameter count and the block sizes with them.
-    fn new(layout: &ParameterLayout, free: &[bool]) -> (Self, usize, Vec<usize>) {
+    /// The first `free[g]` (0, 1 or 2) coefficients of each group after `layout`'s parameters
+    /// and blocks; returns the parameter count and the block sizes with them.
+    fn new(layout: &ParameterLayout, free: &[usize]) -> (Self, usize, Vec<usize>) {
         let mut n_params = layout.n_params;
         let mut sizes = layout.block_sizes.clone();
         let mut lens = Self::default();
-        for &f in free {
-            lens.param.push(f.then_some(n_params));
-            lens.block.push(f.then_some(sizes.len()));
-            if f {
-                n_params += 1;
-                sizes.push(1);
+        for &m in free {
+            let m = m.min(2);
+            lens.param.push((m > 0).then_some((n_params, m)));
+            lens.block.push((m > 0).then_some(sizes.len()));
+            if m > 0 {
+                n_params += m;
+                sizes.push(m);
             }
         }
         (lens, n_params, sizes)
@@ -387,14 +394,20 @@ fn eliminate(
                 }
             }
             if let Some(l) = coefficient {
+                // Rows beyond the block's size (k₂ of a SIMPLE_RADIAL block) are never read.
                 let e = o.jk.transpose() * o.jp * o.w;
-                for j in 0..3 {
-                    es[l][(0, j)] += e[(0, j)];
+                let g = o.jk.transpose() * o.r * o.w;
+                for i in 0..2 {
+                    for j in 0..3 {
+                        es[l][(i, j)] += e[(i, j)];
+                    }
+                    gs[l][i] += g[i];
                 }
-                gs[l][0] += o.jk.dot(&o.r) * o.w;
-                let h = o.jk.norm_squared() * o.w;
+                let h = o.jk.transpose() * o.jk * o.w;
                 let b = blocks.entries[l];
-                system.add_block_in(&mut part, blocks.slots[pair_index(l, l)], b, b, |_, _| h);
+                system.add_block_in(&mut part, blocks.slots[pair_index(l, l)], b, b, |i, j| {
+                    h[(i, j)]
+                });
                 if let Some(u) = camera {
                     let h = o.jk.transpose() * o.jc * o.w;
                     let bu = blocks.entries[u];
@@ -403,13 +416,19 @@ fn eliminate(
                         blocks.slots[pair_index(u, l)],
                         b,
                         bu,
-                        |_, j| h[(0, j)],
+                        |i, j| h[(i, j)],
                     );
                 }
                 if let Some(v) = focal {
-                    let h = o.jk.dot(&o.jf) * o.w;
+                    let h = o.jk.transpose() * o.jf * o.w;
                     let bv = blocks.entries[v];
-                    system.add_block_in(&mut part, blocks.slots[pair_index(v, l)], b, bv, |_, _| h);
+                    system.add_block_in(
+                        &mut part,
+                        blocks.slots[pair_index(v, l)],
+                        b,
+                        bv,
+                        |i, _| h[i],
+                    );
                 }
             }
         }
@@ -515,7 +534,7 @@ impl LeastSquares for Problem<'_> {
                     let iz = 1.0 / xc.z;
                     let (u, v) = (xc.x * iz, xc.y * iz);
                     let r2 = u * u + v * v;
-                    let d = if k == 0.0 {
+                    let d = if k == [0.0, 0.0] {
                         SMatrix::<f64, 2, 3>::new(
                             f * iz,
                             0.0,
@@ -525,13 +544,14 @@ impl LeastSquares for Problem<'_> {
                             -f * xc.y * iz * iz,
                         )
                     } else {
-                        // ∂uv/∂x = f ((1 + k r²) I + 2 k x xᵀ), ∂x/∂x_c = [I | −x] / z.
-                        let g = 1.0 + k * r2;
+                        // ∂uv/∂x = f (g I + (2 k₁ + 4 k₂ r²) x xᵀ), ∂x/∂x_c = [I | −x] / z.
+                        let g = 1.0 + k[0] * r2 + k[1] * r2 * r2;
+                        let dg = 2.0 * k[0] + 4.0 * k[1] * r2;
                         let a = SMatrix::<f64, 2, 2>::new(
-                            g + 2.0 * k * u * u,
-                            2.0 * k * u * v,
-                            2.0 * k * u * v,
-                            g + 2.0 * k * v * v,
+                            g + dg * u * u,
+                            dg * u * v,
+                            dg * u * v,
+                            g + dg * v * v,
                         ) * f;
                         a * SMatrix::<f64, 2, 3>::new(iz, 0.0, -u * iz, 0.0, iz, -v * iz)
                     };
@@ -541,7 +561,12 @@ impl LeastSquares for Problem<'_> {
                     jc.fixed_view_mut::<2, 3>(0, 0).copy_from(&(d * (-skew)));
                     jc.fixed_view_mut::<2, 3>(0, 3).copy_from(&(-jp));
                     let jf = SVector::<f64, 2>::new(uv[0] - pp[0], uv[1] - pp[1]);
-                    let jk = SVector::<f64, 2>::new(f * r2 * u, f * r2 * v);
+                    let jk = SMatrix::<f64, 2, 2>::new(
+                        f * r2 * u,
+                        f * r2 * r2 * u,
+                        f * r2 * v,
+                        f * r2 * r2 * v,
+                    );
                     lin.c += jp.transpose() * jp * w;
                     lin.g += jp.transpose() * r * w;
                     lin.obs.push(ObservationLinearisation {
@@ -605,8 +630,10 @@ impl LeastSquares for Problem<'_> {
                     if let Some(fi) = layout.focal[group[o.image]] {
                         duv += o.jf * delta[fi];
                     }
-                    if let Some(ki) = lens.param.get(group[o.image]).copied().flatten() {
-                        duv += o.jk * delta[ki];
+                    if let Some((ki, m)) = lens.param.get(group[o.image]).copied().flatten() {
+                        for c in 0..m {
+                            duv += o.jk.column(c) * delta[ki + c];
+                        }
                     }
                     v += o.jp.transpose() * duv * o.w;
                 }
@@ -622,7 +649,13 @@ impl LeastSquares for Problem<'_> {
             .iter()
             .enumerate()
             .map(|(g, k)| match self.lens.param.get(g).copied().flatten() {
-                Some(i) => k + step[i],
+                Some((i, m)) => {
+                    let mut k = *k;
+                    for (c, kc) in k.iter_mut().enumerate().take(m) {
+                        *kc += step[i + c];
+                    }
+                    k
+                }
                 None => *k,
             })
             .collect();
@@ -648,7 +681,7 @@ impl LeastSquares for Problem<'_> {
 fn filter(
     points: Vec<Point>,
     cameras: &[Option<CameraPose>],
-    (intrinsics, phi, ks): (&ImageIntrinsics, f64, &[f64]),
+    (intrinsics, phi, ks): (&ImageIntrinsics, f64, &[Radial]),
     max_error_px: f64,
 ) -> Vec<Point> {
     points
@@ -671,16 +704,16 @@ fn filter(
         .collect()
 }
 
-/// One adjustment of `points` (in place) with the cameras, each group's focal factor and
-/// the radial coefficients `ks[g]` of the groups with `refine_lens[g]` (an empty slice: none).
+/// One adjustment of `points` (in place) with the cameras, each group's focal factor and the
+/// first `refine_lens[g]` radial coefficients of `ks[g]` (an empty slice: none).
 fn adjust(
     points: &mut [Point],
     intrinsics: &ImageIntrinsics,
     cameras: &mut [Option<CameraPose>],
-    (factors, ks): (&mut [f64], &mut [f64]),
+    (factors, ks): (&mut [f64], &mut [Radial]),
     reference: usize,
     options: &BundleOptions,
-    refine_lens: &[bool],
+    refine_lens: &[usize],
 ) -> Result<LmReport> {
     // A group's focal (and coefficient) is refined when one of its images is observed by a
     // camera.
@@ -697,10 +730,16 @@ fn adjust(
         .map(|&o| o && options.refine_focal)
         .collect();
     let layout = ParameterLayout::with_focals(cameras, reference, &free);
-    let free_lens: Vec<bool> = observed
+    let free_lens: Vec<usize> = observed
         .iter()
         .enumerate()
-        .map(|(g, &o)| o && refine_lens.get(g).copied().unwrap_or(false))
+        .map(|(g, &o)| {
+            if o {
+                refine_lens.get(g).copied().unwrap_or(0)
+            } else {
+                0
+            }
+        })
         .collect();
     let (lens, n_params, block_sizes) = LensLayout::new(&layout, &free_lens);
     let mut blocks: Vec<PointBlocks> = points
@@ -810,7 +849,7 @@ pub fn bundle_adjust(
             })
         })
         .collect();
-    let pinhole = vec![0.0; groups];
+    let pinhole = vec![[0.0, 0.0]; groups];
     let mut points = filter(
         points,
         cameras,
@@ -865,7 +904,7 @@ pub fn bundle_adjust(
 fn rms_error(
     points: &[Point],
     cameras: &[Option<CameraPose>],
-    (intrinsics, phi, ks): (&ImageIntrinsics, f64, &[f64]),
+    (intrinsics, phi, ks): (&ImageIntrinsics, f64, &[Radial]),
 ) -> (f64, usize) {
     let (mut sum, mut count) = (0.0, 0usize);
     for p in points {
@@ -914,11 +953,11 @@ pub struct LensAdjustment {
 }
 
 /// One bundle adjustment of already triangulated `points` whose observations are in the
-/// photos' own pixels, with each camera group's radial coefficient `ks[g]` (COLMAP's
-/// SIMPLE_RADIAL `k`, on `x_c / z_c`) refined where `free[g]`, beside the cameras, the focal
-/// factors (when [`BundleOptions::refine_focal`]) and the points; observations farther than
-/// `max_error_px` from their projection at the start are left out. Everything is updated in
-/// place; the reference camera is held fixed.
+/// photos' own pixels, with the first `free[g]` (0, 1 or 2) of each camera group's radial
+/// coefficients `ks[g]` (COLMAP's RADIAL `k₁, k₂`, on `x_c / z_c`; SIMPLE_RADIAL: one) refined
+/// beside the cameras, the focal factors (when [`BundleOptions::refine_focal`]) and the points;
+/// observations farther than `max_error_px` from their projection at the start are left out.
+/// Everything is updated in place; the reference camera is held fixed.
 ///
 /// # Errors
 /// As [`bundle_adjust`]; `ks` or `free` of another length than the groups.
@@ -926,7 +965,7 @@ pub fn adjust_lens(
     points: Vec<Point>,
     intrinsics: &ImageIntrinsics,
     cameras: &mut [Option<CameraPose>],
-    (factors, ks, free): (&mut [f64], &mut [f64], &[bool]),
+    (factors, ks, free): (&mut [f64], &mut [Radial], &[usize]),
     reference: usize,
     options: &BundleOptions,
 ) -> Result<(Vec<Point>, LensAdjustment)> {
@@ -1008,12 +1047,12 @@ mod tests {
     /// through a radial lens (the coefficient's column too).
     #[test]
     fn reprojection_jacobian_matches_finite_differences() {
-        for k in [0.0, -0.12, 0.05] {
+        for k in [[0.0, 0.0], [-0.12, 0.0], [0.05, -0.02], [-0.1, 0.03]] {
             check_jacobian(k);
         }
     }
 
-    fn check_jacobian(k: f64) {
+    fn check_jacobian(k: Radial) {
         let intrinsics = ImageIntrinsics::new(vec![[320.0, 240.0]], vec![640.0]);
         let cam = CameraPose {
             rotation: Rotation3::from_euler_angles(0.1, -0.2, 0.3),
@@ -1027,8 +1066,8 @@ mod tests {
             xy: [0.0, 0.0],
         }];
         let layout = ParameterLayout::new(&[Some(cam)], usize::MAX, true);
-        let (lens, n_params, sizes) = LensLayout::new(&layout, &[true]);
-        assert_eq!((n_params, sizes.as_slice()), (8, &[6, 1, 1][..]));
+        let (lens, n_params, sizes) = LensLayout::new(&layout, &[2]);
+        assert_eq!((n_params, sizes.as_slice()), (9, &[6, 1, 2][..]));
         let mut problem = Problem {
             intrinsics: &intrinsics,
             observations: vec![&obs],
@@ -1046,22 +1085,22 @@ mod tests {
             .linearize(&(vec![Some(cam)], vec![phi], vec![k], vec![x]))
             .unwrap();
         let lin = problem.linear[0].obs[0];
-        let uv = |theta: &[f64; 11]| {
+        let uv = |theta: &[f64; 12]| {
             let c = cam.moved(&theta[0..6]);
             let p = x + Vector3::new(theta[7], theta[8], theta[9]);
             project_radial(
                 &c,
                 intrinsics.focal(phi * theta[6].exp(), 0),
                 [320.0, 240.0],
-                k + theta[10],
+                [k[0] + theta[10], k[1] + theta[11]],
                 &p,
             )
             .unwrap()
             .0
         };
         let h = 1e-6;
-        for q in 0..11 {
-            let (mut plus, mut minus) = ([0.0; 11], [0.0; 11]);
+        for q in 0..12 {
+            let (mut plus, mut minus) = ([0.0; 12], [0.0; 12]);
             plus[q] = h;
             minus[q] = -h;
             let (a, b) = (uv(&plus), uv(&minus));
@@ -1070,12 +1109,12 @@ mod tests {
                 let analytic = match q {
                     0..6 => lin.jc[(row, q)],
                     6 => lin.jf[row],
-                    10 => lin.jk[row],
+                    10 | 11 => lin.jk[(row, q - 10)],
                     _ => lin.jp[(row, q - 7)],
                 };
                 assert!(
                     (fd - analytic).abs() <= 1e-6 * fd.abs().max(1.0),
-                    "k {k}, param {q} row {row}: {fd} vs {analytic}"
+                    "k {k:?}, param {q} row {row}: {fd} vs {analytic}"
                 );
             }
         }
@@ -1090,7 +1129,7 @@ mod lens_tests {
 
     /// A ring of cameras around a cloud of points, seen through a SIMPLE_RADIAL lens with
     /// coefficient `k`: the points with their exact observations (photo pixels).
-    fn ring(k: f64) -> (Vec<Option<CameraPose>>, ImageIntrinsics, Vec<Point>) {
+    fn ring(k: Radial) -> (Vec<Option<CameraPose>>, ImageIntrinsics, Vec<Point>) {
         let cameras: Vec<Option<CameraPose>> = (0..8)
             .map(|i| {
                 let a = f64::from(i) * 0.35;
@@ -1135,12 +1174,12 @@ mod lens_tests {
     /// exactly; the pinhole start's error is pixels.
     #[test]
     fn the_radial_coefficient_is_recovered_with_the_focal() {
-        let (truth, intrinsics, points) = ring(-0.1);
+        let (truth, intrinsics, points) = ring([-0.1, 0.0]);
         let mut cameras = truth.clone();
         for c in cameras.iter_mut().skip(1).flatten() {
             c.center += Vector3::new(0.01, -0.02, 0.01);
         }
-        let (mut factors, mut ks) = (vec![1.03], vec![0.0]);
+        let (mut factors, mut ks) = (vec![1.03], vec![[0.0, 0.0]]);
         let options = BundleOptions {
             max_error_px: 1e3,
             tolerance: 1e-12,
@@ -1150,7 +1189,7 @@ mod lens_tests {
             points,
             &intrinsics,
             &mut cameras,
-            (&mut factors, &mut ks, &[true]),
+            (&mut factors, &mut ks, &[1]),
             0,
             &options,
         )
@@ -1158,7 +1197,11 @@ mod lens_tests {
         assert!(report.rms_before_px > 1.0, "{report:?}");
         assert!(report.rms_after_px < 1e-3, "{report:?}");
         assert!(report.cost_after < 1e-3 * report.cost_before, "{report:?}");
-        assert!((ks[0] + 0.1).abs() < 1e-4, "k {}", ks[0]);
+        assert!(
+            (ks[0][0] + 0.1).abs() < 1e-4 && ks[0][1] == 0.0,
+            "k {:?}",
+            ks[0]
+        );
         assert!(
             (factors[0] - 1.0).abs() < 1e-4,
             "focal factor {}",
@@ -1177,25 +1220,29 @@ mod lens_tests {
     /// the coefficient stays at zero and nothing is gained.
     #[test]
     fn a_pinhole_scene_keeps_a_zero_coefficient() {
-        let (truth, intrinsics, points) = ring(0.0);
+        let (truth, intrinsics, points) = ring([0.0, 0.0]);
         let mut cameras = truth.clone();
-        let (mut factors, mut ks) = (vec![1.0], vec![0.0]);
+        let (mut factors, mut ks) = (vec![1.0], vec![[0.0, 0.0]]);
         let (_, report) = adjust_lens(
             points,
             &intrinsics,
             &mut cameras,
-            (&mut factors, &mut ks, &[true]),
+            (&mut factors, &mut ks, &[2]),
             0,
             &BundleOptions::default(),
         )
         .unwrap();
-        assert!(ks[0].abs() < 1e-6, "k {}", ks[0]);
+        assert!(
+            ks[0][0].abs() < 1e-6 && ks[0][1].abs() < 1e-6,
+            "k {:?}",
+            ks[0]
+        );
         assert!(report.rms_before_px < 1e-6 && report.rms_after_px < 1e-6);
         let wrong = adjust_lens(
             Vec::new(),
             &intrinsics,
             &mut cameras,
-            (&mut factors, &mut [0.0, 0.0], &[true, true]),
+            (&mut factors, &mut [[0.0; 2]; 2], &[1, 1]),
             0,
             &BundleOptions::default(),
         );
@@ -1208,22 +1255,90 @@ mod lens_tests {
     #[test]
     fn the_refinement_keeps_a_lens_only_where_the_images_determine_it() {
         use crate::lens_refinement::{LensRefinementOptions, refine_lens};
-        let (cameras, intrinsics, points) = ring(-0.1);
+        let (cameras, intrinsics, points) = ring([-0.1, 0.0]);
         let options = LensRefinementOptions::default();
         let bundle = BundleOptions::default();
-        let found = refine_lens(&points, &intrinsics, &cameras, &[0.0], &bundle, &options).unwrap();
+        let found = refine_lens(
+            &points,
+            &intrinsics,
+            &cameras,
+            &[[0.0; 2]],
+            &bundle,
+            &options,
+        )
+        .unwrap();
         assert!(found.kept, "{found:?}");
-        assert!((found.k[0] + 0.1).abs() < 1e-4, "{found:?}");
+        assert!((found.k[0][0] + 0.1).abs() < 1e-4, "{found:?}");
         let too_few = LensRefinementOptions {
             min_images: 9,
             ..options
         };
-        let held =
-            refine_lens(&points, &intrinsics, &cameras, &[-0.05], &bundle, &too_few).unwrap();
-        assert!(!held.kept && held.k == [-0.05], "{held:?}");
-        let (cameras, intrinsics, points) = ring(0.0);
-        let pinhole =
-            refine_lens(&points, &intrinsics, &cameras, &[0.0], &bundle, &options).unwrap();
+        let held = refine_lens(
+            &points,
+            &intrinsics,
+            &cameras,
+            &[[-0.05, 0.0]],
+            &bundle,
+            &too_few,
+        )
+        .unwrap();
+        assert!(!held.kept && held.k == [[-0.05, 0.0]], "{held:?}");
+        let (cameras, intrinsics, points) = ring([0.0, 0.0]);
+        let pinhole = refine_lens(
+            &points,
+            &intrinsics,
+            &cameras,
+            &[[0.0; 2]],
+            &bundle,
+            &options,
+        )
+        .unwrap();
         assert!(!pinhole.kept && pinhole.reason.is_some(), "{pinhole:?}");
+    }
+
+    /// RADIAL: a lens with `k₂` (OpenCV's `k1 = −0.12, k2 = 0.02`, the wide-angle copies')
+    /// comes back with both coefficients, where SIMPLE_RADIAL's one coefficient cannot fit it.
+    #[test]
+    fn a_second_coefficient_is_recovered_with_the_radial_model() {
+        use crate::lens_refinement::{LensModel, LensRefinementOptions, refine_lens};
+        let (cameras, intrinsics, points) = ring([-0.12, 0.02]);
+        let bundle = BundleOptions {
+            tolerance: 1e-12,
+            ..BundleOptions::default()
+        };
+        let radial = LensRefinementOptions {
+            model: LensModel::Radial,
+            ..LensRefinementOptions::default()
+        };
+        let two = refine_lens(
+            &points,
+            &intrinsics,
+            &cameras,
+            &[[0.0; 2]],
+            &bundle,
+            &radial,
+        )
+        .unwrap();
+        assert!(two.kept, "{two:?}");
+        let [k1, k2] = two.k[0];
+        assert!(
+            (k1 + 0.12).abs() < 1e-3 && (k2 - 0.02).abs() < 1e-3,
+            "{two:?}"
+        );
+        assert!(two.adjustment.rms_after_px < 1e-3, "{two:?}");
+        let one = refine_lens(
+            &points,
+            &intrinsics,
+            &cameras,
+            &[[0.0; 2]],
+            &bundle,
+            &LensRefinementOptions::default(),
+        )
+        .unwrap();
+        assert_eq!(one.k[0][1], 0.0);
+        assert!(
+            one.adjustment.rms_after_px > 10.0 * two.adjustment.rms_after_px,
+            "{one:?}"
+        );
     }
 }

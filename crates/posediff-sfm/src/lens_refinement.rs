@@ -9,10 +9,35 @@
 //! robust reprojection cost by `min_improvement`, so a pinhole set stays pinhole; the caller
 //! then undistorts the matches with it and maps again.
 
-use crate::bundle::{BundleOptions, LensAdjustment, Point, adjust_lens};
+use crate::bundle::{BundleOptions, LensAdjustment, Point, Radial, adjust_lens};
 use crate::camera::CameraPose;
 use crate::error::Result;
 use crate::intrinsics::ImageIntrinsics;
+
+/// The lens model refined: COLMAP's SIMPLE_RADIAL (`k`, its default) or RADIAL (`k₁, k₂`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(rename_all = "snake_case")
+)]
+pub enum LensModel {
+    /// One coefficient.
+    #[default]
+    SimpleRadial,
+    /// Two coefficients.
+    Radial,
+}
+
+impl LensModel {
+    /// The coefficients it refines.
+    pub fn coefficients(self) -> usize {
+        match self {
+            Self::SimpleRadial => 1,
+            Self::Radial => 2,
+        }
+    }
+}
 
 /// Settings of [`refine_lens`]; chosen on the shared sets and their wide-angle copies
 /// (`posediff variant --radial=-0.12:0.02`, docs/BENCHMARKS.md, "Real cameras: the lens in the
@@ -24,6 +49,10 @@ use crate::intrinsics::ImageIntrinsics;
     serde(default, deny_unknown_fields)
 )]
 pub struct LensRefinementOptions {
+    /// The model: `simple_radial` (COLMAP's default; one coefficient) or `radial` (`k₁, k₂`:
+    /// a strong wide-angle lens, the copies' OpenCV `k1 = −0.12, k2 = 0.02`, which one
+    /// coefficient fits as −0.112 on the fountain).
+    pub model: LensModel,
     /// Points adjusted at most, evenly spaced over the mapper's (a few thousand determine one
     /// coefficient per camera; the poses are adjusted again by the second mapping).
     pub max_points: usize,
@@ -48,6 +77,7 @@ pub struct LensRefinementOptions {
 impl Default for LensRefinementOptions {
     fn default() -> Self {
         Self {
+            model: LensModel::SimpleRadial,
             max_points: 20_000,
             min_improvement: 0.1,
             max_k: 1.0,
@@ -59,8 +89,9 @@ impl Default for LensRefinementOptions {
 /// What [`refine_lens`] found.
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct LensRefinement {
-    /// Per camera group, the refined coefficient (the start's where its images saw no point).
-    pub k: Vec<f64>,
+    /// Per camera group, the refined coefficients `[k₁, k₂]` (`k₂ = 0` with SIMPLE_RADIAL; the
+    /// start's where the group was not refined).
+    pub k: Vec<Radial>,
     /// Whether the coefficients are kept (they lowered the cost enough and stayed in range).
     pub kept: bool,
     /// Why they are not kept (`None` when kept).
@@ -69,7 +100,7 @@ pub struct LensRefinement {
     pub adjustment: LensAdjustment,
 }
 
-/// Each group's radial coefficient from `points` (observations in the photos' pixels) seen by
+/// Each group's radial coefficients (`options.model`) from `points` (observations in the photos' pixels) seen by
 /// `cameras` with focal `intrinsics.focal(1.0, i)` (the estimated focal in `scale`), starting
 /// from `k` (per group). The cameras and points given are not changed.
 ///
@@ -80,11 +111,11 @@ pub fn refine_lens(
     points: &[Point],
     intrinsics: &ImageIntrinsics,
     cameras: &[Option<CameraPose>],
-    k: &[f64],
+    k: &[Radial],
     bundle: &BundleOptions,
     options: &LensRefinementOptions,
 ) -> Result<LensRefinement> {
-    let pinhole = k.iter().all(|k| *k == 0.0);
+    let pinhole = k.iter().all(|k| *k == [0.0, 0.0]);
     let mut ks = k.to_vec();
     let Some(reference) = cameras.iter().position(Option::is_some) else {
         return Ok(LensRefinement {
@@ -104,8 +135,17 @@ pub fn refine_lens(
             *n += 1;
         }
     }
-    let free: Vec<bool> = estimated.iter().map(|&n| n >= options.min_images).collect();
-    if !free.iter().any(|f| *f) {
+    let free: Vec<usize> = estimated
+        .iter()
+        .map(|&n| {
+            if n >= options.min_images {
+                options.model.coefficients()
+            } else {
+                0
+            }
+        })
+        .collect();
+    if free.iter().all(|f| *f == 0) {
         return Ok(LensRefinement {
             k: ks,
             kept: false,
@@ -129,7 +169,11 @@ pub fn refine_lens(
         Some("no observation")
     } else if !(adjustment.cost_before.is_finite() && adjustment.cost_after.is_finite()) {
         Some("a reprojection cost that is not finite")
-    } else if !ks.iter().all(|k| k.is_finite() && k.abs() <= options.max_k) {
+    } else if !ks
+        .iter()
+        .flatten()
+        .all(|k| k.is_finite() && k.abs() <= options.max_k)
+    {
         Some("a coefficient beyond max_k")
     } else if adjustment.cost_after > adjustment.cost_before {
         Some("the reprojection cost did not fall")
