@@ -389,6 +389,50 @@ pub struct CameraOptions {
     pub lens_refinement: Option<posediff_sfm::lens_refinement::LensRefinementOptions>,
 }
 
+impl CameraOptions {
+    /// COLMAP's `--ImageReader.camera_model` (`--camera-model`) as settings of this tree:
+    /// `SIMPLE_PINHOLE` and `PINHOLE` turn the lens calibration and refinement off (one focal
+    /// per camera, the principal point at the centre, no distortion), `SIMPLE_RADIAL` is the
+    /// default (a coefficient where the data show one), `RADIAL` refines `k₁, k₂`. Names as
+    /// COLMAP spells them, in any case.
+    ///
+    /// # Errors
+    /// An unknown name, or a model posediff does not estimate (OPENCV, OPENCV_FISHEYE).
+    pub fn set_model(&mut self, name: &str) -> Result<()> {
+        use posediff_sfm::lens_refinement::{LensModel, LensRefinementOptions};
+        let model = posediff_geometry::lens::CameraModel::from_name(&name.to_ascii_uppercase())
+            .map_err(|e| PosediffError::InvalidArgument(format!("camera model {name:?}: {e}")))?;
+        match model {
+            posediff_geometry::lens::CameraModel::SimplePinhole
+            | posediff_geometry::lens::CameraModel::Pinhole => {
+                self.distortion = None;
+                self.lens_refinement = None;
+            }
+            posediff_geometry::lens::CameraModel::SimpleRadial
+            | posediff_geometry::lens::CameraModel::Radial => {
+                let radial = model == posediff_geometry::lens::CameraModel::Radial;
+                self.distortion.get_or_insert_with(Default::default);
+                let refinement = self
+                    .lens_refinement
+                    .get_or_insert_with(LensRefinementOptions::default);
+                refinement.model = if radial {
+                    LensModel::Radial
+                } else {
+                    LensModel::SimpleRadial
+                };
+            }
+            other => {
+                return Err(PosediffError::InvalidArgument(format!(
+                    "camera model {}: not estimated by posediff (SIMPLE_PINHOLE, PINHOLE, \
+                     SIMPLE_RADIAL and RADIAL are); RADIAL is the nearest for a wide-angle lens",
+                    other.name()
+                )));
+            }
+        }
+        Ok(())
+    }
+}
+
 impl Default for CameraOptions {
     fn default() -> Self {
         Self {
@@ -717,5 +761,28 @@ mod tests {
         assert_eq!(strict.evidence(0, 40), None);
         assert_eq!(strict.evidence(20, 79), None);
         assert_eq!(strict.evidence(20, 80), Some(true));
+    }
+
+    /// `--camera-model` in COLMAP's names, any case: the pinhole models turn the lens off, the
+    /// radial ones choose the refined model; others are refused by name.
+    #[test]
+    fn camera_models_set_the_lens_options() {
+        use posediff_sfm::lens_refinement::LensModel;
+        let mut c = CameraOptions::default();
+        c.set_model("RADIAL").unwrap();
+        assert_eq!(c.lens_refinement.unwrap().model, LensModel::Radial);
+        assert!(c.distortion.is_some());
+        c.set_model("simple_pinhole").unwrap();
+        assert!(c.distortion.is_none() && c.lens_refinement.is_none());
+        c.set_model("simple_radial").unwrap();
+        assert_eq!(c.lens_refinement.unwrap().model, LensModel::SimpleRadial);
+        assert!(c.distortion.is_some());
+        let e = c.set_model("OPENCV_FISHEYE").unwrap_err().to_string();
+        assert!(e.contains("OPENCV_FISHEYE") && e.contains("RADIAL"), "{e}");
+        let e = c.set_model("fisheye62").unwrap_err().to_string();
+        assert!(
+            e.contains("fisheye62") && e.contains("SIMPLE_RADIAL"),
+            "{e}"
+        );
     }
 }

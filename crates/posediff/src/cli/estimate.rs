@@ -96,6 +96,13 @@ pub struct Args {
     /// (Sets the options tree's `cameras.mode`; default `auto`.)
     #[arg(long, value_name = "MODE")]
     camera_mode: Option<posediff_pipeline::options::CameraMode>,
+    /// The lens model, as COLMAP names it (checkpoint-free path, unknown intrinsics):
+    /// `SIMPLE_RADIAL` (the default: a radial coefficient per camera where the data show one),
+    /// `RADIAL` (two coefficients, for a wide-angle lens), `SIMPLE_PINHOLE` or `PINHOLE` (no
+    /// distortion). (Sets the options tree's `cameras.distortion` and
+    /// `cameras.lens_refinement`.)
+    #[arg(long, value_name = "MODEL")]
+    camera_model: Option<String>,
     /// The pipeline's options from a TOML (`.toml`) or JSON file: any subset of the tree
     /// run.json's `options` shows (e.g. `[orientation]` / `strong_pair = 100`). Applied before
     /// `--pairs` and `--set`.
@@ -342,7 +349,7 @@ impl Args {
         let mut pipeline = pipeline_options(
             self.config.as_deref(),
             self.pairs.as_ref(),
-            self.camera_mode,
+            (self.camera_mode, self.camera_model.as_deref()),
             &[],
         )?;
         if let Some(fps) = self.fps {
@@ -385,15 +392,16 @@ impl Args {
     }
 }
 
-/// The options tree of a file (`--config`), `--pairs`, `--camera-mode` and `--set`
-/// assignments, in that order.
+/// The options tree of a file (`--config`), `--pairs`, `--camera-mode`, `--camera-model` and
+/// `--set` assignments, in that order.
 ///
 /// # Errors
-/// An unreadable file, an unknown key, a value of the wrong type.
+/// An unreadable file, an unknown key, a value of the wrong type, a camera model posediff does
+/// not estimate.
 pub(super) fn pipeline_options(
     config: Option<&Path>,
     pairs: Option<&posediff_matching::PairSelection>,
-    camera_mode: Option<posediff_pipeline::options::CameraMode>,
+    (camera_mode, camera_model): (Option<posediff_pipeline::options::CameraMode>, Option<&str>),
     set: &[String],
 ) -> posediff::Result<PipelineOptions> {
     let mut pipeline = PipelineOptions::default();
@@ -405,6 +413,9 @@ pub(super) fn pipeline_options(
     }
     if let Some(mode) = camera_mode {
         pipeline.cameras.mode = mode;
+    }
+    if let Some(model) = camera_model {
+        pipeline.cameras.set_model(model)?;
     }
     for assignment in set {
         pipeline = pipeline.with_assignment(assignment)?;

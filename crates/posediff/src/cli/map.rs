@@ -29,6 +29,9 @@ pub struct Args {
     /// Which photos share a camera (as `posediff estimate --camera-mode`).
     #[arg(long, value_name = "MODE")]
     camera_mode: Option<posediff_pipeline::options::CameraMode>,
+    /// The lens model (as `posediff estimate --camera-model`).
+    #[arg(long, value_name = "MODEL")]
+    camera_model: Option<String>,
     /// The pipeline's options from a TOML or JSON file (as `posediff estimate --config`).
     #[arg(long, value_name = "FILE")]
     config: Option<PathBuf>,
@@ -47,7 +50,12 @@ impl Args {
     /// Runs the command.
     pub fn run(self) -> anyhow::Result<()> {
         let start = Instant::now();
-        let pipeline = pipeline_options(self.config.as_deref(), None, self.camera_mode, &self.set)?;
+        let pipeline = pipeline_options(
+            self.config.as_deref(),
+            None,
+            (self.camera_mode, self.camera_model.as_deref()),
+            &self.set,
+        )?;
         let inputs = Inputs::resolve(std::slice::from_ref(&self.images), false)?;
         let options = RunOptions {
             pipeline,

@@ -63,8 +63,12 @@ pub struct Args {
 impl Args {
     /// Runs the command up to `stop`.
     pub fn run(self, stop: StopAfter) -> anyhow::Result<()> {
-        let pipeline =
-            pipeline_options(self.config.as_deref(), self.pairs.as_ref(), None, &self.set)?;
+        let pipeline = pipeline_options(
+            self.config.as_deref(),
+            self.pairs.as_ref(),
+            (None, None),
+            &self.set,
+        )?;
         let options = RunOptions {
             pipeline,
             matcher: self.matcher.into(),
