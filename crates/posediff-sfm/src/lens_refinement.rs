@@ -191,3 +191,225 @@ pub fn refine_lens(
         adjustment,
     })
 }
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+    use crate::bundle::{Radial, adjust_lens, project_radial};
+    use crate::tracks::Observation;
+    use nalgebra::{Rotation3, Vector3};
+
+    /// A ring of cameras around a cloud of points, seen through a SIMPLE_RADIAL lens with
+    /// coefficient `k`: the points with their exact observations (photo pixels).
+    fn ring(k: Radial) -> (Vec<Option<CameraPose>>, ImageIntrinsics, Vec<Point>) {
+        let cameras: Vec<Option<CameraPose>> = (0..8)
+            .map(|i| {
+                let a = f64::from(i) * 0.35;
+                let center = Vector3::new(4.0 * a.sin(), 0.4 * a.cos(), -4.0 * a.cos());
+                Some(CameraPose {
+                    rotation: Rotation3::look_at_lh(&(-center), &Vector3::y()),
+                    center,
+                })
+            })
+            .collect();
+        let intrinsics = ImageIntrinsics::new(vec![[320.0, 240.0]; 8], vec![500.0; 8]);
+        let mut state = 12345u64;
+        let mut next = || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
+        };
+        let points = (0..300)
+            .map(|_| {
+                let xyz = Vector3::new(1.5 * next(), 1.2 * next(), 1.5 * next());
+                let observations = cameras
+                    .iter()
+                    .enumerate()
+                    .filter_map(|(image, c)| {
+                        let (uv, _) =
+                            project_radial(c.as_ref().unwrap(), 500.0, [320.0, 240.0], k, &xyz)?;
+                        Some(Observation {
+                            image,
+                            keypoint: 0,
+                            xy: uv,
+                        })
+                    })
+                    .collect();
+                Point { xyz, observations }
+            })
+            .collect();
+        (cameras, intrinsics, points)
+    }
+
+    /// From a pinhole start and a focal 3 % off, the lens, the focal and the cameras come back
+    /// exactly; the pinhole start's error is pixels.
+    #[test]
+    fn the_radial_coefficient_is_recovered_with_the_focal() {
+        let (truth, intrinsics, points) = ring([-0.1, 0.0]);
+        let mut cameras = truth.clone();
+        for c in cameras.iter_mut().skip(1).flatten() {
+            c.center += Vector3::new(0.01, -0.02, 0.01);
+        }
+        let (mut factors, mut ks) = (vec![1.03], vec![[0.0, 0.0]]);
+        let options = BundleOptions {
+            max_error_px: 1e3,
+            tolerance: 1e-12,
+            ..BundleOptions::default()
+        };
+        let (kept, report) = adjust_lens(
+            points,
+            &intrinsics,
+            &mut cameras,
+            (&mut factors, &mut ks, &[1]),
+            0,
+            &options,
+        )
+        .unwrap();
+        assert!(report.rms_before_px > 1.0, "{report:?}");
+        assert!(report.rms_after_px < 1e-3, "{report:?}");
+        assert!(report.cost_after < 1e-3 * report.cost_before, "{report:?}");
+        assert!(
+            (ks[0][0] + 0.1).abs() < 1e-4 && ks[0][1] == 0.0,
+            "k {:?}",
+            ks[0]
+        );
+        assert!(
+            (factors[0] - 1.0).abs() < 1e-4,
+            "focal factor {}",
+            factors[0]
+        );
+        assert_eq!(kept.len(), 300);
+        // Up to the gauge (unit mean distance from the reference): rotations exact.
+        for (c, t) in cameras.iter().zip(&truth) {
+            let (c, t) = (c.unwrap(), t.unwrap());
+            let angle = (c.rotation.matrix() - t.rotation.matrix()).norm();
+            assert!(angle < 1e-5, "{angle} {report:?}");
+        }
+    }
+
+    /// The pinhole adjustment is the lens adjustment at `k = 0` held fixed: on pinhole data
+    /// the coefficient stays at zero and nothing is gained.
+    #[test]
+    fn a_pinhole_scene_keeps_a_zero_coefficient() {
+        let (truth, intrinsics, points) = ring([0.0, 0.0]);
+        let mut cameras = truth.clone();
+        let (mut factors, mut ks) = (vec![1.0], vec![[0.0, 0.0]]);
+        let (_, report) = adjust_lens(
+            points,
+            &intrinsics,
+            &mut cameras,
+            (&mut factors, &mut ks, &[2]),
+            0,
+            &BundleOptions::default(),
+        )
+        .unwrap();
+        assert!(
+            ks[0][0].abs() < 1e-6 && ks[0][1].abs() < 1e-6,
+            "k {:?}",
+            ks[0]
+        );
+        assert!(report.rms_before_px < 1e-6 && report.rms_after_px < 1e-6);
+        let wrong = adjust_lens(
+            Vec::new(),
+            &intrinsics,
+            &mut cameras,
+            (&mut factors, &mut [[0.0; 2]; 2], &[1, 1]),
+            0,
+            &BundleOptions::default(),
+        );
+        assert!(wrong.is_err());
+    }
+
+    /// The refinement's verdicts: the ring's lens is found and kept from a pinhole start; a
+    /// camera with fewer than `min_images` estimated images keeps its coefficient (held fixed
+    /// in the adjustment), and a pinhole scene stays pinhole (the cost cannot fall).
+    #[test]
+    fn the_refinement_keeps_a_lens_only_where_the_images_determine_it() {
+        let (cameras, intrinsics, points) = ring([-0.1, 0.0]);
+        let options = LensRefinementOptions::default();
+        let bundle = BundleOptions::default();
+        let found = refine_lens(
+            &points,
+            &intrinsics,
+            &cameras,
+            &[[0.0; 2]],
+            &bundle,
+            &options,
+        )
+        .unwrap();
+        assert!(found.kept, "{found:?}");
+        assert!((found.k[0][0] + 0.1).abs() < 1e-4, "{found:?}");
+        let too_few = LensRefinementOptions {
+            min_images: 9,
+            ..options
+        };
+        let held = refine_lens(
+            &points,
+            &intrinsics,
+            &cameras,
+            &[[-0.05, 0.0]],
+            &bundle,
+            &too_few,
+        )
+        .unwrap();
+        assert!(!held.kept && held.k == [[-0.05, 0.0]], "{held:?}");
+        let (cameras, intrinsics, points) = ring([0.0, 0.0]);
+        let pinhole = refine_lens(
+            &points,
+            &intrinsics,
+            &cameras,
+            &[[0.0; 2]],
+            &bundle,
+            &options,
+        )
+        .unwrap();
+        assert!(!pinhole.kept && pinhole.reason.is_some(), "{pinhole:?}");
+    }
+
+    /// RADIAL: a lens with `k₂` (OpenCV's `k1 = −0.12, k2 = 0.02`, the wide-angle copies')
+    /// comes back with both coefficients, where SIMPLE_RADIAL's one coefficient cannot fit it.
+    #[test]
+    fn a_second_coefficient_is_recovered_with_the_radial_model() {
+        let (cameras, intrinsics, points) = ring([-0.12, 0.02]);
+        let bundle = BundleOptions {
+            tolerance: 1e-12,
+            ..BundleOptions::default()
+        };
+        let radial = LensRefinementOptions {
+            model: LensModel::Radial,
+            ..LensRefinementOptions::default()
+        };
+        let two = refine_lens(
+            &points,
+            &intrinsics,
+            &cameras,
+            &[[0.0; 2]],
+            &bundle,
+            &radial,
+        )
+        .unwrap();
+        assert!(two.kept, "{two:?}");
+        let [k1, k2] = two.k[0];
+        assert!(
+            (k1 + 0.12).abs() < 1e-3 && (k2 - 0.02).abs() < 1e-3,
+            "{two:?}"
+        );
+        assert!(two.adjustment.rms_after_px < 1e-3, "{two:?}");
+        let one = refine_lens(
+            &points,
+            &intrinsics,
+            &cameras,
+            &[[0.0; 2]],
+            &bundle,
+            &LensRefinementOptions::default(),
+        )
+        .unwrap();
+        assert_eq!(one.k[0][1], 0.0);
+        assert!(
+            one.adjustment.rms_after_px > 10.0 * two.adjustment.rms_after_px,
+            "{one:?}"
+        );
+    }
+}
