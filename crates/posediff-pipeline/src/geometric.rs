@@ -502,17 +502,10 @@ fn refine_lens_after_mapping(
         &bundle,
         options,
     )?;
-    let a = &refined.adjustment;
     let mut outcome = LensRefinementOutcome {
         kept: refined.kept,
         reason: refined.reason.map(Into::into),
-        points: a.points,
-        observations: a.observations,
-        cost_before: a.cost_before,
-        cost_after: a.cost_after,
-        rms_before_px: a.rms_before_px,
-        rms_after_px: a.rms_after_px,
-        iterations: a.iterations,
+        adjustment: refined.adjustment,
         k: refined.k.clone(),
     };
     if !refined.kept {

@@ -394,20 +394,10 @@ pub struct LensRefinementOutcome {
     pub kept: bool,
     /// Why it was not kept (`null` when kept).
     pub reason: Option<String>,
-    /// Points and observations adjusted.
-    pub points: usize,
-    /// See `points`.
-    pub observations: usize,
-    /// Robust reprojection cost before and after (pixels²).
-    pub cost_before: f64,
-    /// See `cost_before`.
-    pub cost_after: f64,
-    /// RMS reprojection error in the photos' pixels before and after.
-    pub rms_before_px: f64,
-    /// See `rms_before_px`.
-    pub rms_after_px: f64,
-    /// Levenberg–Marquardt steps.
-    pub iterations: usize,
+    /// The adjustment (points and observations, the robust cost and the RMS error in the
+    /// photos' pixels before and after, its steps and why it stopped), its fields inline.
+    #[serde(flatten)]
+    pub adjustment: posediff_sfm::bundle::LensAdjustment,
     /// Per camera, the refined `[k₁, k₂]` at the focal of that adjustment, kept or not (`k₂ = 0`
     /// with SIMPLE_RADIAL).
     pub k: Vec<[f64; 2]>,

@@ -933,6 +933,7 @@ fn rms_error(
 
 /// What [`adjust_lens`] did.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize))]
 pub struct LensAdjustment {
     /// Points adjusted.
     pub points: usize,

@@ -322,49 +322,35 @@ mod tests {
         assert!(wrong.is_err());
     }
 
+    /// [`refine_lens`] of a scene from `start` (one camera group).
+    fn refine(
+        (cameras, intrinsics, points): &(Vec<Option<CameraPose>>, ImageIntrinsics, Vec<Point>),
+        start: Radial,
+        bundle: &BundleOptions,
+        options: &LensRefinementOptions,
+    ) -> LensRefinement {
+        refine_lens(points, intrinsics, cameras, &[start], bundle, options).unwrap()
+    }
+
     /// The refinement's verdicts: the ring's lens is found and kept from a pinhole start; a
     /// camera with fewer than `min_images` estimated images keeps its coefficient (held fixed
     /// in the adjustment), and a pinhole scene stays pinhole (the cost cannot fall).
     #[test]
     fn the_refinement_keeps_a_lens_only_where_the_images_determine_it() {
-        let (cameras, intrinsics, points) = ring([-0.1, 0.0]);
+        let scene = ring([-0.1, 0.0]);
         let options = LensRefinementOptions::default();
         let bundle = BundleOptions::default();
-        let found = refine_lens(
-            &points,
-            &intrinsics,
-            &cameras,
-            &[[0.0; 2]],
-            &bundle,
-            &options,
-        )
-        .unwrap();
+        let found = refine(&scene, [0.0; 2], &bundle, &options);
         assert!(found.kept, "{found:?}");
         assert!((found.k[0][0] + 0.1).abs() < 1e-4, "{found:?}");
         let too_few = LensRefinementOptions {
             min_images: 9,
             ..options
         };
-        let held = refine_lens(
-            &points,
-            &intrinsics,
-            &cameras,
-            &[[-0.05, 0.0]],
-            &bundle,
-            &too_few,
-        )
-        .unwrap();
+        let held = refine(&scene, [-0.05, 0.0], &bundle, &too_few);
         assert!(!held.kept && held.k == [[-0.05, 0.0]], "{held:?}");
-        let (cameras, intrinsics, points) = ring([0.0, 0.0]);
-        let pinhole = refine_lens(
-            &points,
-            &intrinsics,
-            &cameras,
-            &[[0.0; 2]],
-            &bundle,
-            &options,
-        )
-        .unwrap();
+        let scene = ring([0.0, 0.0]);
+        let pinhole = refine(&scene, [0.0; 2], &bundle, &options);
         assert!(!pinhole.kept && pinhole.reason.is_some(), "{pinhole:?}");
     }
 
@@ -372,7 +358,7 @@ mod tests {
     /// comes back with both coefficients, where SIMPLE_RADIAL's one coefficient cannot fit it.
     #[test]
     fn a_second_coefficient_is_recovered_with_the_radial_model() {
-        let (cameras, intrinsics, points) = ring([-0.12, 0.02]);
+        let scene = ring([-0.12, 0.02]);
         let bundle = BundleOptions {
             tolerance: 1e-12,
             ..BundleOptions::default()
@@ -381,15 +367,7 @@ mod tests {
             model: LensModel::Radial,
             ..LensRefinementOptions::default()
         };
-        let two = refine_lens(
-            &points,
-            &intrinsics,
-            &cameras,
-            &[[0.0; 2]],
-            &bundle,
-            &radial,
-        )
-        .unwrap();
+        let two = refine(&scene, [0.0; 2], &bundle, &radial);
         assert!(two.kept, "{two:?}");
         let [k1, k2] = two.k[0];
         assert!(
@@ -397,15 +375,7 @@ mod tests {
             "{two:?}"
         );
         assert!(two.adjustment.rms_after_px < 1e-3, "{two:?}");
-        let one = refine_lens(
-            &points,
-            &intrinsics,
-            &cameras,
-            &[[0.0; 2]],
-            &bundle,
-            &LensRefinementOptions::default(),
-        )
-        .unwrap();
+        let one = refine(&scene, [0.0; 2], &bundle, &LensRefinementOptions::default());
         assert_eq!(one.k[0][1], 0.0);
         assert!(
             one.adjustment.rms_after_px > 10.0 * two.adjustment.rms_after_px,

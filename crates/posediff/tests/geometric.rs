@@ -938,7 +938,7 @@ fn a_synthetic_wide_angle_lens_is_recovered() {
             if !radial_model {
                 assert!((k - truth).abs() < 0.01, "k {k} against {truth}");
             }
-            assert!(refinement.rms_after_px < refinement.rms_before_px);
+            assert!(refinement.adjustment.rms_after_px < refinement.adjustment.rms_before_px);
             // RADIAL: a second coefficient near the truth's 0, and the lens written as RADIAL.
             assert_eq!(distortion.k2.is_empty(), !radial_model, "{distortion:?}");
             let c = e.cameras[0].unwrap();
