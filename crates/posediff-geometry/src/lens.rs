@@ -119,6 +119,31 @@ const UNDISTORT_ITERATIONS: usize = 100;
 /// Converged when the distorted point is reproduced to this (normalised units).
 const UNDISTORT_TOLERANCE: f64 = 1e-12;
 
+/// Brown–Conrady distortion (COLMAP's SIMPLE_RADIAL, RADIAL and OPENCV) of the normalised
+/// coordinates `(u, v)` with `[k1, k2, p1, p2]`, and `∂(u_d, v_d)/∂(u, v)`.
+pub fn distort_brown([k1, k2, p1, p2]: [f64; 4], u: f64, v: f64) -> (Vector2<f64>, Matrix2<f64>) {
+    let r2 = u * u + v * v;
+    let radial = 1.0 + k1 * r2 + k2 * r2 * r2;
+    // ∂radial/∂u = (2 k1 + 4 k2 r²) u.
+    let dr = 2.0 * k1 + 4.0 * k2 * r2;
+    let ud = u * radial + 2.0 * p1 * u * v + p2 * (r2 + 2.0 * u * u);
+    let vd = v * radial + 2.0 * p2 * u * v + p1 * (r2 + 2.0 * v * v);
+    let j = Matrix2::new(
+        radial + u * dr * u + 2.0 * p1 * v + 6.0 * p2 * u,
+        u * dr * v + 2.0 * p1 * u + 2.0 * p2 * v,
+        v * dr * u + 2.0 * p2 * v + 2.0 * p1 * u,
+        radial + v * dr * v + 2.0 * p2 * u + 6.0 * p1 * v,
+    );
+    (Vector2::new(ud, vd), j)
+}
+
+/// `∂(u_d, v_d)/∂(k1, k2)` of [`distort_brown`] at `(u, v)`: the columns `r² (u, v)` and
+/// `r⁴ (u, v)` (what a bundle adjustment refining the radial coefficients needs).
+pub fn radial_coefficient_jacobian(u: f64, v: f64) -> Matrix2<f64> {
+    let r2 = u * u + v * v;
+    Matrix2::new(r2 * u, r2 * r2 * u, r2 * v, r2 * r2 * v)
+}
+
 impl LensCamera {
     /// A camera of `model` with `params`.
     ///
@@ -214,18 +239,7 @@ impl LensCamera {
                 } else {
                     (0.0, 0.0)
                 };
-                let radial = 1.0 + k1 * r2 + k2 * r2 * r2;
-                // ∂radial/∂u = (2 k1 + 4 k2 r²) u.
-                let dr = 2.0 * k1 + 4.0 * k2 * r2;
-                let ud = u * radial + 2.0 * p1 * u * v + p2 * (r2 + 2.0 * u * u);
-                let vd = v * radial + 2.0 * p2 * u * v + p1 * (r2 + 2.0 * v * v);
-                let j = Matrix2::new(
-                    radial + u * dr * u + 2.0 * p1 * v + 6.0 * p2 * u,
-                    u * dr * v + 2.0 * p1 * u + 2.0 * p2 * v,
-                    v * dr * u + 2.0 * p2 * v + 2.0 * p1 * u,
-                    radial + v * dr * v + 2.0 * p2 * u + 6.0 * p1 * v,
-                );
-                (Vector2::new(ud, vd), j)
+                distort_brown([k1, k2, p1, p2], u, v)
             }
             CameraModel::OpenCvFisheye => {
                 let r = r2.sqrt();

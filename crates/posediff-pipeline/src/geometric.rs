@@ -10,7 +10,7 @@ use std::collections::{HashMap, HashSet};
 use std::path::PathBuf;
 use std::time::Instant;
 
-use nalgebra::{Matrix3, Rotation3};
+use nalgebra::Matrix3;
 use posediff_geometry::lens::{CameraModel, LensCamera};
 use posediff_geometry::{Camera, ImageSize, Intrinsics, Pose};
 use posediff_guidance::GgsConfig;
@@ -236,12 +236,6 @@ impl RadialLens {
             .map(Into::into)
     }
 
-    /// COLMAP's SIMPLE_RADIAL `k` (RADIAL's `k₁`) of image `i` at its estimated focal `focal`
-    /// (pixels).
-    pub fn coefficient(&self, i: usize, focal: f64) -> f64 {
-        self.coefficients(i, focal)[0]
-    }
-
     /// COLMAP's RADIAL `[k₁, k₂]` of image `i` at its estimated focal `focal` (pixels; `k₂ = 0`
     /// for a SIMPLE_RADIAL lens): a coefficient of `r^{2n}` scales as `(f / s)^{2n}`.
     pub fn coefficients(&self, i: usize, focal: f64) -> [f64; 2] {
@@ -409,7 +403,7 @@ fn image_index(images: &[PathBuf], path: &std::path::Path) -> Result<usize> {
 }
 
 /// The lens refined after the mapper (`cameras.lens_refinement`): each camera's SIMPLE_RADIAL
-/// coefficient by a bundle adjustment of the estimate's points on the photos' pixels
+/// coefficient (RADIAL's two) by a bundle adjustment of the estimate's points on the photos' pixels
 /// ([`posediff_sfm::lens_refinement`]), starting from `lens` (pinhole without one). Returns the
 /// refined lens of every image when it is kept, and what the refinement did.
 fn refine_lens_after_mapping(
@@ -450,15 +444,7 @@ fn refine_lens_after_mapping(
     let cameras: Vec<Option<CameraPose>> = estimate
         .cameras
         .iter()
-        .map(|c| {
-            c.as_ref().map(|c| {
-                let r = c.cam_from_world.rotation;
-                CameraPose {
-                    rotation: Rotation3::from_matrix_unchecked(r),
-                    center: -(r.transpose() * c.cam_from_world.translation),
-                }
-            })
-        })
+        .map(|c| c.as_ref().map(CameraPose::of_camera))
         .collect();
     // The start: each camera's coefficients at its focal (0 without a lens).
     let mut start = vec![[0.0; 2]; groups];
@@ -518,16 +504,15 @@ fn refine_lens_after_mapping(
         let (s, c) = (scale[i], frame.principal[i]);
         let [k1, k2] = refined.k[group[i]];
         let ratio = s / focal[i];
-        let camera = match options.model {
-            posediff_sfm::lens_refinement::LensModel::SimpleRadial => LensCamera::new(
-                CameraModel::SimpleRadial,
-                vec![s, c[0], c[1], k1 * ratio.powi(2)],
-            )?,
-            posediff_sfm::lens_refinement::LensModel::Radial => LensCamera::new(
-                CameraModel::Radial,
-                vec![s, c[0], c[1], k1 * ratio.powi(2), k2 * ratio.powi(4)],
-            )?,
+        let mut params = vec![s, c[0], c[1], k1 * ratio.powi(2)];
+        let model = match options.model {
+            posediff_sfm::lens_refinement::LensModel::SimpleRadial => CameraModel::SimpleRadial,
+            posediff_sfm::lens_refinement::LensModel::Radial => {
+                params.push(k2 * ratio.powi(4));
+                CameraModel::Radial
+            }
         };
+        let camera = LensCamera::new(model, params)?;
         // The lens must be invertible over the whole photo: a coefficient that folds inside
         // it is no lens of this camera.
         let (w, h) = (f64::from(sizes[i].width()), f64::from(sizes[i].height()));
@@ -1099,12 +1084,7 @@ pub fn refine_given_cameras_counted(
     let mut phi = known_phi.unwrap_or(given.iter().sum::<f64>() / given.len() as f64);
     let mut cameras: Vec<Option<CameraPose>> = init
         .iter()
-        .map(|c| {
-            c.map(|c| CameraPose {
-                rotation: Rotation3::from_matrix(&c.cam_from_world.rotation),
-                center: c.center().coords,
-            })
-        })
+        .map(|c| c.as_ref().map(CameraPose::of_camera))
         .collect();
     let mut report = GeometricReport {
         pair_selection: selection,
@@ -1394,7 +1374,7 @@ fn map_supported_matches(
 mod tests {
     #![allow(clippy::unwrap_used, clippy::expect_used)]
     use super::*;
-    use nalgebra::Vector3;
+    use nalgebra::{Rotation3, Vector3};
     use posediff_sfm::resection::{Evidence, ResectionOptions, resect_bridged_sides};
     use posediff_sfm::tracks::build_tracks;
 

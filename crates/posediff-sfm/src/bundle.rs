@@ -22,6 +22,7 @@
 //! `∂uv/∂k₂ = f r⁴ x`.
 
 use nalgebra::{Matrix3, SMatrix, SVector, Vector3};
+use posediff_geometry::lens::{distort_brown, radial_coefficient_jacobian};
 use rayon::prelude::*;
 
 use crate::camera::{CameraPose, ParameterLayout, gauge_scale};
@@ -135,8 +136,9 @@ pub fn project(
 /// `k₁` with `k₂ = 0`).
 pub type Radial = [f64; 2];
 
-/// [`project`] through a RADIAL lens with coefficients `k` (COLMAP's, on `x_c / z_c`);
-/// `k = [0, 0]` is [`project`] exactly.
+/// [`project`] through a RADIAL lens with coefficients `k` (COLMAP's, on `x_c / z_c`; the
+/// distortion is [`posediff_geometry::lens::distort_brown`], the one place lens models are
+/// computed); `k = [0, 0]` is [`project`] exactly.
 pub fn project_radial(
     c: &CameraPose,
     f: f64,
@@ -149,10 +151,8 @@ pub fn project_radial(
     }
     let xc = c.rotation * (x - c.center);
     (xc.z > 1e-12).then(|| {
-        let (u, v) = (xc.x / xc.z, xc.y / xc.z);
-        let r2 = u * u + v * v;
-        let g = 1.0 + k[0] * r2 + k[1] * r2 * r2;
-        ([f * g * u + pp[0], f * g * v + pp[1]], xc)
+        let (d, _) = distort_brown([k[0], k[1], 0.0, 0.0], xc.x / xc.z, xc.y / xc.z);
+        ([f * d.x + pp[0], f * d.y + pp[1]], xc)
     })
 }
 
@@ -533,7 +533,6 @@ impl LeastSquares for Problem<'_> {
                     let w = 1.0 / (1.0 + r.norm_squared() / c2);
                     let iz = 1.0 / xc.z;
                     let (u, v) = (xc.x * iz, xc.y * iz);
-                    let r2 = u * u + v * v;
                     let d = if k == [0.0, 0.0] {
                         SMatrix::<f64, 2, 3>::new(
                             f * iz,
@@ -544,16 +543,9 @@ impl LeastSquares for Problem<'_> {
                             -f * xc.y * iz * iz,
                         )
                     } else {
-                        // ∂uv/∂x = f (g I + (2 k₁ + 4 k₂ r²) x xᵀ), ∂x/∂x_c = [I | −x] / z.
-                        let g = 1.0 + k[0] * r2 + k[1] * r2 * r2;
-                        let dg = 2.0 * k[0] + 4.0 * k[1] * r2;
-                        let a = SMatrix::<f64, 2, 2>::new(
-                            g + dg * u * u,
-                            dg * u * v,
-                            dg * u * v,
-                            g + dg * v * v,
-                        ) * f;
-                        a * SMatrix::<f64, 2, 3>::new(iz, 0.0, -u * iz, 0.0, iz, -v * iz)
+                        // ∂uv/∂x_c = f ∂x_d/∂x · ∂x/∂x_c, with ∂x/∂x_c = [I | −x] / z.
+                        let (_, jd) = distort_brown([k[0], k[1], 0.0, 0.0], u, v);
+                        jd * f * SMatrix::<f64, 2, 3>::new(iz, 0.0, -u * iz, 0.0, iz, -v * iz)
                     };
                     let jp = d * cam.rotation.matrix();
                     let skew = Matrix3::new(0.0, -xc.z, xc.y, xc.z, 0.0, -xc.x, -xc.y, xc.x, 0.0);
@@ -561,12 +553,7 @@ impl LeastSquares for Problem<'_> {
                     jc.fixed_view_mut::<2, 3>(0, 0).copy_from(&(d * (-skew)));
                     jc.fixed_view_mut::<2, 3>(0, 3).copy_from(&(-jp));
                     let jf = SVector::<f64, 2>::new(uv[0] - pp[0], uv[1] - pp[1]);
-                    let jk = SMatrix::<f64, 2, 2>::new(
-                        f * r2 * u,
-                        f * r2 * r2 * u,
-                        f * r2 * v,
-                        f * r2 * r2 * v,
-                    );
+                    let jk = radial_coefficient_jacobian(u, v) * f;
                     lin.c += jp.transpose() * jp * w;
                     lin.g += jp.transpose() * r * w;
                     lin.obs.push(ObservationLinearisation {

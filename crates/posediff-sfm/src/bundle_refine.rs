@@ -2,7 +2,6 @@
 //! cameras from elsewhere (PoseDiffusion after GGS) refined by this crate's Sampson refinement
 //! and bundle adjustment, with tracks built from the matches.
 
-use nalgebra::Rotation3;
 use posediff_geometry::{Camera, Intrinsics, PairMatches, Pose};
 
 use crate::bundle::{BundleOptions, bundle_adjust};
@@ -60,12 +59,7 @@ pub fn bundle_refine_cameras(
         ImageIntrinsics::from_known(&cameras.iter().map(|c| c.intrinsics).collect::<Vec<_>>());
     let mut poses: Vec<Option<CameraPose>> = cameras
         .iter()
-        .map(|c| {
-            Some(CameraPose {
-                rotation: Rotation3::from_matrix(&c.cam_from_world.rotation),
-                center: c.center().coords,
-            })
-        })
+        .map(|c| Some(CameraPose::of_camera(c)))
         .collect();
     let spread = |p: &[Option<CameraPose>]| -> f64 {
         let origin = p[0].map_or(nalgebra::Vector3::zeros(), |c| c.center);

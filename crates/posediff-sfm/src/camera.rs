@@ -25,6 +25,15 @@ impl CameraPose {
         }
     }
 
+    /// The pose of an OpenCV camera (`x_cam = R X + t`): its rotation (projected onto SO(3))
+    /// and its centre `C = −Rᵀ t`.
+    pub fn of_camera(camera: &posediff_geometry::Camera) -> Self {
+        Self {
+            rotation: Rotation3::from_matrix(&camera.cam_from_world.rotation),
+            center: camera.center().coords,
+        }
+    }
+
     /// The translation `t = −R C` of `x_cam = R X + t`.
     pub fn translation(&self) -> Vector3<f64> {
         -(self.rotation * self.center)
