@@ -1301,7 +1301,10 @@ fn map_supported_matches(
         &cameras.prior,
         &reconstruction.intrinsics,
         reconstruction.phi,
-        reconstruction.report.cameras.as_ref(),
+        (
+            reconstruction.report.cameras.as_ref(),
+            &reconstruction.report.camera_split,
+        ),
     );
     let mut pairs = pairs;
     if let Some(s) = &reconstruction.report.support {

@@ -28,6 +28,9 @@ pub struct GeometricTimes {
     pub refinement: f64,
     /// Of that, the resection of the cameras on view-graph bridges.
     pub resection: f64,
+    /// The cameras split by the bundle adjustment (cameras from the data): its adjustments
+    /// and the maps made again with the split cameras.
+    pub camera_split: f64,
 }
 
 impl GeometricTimes {
@@ -38,6 +41,7 @@ impl GeometricTimes {
         self.initialisation += earlier.initialisation;
         self.refinement += earlier.refinement;
         self.resection += earlier.resection;
+        self.camera_split += earlier.camera_split;
     }
 }
 
@@ -201,7 +205,10 @@ impl GeometricReport {
         image_prior: &[Option<String>],
         intrinsics: &posediff_sfm::ImageIntrinsics,
         phi: f64,
-        calibration: Option<&posediff_sfm::report::CameraCalibrationReport>,
+        (calibration, split): (
+            Option<&posediff_sfm::report::CameraCalibrationReport>,
+            &[posediff_sfm::report::CameraSplitRound],
+        ),
     ) {
         let count = intrinsics.groups();
         let mut focal_px = vec![0.0; count];
@@ -237,6 +244,7 @@ impl GeometricReport {
             focal_px,
             image_focal_calibrated,
             distortion: DistortionOutcome::default(),
+            split: split.to_vec(),
         };
     }
 
@@ -334,6 +342,7 @@ impl GeometricReport {
             s.pair_geometry + s.focal + s.two_view + s.averaging + s.refinement;
         self.times.refinement = s.resection + s.bundle;
         self.times.resection = s.resection;
+        self.times.camera_split = s.camera_split;
     }
 }
 
@@ -360,6 +369,9 @@ pub struct CamerasOutcome {
     pub image_focal_calibrated: Vec<Option<f64>>,
     /// The lens distortion calibrated before the mapper (`cameras.distortion`).
     pub distortion: DistortionOutcome,
+    /// From the data: the cameras split by a focal per image in the bundle adjustment after
+    /// the mapper, round by round (`mapper.camera_split`; empty: not run).
+    pub split: Vec<posediff_sfm::report::CameraSplitRound>,
 }
 
 /// run.json's `cameras.distortion`.

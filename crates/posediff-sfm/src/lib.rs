@@ -14,6 +14,7 @@
 //! | tracks by union-find over keypoint ids | [`tracks`] |
 //! | resection of the cameras on view-graph bridges (PnP on the other side's tracks) | [`resection`] |
 //! | bundle adjustment (Schur complement) | [`bundle`] |
+//! | cameras split by a focal per image in the bundle adjustment (cameras from the data) | [`camera_split`] |
 //! | radial distortion from the tracks (the lens in the bundle adjustment, photo pixels) | [`lens_refinement`] |
 //! | sparse points for export (any cameras) | [`points`] |
 //! | all of it, with one options struct per stage | [`mapper`] |
@@ -34,6 +35,7 @@
 pub mod bundle;
 pub mod bundle_refine;
 pub mod camera;
+pub mod camera_split;
 pub mod distortion_calibration;
 pub mod error;
 pub mod focal;

@@ -51,6 +51,33 @@ impl NotEstimated {
     }
 }
 
+/// One round of the cameras split by the bundle adjustment ([`crate::camera_split`]).
+#[derive(Debug, Clone, PartialEq, Default)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize))]
+pub struct CameraSplitRound {
+    /// Per image, its focal from the adjustment with a focal per image (pixels; `null`: not
+    /// estimated or too few observations).
+    pub image_focal: Vec<Option<f64>>,
+    /// Per image, the camera those focals give.
+    pub image_camera: Vec<usize>,
+    /// Whether they differ from the map's cameras (then the mapper ran again with them).
+    pub mapped_again: bool,
+    /// The robust cost over all matches of the map before (lower is better; the mapper's
+    /// score of a focal start); `null` when no new map was made.
+    pub score_before: Option<f64>,
+    /// The same of the new map (`null` when none was made).
+    pub score_after: Option<f64>,
+    /// Images estimated before and by the new map.
+    pub images_before: usize,
+    /// See `images_before`.
+    pub images_after: Option<usize>,
+    /// Whether the new map was kept.
+    pub kept: bool,
+    /// The adjustment with a focal per image.
+    #[cfg_attr(feature = "serde", serde(flatten))]
+    pub adjustment: crate::bundle::LensAdjustment,
+}
+
 /// The cameras the view-graph calibration found ([`crate::view_graph_calibration`]).
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct CameraCalibrationReport {
@@ -109,6 +136,9 @@ pub struct StageTimes {
     pub resection: f64,
     /// Tracks and bundle adjustment of the chosen start.
     pub bundle: f64,
+    /// The cameras split by the bundle adjustment: its adjustments and the maps made again
+    /// (whose own stages are not in the other fields).
+    pub camera_split: f64,
 }
 
 /// The support check: which unsupported pairs were confirmed by triangles of kept pairs.
@@ -156,8 +186,13 @@ pub struct MapperReport {
     pub focal_factor_initial: f64,
     /// `φ` at the end.
     pub focal_factor: f64,
+    /// Whether the chosen start's focal was free (refined; otherwise fixed at its start).
+    pub focal_free: bool,
     /// The cameras' view-graph calibration (`None`: one camera, or known intrinsics).
     pub cameras: Option<CameraCalibrationReport>,
+    /// The cameras split by the bundle adjustment after the mapper, round by round (empty:
+    /// not run).
+    pub camera_split: Vec<CameraSplitRound>,
     /// Every focal start tried.
     pub starts: Vec<FocalStart>,
     /// Rotation averaging of the chosen start.
