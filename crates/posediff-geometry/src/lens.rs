@@ -17,7 +17,7 @@
 //! inverts the distortion by Newton's method with the analytic Jacobian and fails (never
 //! returns a wrong ray) where it does not converge.
 
-use nalgebra::{Matrix2, Vector2, Vector3};
+use nalgebra::{Matrix2, Matrix2x4, Vector2, Vector3};
 
 use crate::camera::Intrinsics;
 use crate::error::{GeometryError, Result};
@@ -137,11 +137,21 @@ pub fn distort_brown([k1, k2, p1, p2]: [f64; 4], u: f64, v: f64) -> (Vector2<f64
     (Vector2::new(ud, vd), j)
 }
 
-/// `∂(u_d, v_d)/∂(k1, k2)` of [`distort_brown`] at `(u, v)`: the columns `r² (u, v)` and
-/// `r⁴ (u, v)` (what a bundle adjustment refining the radial coefficients needs).
-pub fn radial_coefficient_jacobian(u: f64, v: f64) -> Matrix2<f64> {
+/// `∂(u_d, v_d)/∂(k1, k2, p1, p2)` of [`distort_brown`] at `(u, v)`: the columns `r² (u, v)`,
+/// `r⁴ (u, v)`, `(2uv, r² + 2v²)` and `(r² + 2u², 2uv)` (what a bundle adjustment refining the
+/// coefficients needs; they do not depend on the coefficients).
+pub fn brown_coefficient_jacobian(u: f64, v: f64) -> Matrix2x4<f64> {
     let r2 = u * u + v * v;
-    Matrix2::new(r2 * u, r2 * r2 * u, r2 * v, r2 * r2 * v)
+    Matrix2x4::new(
+        r2 * u,
+        r2 * r2 * u,
+        2.0 * u * v,
+        r2 + 2.0 * u * u,
+        r2 * v,
+        r2 * r2 * v,
+        r2 + 2.0 * v * v,
+        2.0 * u * v,
+    )
 }
 
 impl LensCamera {

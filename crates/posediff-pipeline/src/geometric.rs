@@ -16,7 +16,7 @@ use posediff_geometry::{Camera, ImageSize, Intrinsics, Pose};
 use posediff_guidance::GgsConfig;
 use posediff_matching::pairs::{BagOfWords, RetrievalOptions, select_pairs_with};
 use posediff_matching::{ImageFeatures, PairMatches, PairRule, PairSelection};
-use posediff_sfm::bundle::Point;
+use posediff_sfm::bundle::{LensCoefficients, Point};
 use posediff_sfm::sampson_refine::{SampsonRefineOptions, refine_sampson};
 use posediff_sfm::{CameraPose, GlobalMapper, ImageIntrinsics, MapperOptions, SfmError};
 
@@ -236,15 +236,18 @@ impl RadialLens {
             .map(Into::into)
     }
 
-    /// COLMAP's RADIAL `[k₁, k₂]` of image `i` at its estimated focal `focal` (pixels; `k₂ = 0`
-    /// for a SIMPLE_RADIAL lens): a coefficient of `r^{2n}` scales as `(f / s)^{2n}`.
-    pub fn coefficients(&self, i: usize, focal: f64) -> [f64; 2] {
+    /// COLMAP's OPENCV `[k₁, k₂, p₁, p₂]` of image `i` at its estimated focal `focal` (pixels;
+    /// the coefficients its model lacks 0): a coefficient of `r^{2n}` scales as `(f / s)^{2n}`,
+    /// a tangential one as `f / s`.
+    pub fn coefficients(&self, i: usize, focal: f64) -> LensCoefficients {
         let lens = &self.lenses[i];
         let d = lens.distortion();
         let ratio = focal / lens.focal().0;
         let k1 = posediff_sfm::distortion_calibration::coefficient_at(d[0], 1.0, ratio);
         let k2 = d.get(1).map_or(0.0, |k2| k2 * ratio.powi(4));
-        [k1, k2]
+        let p1 = d.get(2).map_or(0.0, |p| p * ratio);
+        let p2 = d.get(3).map_or(0.0, |p| p * ratio);
+        [k1, k2, p1, p2]
     }
 
     /// Image `i`'s lens around its estimated pinhole intrinsics `k`: SIMPLE_RADIAL
@@ -267,9 +270,10 @@ impl RadialLens {
             )));
         }
         let model = self.lenses[i].model();
-        let [k1, k2] = self.coefficients(i, k.fx());
+        let [k1, k2, p1, p2] = self.coefficients(i, k.fx());
         let params = match model {
             CameraModel::Radial => vec![k.fx(), k.cx(), k.cy(), k1, k2],
+            CameraModel::OpenCv => vec![k.fx(), k.fx(), k.cx(), k.cy(), k1, k2, p1, p2],
             _ => vec![k.fx(), k.cx(), k.cy(), k1],
         };
         Ok(LensCamera::new(model, params)?)
@@ -367,9 +371,8 @@ fn calibrate_lens(
         pairs: calibration.pairs,
         cost_pinhole: calibration.cost_pinhole,
         cost: calibration.cost,
-        k1: Vec::new(),
-        k2: Vec::new(),
         refinement: None,
+        ..DistortionOutcome::default()
     };
     if !outcome.measured {
         return Ok((None, outcome));
@@ -447,7 +450,7 @@ fn refine_lens_after_mapping(
         .map(|c| c.as_ref().map(CameraPose::of_camera))
         .collect();
     // The start: each camera's coefficients at its focal (0 without a lens).
-    let mut start = vec![[0.0; 2]; groups];
+    let mut start = vec![posediff_sfm::bundle::PINHOLE; groups];
     if let Some(lens) = lens {
         let mut seen = vec![false; groups];
         for (i, c) in estimate.cameras.iter().enumerate() {
@@ -502,14 +505,23 @@ fn refine_lens_after_mapping(
     let mut lenses = Vec::with_capacity(n);
     for i in 0..n {
         let (s, c) = (scale[i], frame.principal[i]);
-        let [k1, k2] = refined.k[group[i]];
+        let [k1, k2, p1, p2] = refined.k[group[i]];
         let ratio = s / focal[i];
-        let mut params = vec![s, c[0], c[1], k1 * ratio.powi(2)];
-        let model = match options.model {
-            posediff_sfm::lens_refinement::LensModel::SimpleRadial => CameraModel::SimpleRadial,
+        let (k1, k2, p1, p2) = (
+            k1 * ratio.powi(2),
+            k2 * ratio.powi(4),
+            p1 * ratio,
+            p2 * ratio,
+        );
+        let (model, params) = match options.model {
+            posediff_sfm::lens_refinement::LensModel::SimpleRadial => {
+                (CameraModel::SimpleRadial, vec![s, c[0], c[1], k1])
+            }
             posediff_sfm::lens_refinement::LensModel::Radial => {
-                params.push(k2 * ratio.powi(4));
-                CameraModel::Radial
+                (CameraModel::Radial, vec![s, c[0], c[1], k1, k2])
+            }
+            posediff_sfm::lens_refinement::LensModel::Opencv => {
+                (CameraModel::OpenCv, vec![s, s, c[0], c[1], k1, k2, p1, p2])
             }
         };
         let camera = LensCamera::new(model, params)?;
@@ -784,8 +796,13 @@ pub fn estimate_geometric_counted(
             }
         }
         distortion.k1 = k.iter().map(|k| k.map(|k| k[0])).collect();
-        if lens.lenses.iter().any(|l| l.model() == CameraModel::Radial) {
+        let model = |m: CameraModel| lens.lenses.iter().any(|l| l.model() == m);
+        if model(CameraModel::Radial) || model(CameraModel::OpenCv) {
             distortion.k2 = k.iter().map(|k| k.map(|k| k[1])).collect();
+        }
+        if model(CameraModel::OpenCv) {
+            distortion.p1 = k.iter().map(|k| k.map(|k| k[2])).collect();
+            distortion.p2 = k.iter().map(|k| k.map(|k| k[3])).collect();
         }
     }
     estimate.report.cameras.distortion = distortion;

@@ -393,11 +393,11 @@ impl CameraOptions {
     /// COLMAP's `--ImageReader.camera_model` (`--camera-model`) as settings of this tree:
     /// `SIMPLE_PINHOLE` and `PINHOLE` turn the lens calibration and refinement off (one focal
     /// per camera, the principal point at the centre, no distortion), `SIMPLE_RADIAL` is the
-    /// default (a coefficient where the data show one), `RADIAL` refines `k₁, k₂`. Names as
-    /// COLMAP spells them, in any case.
+    /// default (a coefficient where the data show one), `RADIAL` refines `k₁, k₂`, `OPENCV`
+    /// `k₁, k₂, p₁, p₂` (with one focal, `fx = fy`). Names as COLMAP spells them, in any case.
     ///
     /// # Errors
-    /// An unknown name, or a model posediff does not estimate (OPENCV, OPENCV_FISHEYE).
+    /// An unknown name, or a model posediff does not estimate (OPENCV_FISHEYE).
     pub fn set_model(&mut self, name: &str) -> Result<()> {
         use posediff_sfm::lens_refinement::{LensModel, LensRefinementOptions};
         let model = posediff_geometry::lens::CameraModel::from_name(&name.to_ascii_uppercase())
@@ -409,22 +409,23 @@ impl CameraOptions {
                 self.lens_refinement = None;
             }
             posediff_geometry::lens::CameraModel::SimpleRadial
-            | posediff_geometry::lens::CameraModel::Radial => {
-                let radial = model == posediff_geometry::lens::CameraModel::Radial;
+            | posediff_geometry::lens::CameraModel::Radial
+            | posediff_geometry::lens::CameraModel::OpenCv => {
                 self.distortion.get_or_insert_with(Default::default);
                 let refinement = self
                     .lens_refinement
                     .get_or_insert_with(LensRefinementOptions::default);
-                refinement.model = if radial {
-                    LensModel::Radial
-                } else {
-                    LensModel::SimpleRadial
+                refinement.model = match model {
+                    posediff_geometry::lens::CameraModel::Radial => LensModel::Radial,
+                    posediff_geometry::lens::CameraModel::OpenCv => LensModel::Opencv,
+                    _ => LensModel::SimpleRadial,
                 };
             }
             other => {
                 return Err(PosediffError::InvalidArgument(format!(
                     "camera model {}: not estimated by posediff (SIMPLE_PINHOLE, PINHOLE, \
-                     SIMPLE_RADIAL and RADIAL are); RADIAL is the nearest for a wide-angle lens",
+                     SIMPLE_RADIAL, RADIAL and OPENCV are); RADIAL or OPENCV is the nearest for \
+                     a wide-angle lens",
                     other.name()
                 )));
             }
@@ -774,6 +775,8 @@ mod tests {
         assert!(c.distortion.is_some());
         c.set_model("simple_pinhole").unwrap();
         assert!(c.distortion.is_none() && c.lens_refinement.is_none());
+        c.set_model("opencv").unwrap();
+        assert_eq!(c.lens_refinement.unwrap().model, LensModel::Opencv);
         c.set_model("simple_radial").unwrap();
         assert_eq!(c.lens_refinement.unwrap().model, LensModel::SimpleRadial);
         assert!(c.distortion.is_some());

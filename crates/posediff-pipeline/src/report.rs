@@ -391,9 +391,14 @@ pub struct DistortionOutcome {
     /// Per camera, COLMAP's SIMPLE_RADIAL `k` at its estimated focal (`null`: none of its
     /// images estimated); empty when none measured.
     pub k1: Vec<Option<f64>>,
-    /// Per camera, RADIAL's `k₂` at its estimated focal; empty unless the lens is RADIAL
-    /// (`cameras.lens_refinement.model = "radial"`).
+    /// Per camera, RADIAL's or OPENCV's `k₂` at its estimated focal; empty unless the lens is
+    /// one of them (`cameras.lens_refinement.model = "radial"` or `"opencv"`).
     pub k2: Vec<Option<f64>>,
+    /// Per camera, OPENCV's tangential `p₁` at its estimated focal; empty unless the lens is
+    /// OPENCV.
+    pub p1: Vec<Option<f64>>,
+    /// See `p1`.
+    pub p2: Vec<Option<f64>>,
     /// The lens refined by the bundle adjustment after the mapper (`cameras.lens_refinement`);
     /// `null` when it did not run (off, given intrinsics, no points).
     pub refinement: Option<LensRefinementOutcome>,
@@ -410,9 +415,9 @@ pub struct LensRefinementOutcome {
     /// photos' pixels before and after, its steps and why it stopped), its fields inline.
     #[serde(flatten)]
     pub adjustment: posediff_sfm::bundle::LensAdjustment,
-    /// Per camera, the refined `[k₁, k₂]` at the focal of that adjustment, kept or not (`k₂ = 0`
-    /// with SIMPLE_RADIAL).
-    pub k: Vec<[f64; 2]>,
+    /// Per camera, the refined `[k₁, k₂, p₁, p₂]` at the focal of that adjustment, kept or not
+    /// (the coefficients the model lacks 0).
+    pub k: Vec<posediff_sfm::bundle::LensCoefficients>,
 }
 
 impl DistortionOutcome {

@@ -22,7 +22,7 @@
 //! `∂uv/∂k₂ = f r⁴ x`.
 
 use nalgebra::{Matrix3, SMatrix, SVector, Vector3};
-use posediff_geometry::lens::{distort_brown, radial_coefficient_jacobian};
+use posediff_geometry::lens::{brown_coefficient_jacobian, distort_brown};
 use rayon::prelude::*;
 
 use crate::camera::{CameraPose, ParameterLayout, gauge_scale};
@@ -132,26 +132,29 @@ pub fn project(
     (xc.z > 1e-12).then(|| ([f * xc.x / xc.z + pp[0], f * xc.y / xc.z + pp[1]], xc))
 }
 
-/// A camera's radial coefficients `[k₁, k₂]` (COLMAP's, on `x_c / z_c`; SIMPLE_RADIAL's `k` is
-/// `k₁` with `k₂ = 0`).
-pub type Radial = [f64; 2];
+/// A camera's lens coefficients `[k₁, k₂, p₁, p₂]` (COLMAP's OPENCV, on `x_c / z_c`; RADIAL's
+/// are `k₁, k₂` with `p₁ = p₂ = 0`, SIMPLE_RADIAL's `k` is `k₁` alone).
+pub type LensCoefficients = [f64; 4];
 
-/// [`project`] through a RADIAL lens with coefficients `k` (COLMAP's, on `x_c / z_c`; the
+/// No distortion.
+pub const PINHOLE: LensCoefficients = [0.0; 4];
+
+/// [`project`] through a lens with coefficients `k` (COLMAP's OPENCV, on `x_c / z_c`; the
 /// distortion is [`posediff_geometry::lens::distort_brown`], the one place lens models are
-/// computed); `k = [0, 0]` is [`project`] exactly.
+/// computed); [`PINHOLE`] is [`project`] exactly.
 pub fn project_radial(
     c: &CameraPose,
     f: f64,
     pp: [f64; 2],
-    k: Radial,
+    k: LensCoefficients,
     x: &Vector3<f64>,
 ) -> Option<([f64; 2], Vector3<f64>)> {
-    if k == [0.0, 0.0] {
+    if k == PINHOLE {
         return project(c, f, pp, x);
     }
     let xc = c.rotation * (x - c.center);
     (xc.z > 1e-12).then(|| {
-        let (d, _) = distort_brown([k[0], k[1], 0.0, 0.0], xc.x / xc.z, xc.y / xc.z);
+        let (d, _) = distort_brown(k, xc.x / xc.z, xc.y / xc.z);
         ([f * d.x + pp[0], f * d.y + pp[1]], xc)
     })
 }
@@ -202,8 +205,8 @@ struct ObservationLinearisation {
     jc: SMatrix<f64, 2, 6>,
     /// `∂uv/∂log φ_g` of the image's group.
     jf: SVector<f64, 2>,
-    /// `∂uv/∂[k₁, k₂]` of the group's radial coefficients.
-    jk: SMatrix<f64, 2, 2>,
+    /// `∂uv/∂[k₁, k₂, p₁, p₂]` of the group's lens coefficients.
+    jk: SMatrix<f64, 2, 4>,
     /// `∂uv/∂X`.
     jp: SMatrix<f64, 2, 3>,
     r: SVector<f64, 2>,
@@ -222,7 +225,7 @@ struct PointLinearisation {
 type State = (
     Vec<Option<CameraPose>>,
     Vec<f64>,
-    Vec<Radial>,
+    Vec<LensCoefficients>,
     Vec<Vector3<f64>>,
 );
 
@@ -244,7 +247,7 @@ impl LensLayout {
         let mut sizes = layout.block_sizes.clone();
         let mut lens = Self::default();
         for &m in free {
-            let m = m.min(2);
+            let m = m.min(4);
             lens.param.push((m > 0).then_some((n_params, m)));
             lens.block.push((m > 0).then_some(sizes.len()));
             if m > 0 {
@@ -397,7 +400,7 @@ fn eliminate(
                 // Rows beyond the block's size (k₂ of a SIMPLE_RADIAL block) are never read.
                 let e = o.jk.transpose() * o.jp * o.w;
                 let g = o.jk.transpose() * o.r * o.w;
-                for i in 0..2 {
+                for i in 0..4 {
                     for j in 0..3 {
                         es[l][(i, j)] += e[(i, j)];
                     }
@@ -533,7 +536,7 @@ impl LeastSquares for Problem<'_> {
                     let w = 1.0 / (1.0 + r.norm_squared() / c2);
                     let iz = 1.0 / xc.z;
                     let (u, v) = (xc.x * iz, xc.y * iz);
-                    let d = if k == [0.0, 0.0] {
+                    let d = if k == PINHOLE {
                         SMatrix::<f64, 2, 3>::new(
                             f * iz,
                             0.0,
@@ -544,7 +547,7 @@ impl LeastSquares for Problem<'_> {
                         )
                     } else {
                         // ∂uv/∂x_c = f ∂x_d/∂x · ∂x/∂x_c, with ∂x/∂x_c = [I | −x] / z.
-                        let (_, jd) = distort_brown([k[0], k[1], 0.0, 0.0], u, v);
+                        let (_, jd) = distort_brown(k, u, v);
                         jd * f * SMatrix::<f64, 2, 3>::new(iz, 0.0, -u * iz, 0.0, iz, -v * iz)
                     };
                     let jp = d * cam.rotation.matrix();
@@ -553,7 +556,7 @@ impl LeastSquares for Problem<'_> {
                     jc.fixed_view_mut::<2, 3>(0, 0).copy_from(&(d * (-skew)));
                     jc.fixed_view_mut::<2, 3>(0, 3).copy_from(&(-jp));
                     let jf = SVector::<f64, 2>::new(uv[0] - pp[0], uv[1] - pp[1]);
-                    let jk = radial_coefficient_jacobian(u, v) * f;
+                    let jk = brown_coefficient_jacobian(u, v) * f;
                     lin.c += jp.transpose() * jp * w;
                     lin.g += jp.transpose() * r * w;
                     lin.obs.push(ObservationLinearisation {
@@ -668,7 +671,7 @@ impl LeastSquares for Problem<'_> {
 fn filter(
     points: Vec<Point>,
     cameras: &[Option<CameraPose>],
-    (intrinsics, phi, ks): (&ImageIntrinsics, f64, &[Radial]),
+    (intrinsics, phi, ks): (&ImageIntrinsics, f64, &[LensCoefficients]),
     max_error_px: f64,
 ) -> Vec<Point> {
     points
@@ -697,7 +700,7 @@ fn adjust(
     points: &mut [Point],
     intrinsics: &ImageIntrinsics,
     cameras: &mut [Option<CameraPose>],
-    (factors, ks): (&mut [f64], &mut [Radial]),
+    (factors, ks): (&mut [f64], &mut [LensCoefficients]),
     reference: usize,
     options: &BundleOptions,
     refine_lens: &[usize],
@@ -836,7 +839,7 @@ pub fn bundle_adjust(
             })
         })
         .collect();
-    let pinhole = vec![[0.0, 0.0]; groups];
+    let pinhole = vec![PINHOLE; groups];
     let mut points = filter(
         points,
         cameras,
@@ -891,7 +894,7 @@ pub fn bundle_adjust(
 fn rms_error(
     points: &[Point],
     cameras: &[Option<CameraPose>],
-    (intrinsics, phi, ks): (&ImageIntrinsics, f64, &[Radial]),
+    (intrinsics, phi, ks): (&ImageIntrinsics, f64, &[LensCoefficients]),
 ) -> (f64, usize) {
     let (mut sum, mut count) = (0.0, 0usize);
     for p in points {
@@ -953,7 +956,7 @@ pub fn adjust_lens(
     points: Vec<Point>,
     intrinsics: &ImageIntrinsics,
     cameras: &mut [Option<CameraPose>],
-    (factors, ks, free): (&mut [f64], &mut [Radial], &[usize]),
+    (factors, ks, free): (&mut [f64], &mut [LensCoefficients], &[usize]),
     reference: usize,
     options: &BundleOptions,
 ) -> Result<(Vec<Point>, LensAdjustment)> {
@@ -1035,12 +1038,18 @@ mod tests {
     /// through a radial lens (the coefficient's column too).
     #[test]
     fn reprojection_jacobian_matches_finite_differences() {
-        for k in [[0.0, 0.0], [-0.12, 0.0], [0.05, -0.02], [-0.1, 0.03]] {
+        for k in [
+            PINHOLE,
+            [-0.12, 0.0, 0.0, 0.0],
+            [0.05, -0.02, 0.0, 0.0],
+            [-0.1, 0.03, 0.0, 0.0],
+            [-0.1, 0.03, 0.002, -0.001],
+        ] {
             check_jacobian(k);
         }
     }
 
-    fn check_jacobian(k: Radial) {
+    fn check_jacobian(k: LensCoefficients) {
         let intrinsics = ImageIntrinsics::new(vec![[320.0, 240.0]], vec![640.0]);
         let cam = CameraPose {
             rotation: Rotation3::from_euler_angles(0.1, -0.2, 0.3),
@@ -1054,8 +1063,8 @@ mod tests {
             xy: [0.0, 0.0],
         }];
         let layout = ParameterLayout::new(&[Some(cam)], usize::MAX, true);
-        let (lens, n_params, sizes) = LensLayout::new(&layout, &[2]);
-        assert_eq!((n_params, sizes.as_slice()), (9, &[6, 1, 2][..]));
+        let (lens, n_params, sizes) = LensLayout::new(&layout, &[4]);
+        assert_eq!((n_params, sizes.as_slice()), (11, &[6, 1, 4][..]));
         let mut problem = Problem {
             intrinsics: &intrinsics,
             observations: vec![&obs],
@@ -1073,22 +1082,27 @@ mod tests {
             .linearize(&(vec![Some(cam)], vec![phi], vec![k], vec![x]))
             .unwrap();
         let lin = problem.linear[0].obs[0];
-        let uv = |theta: &[f64; 12]| {
+        let uv = |theta: &[f64; 14]| {
             let c = cam.moved(&theta[0..6]);
             let p = x + Vector3::new(theta[7], theta[8], theta[9]);
             project_radial(
                 &c,
                 intrinsics.focal(phi * theta[6].exp(), 0),
                 [320.0, 240.0],
-                [k[0] + theta[10], k[1] + theta[11]],
+                [
+                    k[0] + theta[10],
+                    k[1] + theta[11],
+                    k[2] + theta[12],
+                    k[3] + theta[13],
+                ],
                 &p,
             )
             .unwrap()
             .0
         };
         let h = 1e-6;
-        for q in 0..12 {
-            let (mut plus, mut minus) = ([0.0; 12], [0.0; 12]);
+        for q in 0..14 {
+            let (mut plus, mut minus) = ([0.0; 14], [0.0; 14]);
             plus[q] = h;
             minus[q] = -h;
             let (a, b) = (uv(&plus), uv(&minus));
@@ -1097,7 +1111,7 @@ mod tests {
                 let analytic = match q {
                     0..6 => lin.jc[(row, q)],
                     6 => lin.jf[row],
-                    10 | 11 => lin.jk[(row, q - 10)],
+                    10..14 => lin.jk[(row, q - 10)],
                     _ => lin.jp[(row, q - 7)],
                 };
                 assert!(

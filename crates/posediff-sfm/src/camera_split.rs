@@ -13,7 +13,7 @@
 //! own. When that differs from the mapper's cameras, the caller maps again with them (the
 //! mapper's [`crate::mapper::MapperOptions::camera_split`]).
 
-use crate::bundle::{BundleOptions, LensAdjustment, Point, adjust_lens};
+use crate::bundle::{BundleOptions, LensAdjustment, PINHOLE, Point, adjust_lens};
 use crate::camera::CameraPose;
 use crate::error::Result;
 use crate::intrinsics::ImageIntrinsics;
@@ -120,7 +120,7 @@ pub fn split_cameras(
     let step = points.len().div_ceil(options.max_points.max(1)).max(1);
     let subset: Vec<Point> = points.iter().step_by(step).cloned().collect();
     let mut factors = vec![phi; n];
-    let mut ks = vec![[0.0, 0.0]; n];
+    let mut ks = vec![PINHOLE; n];
     let mut adjusted = cameras.to_vec();
     let bundle = BundleOptions {
         refine_focal: true,
@@ -210,7 +210,7 @@ mod tests {
                             c.as_ref().unwrap(),
                             focal(image),
                             [319.5, 239.5],
-                            [0.0, 0.0],
+                            PINHOLE,
                             &xyz,
                         )?;
                         Some(Observation {

@@ -9,12 +9,13 @@
 //! robust reprojection cost by `min_improvement`, so a pinhole set stays pinhole; the caller
 //! then undistorts the matches with it and maps again.
 
-use crate::bundle::{BundleOptions, LensAdjustment, Point, Radial, adjust_lens};
+use crate::bundle::{BundleOptions, LensAdjustment, LensCoefficients, PINHOLE, Point, adjust_lens};
 use crate::camera::CameraPose;
 use crate::error::Result;
 use crate::intrinsics::ImageIntrinsics;
 
-/// The lens model refined: COLMAP's SIMPLE_RADIAL (`k`, its default) or RADIAL (`k₁, k₂`).
+/// The lens model refined: COLMAP's SIMPLE_RADIAL (`k`, its default), RADIAL (`k₁, k₂`) or
+/// OPENCV (`k₁, k₂, p₁, p₂`, with one focal: nerfstudio's default for COLMAP).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 #[cfg_attr(
     feature = "serde",
@@ -27,6 +28,8 @@ pub enum LensModel {
     SimpleRadial,
     /// Two coefficients.
     Radial,
+    /// Two radial and two tangential coefficients.
+    Opencv,
 }
 
 impl LensModel {
@@ -35,6 +38,7 @@ impl LensModel {
         match self {
             Self::SimpleRadial => 1,
             Self::Radial => 2,
+            Self::Opencv => 4,
         }
     }
 }
@@ -51,7 +55,8 @@ impl LensModel {
 pub struct LensRefinementOptions {
     /// The model: `simple_radial` (COLMAP's default; one coefficient) or `radial` (`k₁, k₂`:
     /// a strong wide-angle lens, the copies' OpenCV `k1 = −0.12, k2 = 0.02`, which one
-    /// coefficient fits as −0.112 on the fountain).
+    /// coefficient fits as −0.112 on the fountain) or `opencv` (`k₁, k₂, p₁, p₂`: a lens
+    /// whose centre is off its optical axis).
     pub model: LensModel,
     /// Points adjusted at most, evenly spaced over the mapper's (a few thousand determine one
     /// coefficient per camera; the poses are adjusted again by the second mapping).
@@ -91,7 +96,7 @@ impl Default for LensRefinementOptions {
 pub struct LensRefinement {
     /// Per camera group, the refined coefficients `[k₁, k₂]` (`k₂ = 0` with SIMPLE_RADIAL; the
     /// start's where the group was not refined).
-    pub k: Vec<Radial>,
+    pub k: Vec<LensCoefficients>,
     /// Whether the coefficients are kept (they lowered the cost enough and stayed in range).
     pub kept: bool,
     /// Why they are not kept (`None` when kept).
@@ -111,11 +116,11 @@ pub fn refine_lens(
     points: &[Point],
     intrinsics: &ImageIntrinsics,
     cameras: &[Option<CameraPose>],
-    k: &[Radial],
+    k: &[LensCoefficients],
     bundle: &BundleOptions,
     options: &LensRefinementOptions,
 ) -> Result<LensRefinement> {
-    let pinhole = k.iter().all(|k| *k == [0.0, 0.0]);
+    let pinhole = k.iter().all(|k| *k == PINHOLE);
     let mut ks = k.to_vec();
     let Some(reference) = cameras.iter().position(Option::is_some) else {
         return Ok(LensRefinement {
@@ -196,13 +201,13 @@ pub fn refine_lens(
 mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
-    use crate::bundle::{Radial, adjust_lens, project_radial};
+    use crate::bundle::{LensCoefficients, PINHOLE, adjust_lens, project_radial};
     use crate::tracks::Observation;
     use nalgebra::{Rotation3, Vector3};
 
     /// A ring of cameras around a cloud of points, seen through a SIMPLE_RADIAL lens with
     /// coefficient `k`: the points with their exact observations (photo pixels).
-    fn ring(k: Radial) -> (Vec<Option<CameraPose>>, ImageIntrinsics, Vec<Point>) {
+    fn ring(k: LensCoefficients) -> (Vec<Option<CameraPose>>, ImageIntrinsics, Vec<Point>) {
         let cameras: Vec<Option<CameraPose>> = (0..8)
             .map(|i| {
                 let a = f64::from(i) * 0.35;
@@ -247,12 +252,12 @@ mod tests {
     /// exactly; the pinhole start's error is pixels.
     #[test]
     fn the_radial_coefficient_is_recovered_with_the_focal() {
-        let (truth, intrinsics, points) = ring([-0.1, 0.0]);
+        let (truth, intrinsics, points) = ring([-0.1, 0.0, 0.0, 0.0]);
         let mut cameras = truth.clone();
         for c in cameras.iter_mut().skip(1).flatten() {
             c.center += Vector3::new(0.01, -0.02, 0.01);
         }
-        let (mut factors, mut ks) = (vec![1.03], vec![[0.0, 0.0]]);
+        let (mut factors, mut ks) = (vec![1.03], vec![PINHOLE]);
         let options = BundleOptions {
             max_error_px: 1e3,
             tolerance: 1e-12,
@@ -293,29 +298,25 @@ mod tests {
     /// the coefficient stays at zero and nothing is gained.
     #[test]
     fn a_pinhole_scene_keeps_a_zero_coefficient() {
-        let (truth, intrinsics, points) = ring([0.0, 0.0]);
+        let (truth, intrinsics, points) = ring(PINHOLE);
         let mut cameras = truth.clone();
-        let (mut factors, mut ks) = (vec![1.0], vec![[0.0, 0.0]]);
+        let (mut factors, mut ks) = (vec![1.0], vec![PINHOLE]);
         let (_, report) = adjust_lens(
             points,
             &intrinsics,
             &mut cameras,
-            (&mut factors, &mut ks, &[2]),
+            (&mut factors, &mut ks, &[4]),
             0,
             &BundleOptions::default(),
         )
         .unwrap();
-        assert!(
-            ks[0][0].abs() < 1e-6 && ks[0][1].abs() < 1e-6,
-            "k {:?}",
-            ks[0]
-        );
+        assert!(ks[0].iter().all(|k| k.abs() < 1e-6), "k {:?}", ks[0]);
         assert!(report.rms_before_px < 1e-6 && report.rms_after_px < 1e-6);
         let wrong = adjust_lens(
             Vec::new(),
             &intrinsics,
             &mut cameras,
-            (&mut factors, &mut [[0.0; 2]; 2], &[1, 1]),
+            (&mut factors, &mut [PINHOLE; 2], &[1, 1]),
             0,
             &BundleOptions::default(),
         );
@@ -325,7 +326,7 @@ mod tests {
     /// [`refine_lens`] of a scene from `start` (one camera group).
     fn refine(
         (cameras, intrinsics, points): &(Vec<Option<CameraPose>>, ImageIntrinsics, Vec<Point>),
-        start: Radial,
+        start: LensCoefficients,
         bundle: &BundleOptions,
         options: &LensRefinementOptions,
     ) -> LensRefinement {
@@ -337,20 +338,20 @@ mod tests {
     /// in the adjustment), and a pinhole scene stays pinhole (the cost cannot fall).
     #[test]
     fn the_refinement_keeps_a_lens_only_where_the_images_determine_it() {
-        let scene = ring([-0.1, 0.0]);
+        let scene = ring([-0.1, 0.0, 0.0, 0.0]);
         let options = LensRefinementOptions::default();
         let bundle = BundleOptions::default();
-        let found = refine(&scene, [0.0; 2], &bundle, &options);
+        let found = refine(&scene, PINHOLE, &bundle, &options);
         assert!(found.kept, "{found:?}");
         assert!((found.k[0][0] + 0.1).abs() < 1e-4, "{found:?}");
         let too_few = LensRefinementOptions {
             min_images: 9,
             ..options
         };
-        let held = refine(&scene, [-0.05, 0.0], &bundle, &too_few);
-        assert!(!held.kept && held.k == [[-0.05, 0.0]], "{held:?}");
-        let scene = ring([0.0, 0.0]);
-        let pinhole = refine(&scene, [0.0; 2], &bundle, &options);
+        let held = refine(&scene, [-0.05, 0.0, 0.0, 0.0], &bundle, &too_few);
+        assert!(!held.kept && held.k == [[-0.05, 0.0, 0.0, 0.0]], "{held:?}");
+        let scene = ring(PINHOLE);
+        let pinhole = refine(&scene, PINHOLE, &bundle, &options);
         assert!(!pinhole.kept && pinhole.reason.is_some(), "{pinhole:?}");
     }
 
@@ -358,7 +359,7 @@ mod tests {
     /// comes back with both coefficients, where SIMPLE_RADIAL's one coefficient cannot fit it.
     #[test]
     fn a_second_coefficient_is_recovered_with_the_radial_model() {
-        let scene = ring([-0.12, 0.02]);
+        let scene = ring([-0.12, 0.02, 0.0, 0.0]);
         let bundle = BundleOptions {
             tolerance: 1e-12,
             ..BundleOptions::default()
@@ -367,19 +368,52 @@ mod tests {
             model: LensModel::Radial,
             ..LensRefinementOptions::default()
         };
-        let two = refine(&scene, [0.0; 2], &bundle, &radial);
+        let two = refine(&scene, PINHOLE, &bundle, &radial);
         assert!(two.kept, "{two:?}");
-        let [k1, k2] = two.k[0];
+        let [k1, k2, p1, p2] = two.k[0];
+        assert_eq!((p1, p2), (0.0, 0.0));
         assert!(
             (k1 + 0.12).abs() < 1e-3 && (k2 - 0.02).abs() < 1e-3,
             "{two:?}"
         );
         assert!(two.adjustment.rms_after_px < 1e-3, "{two:?}");
-        let one = refine(&scene, [0.0; 2], &bundle, &LensRefinementOptions::default());
+        let one = refine(&scene, PINHOLE, &bundle, &LensRefinementOptions::default());
         assert_eq!(one.k[0][1], 0.0);
         assert!(
             one.adjustment.rms_after_px > 10.0 * two.adjustment.rms_after_px,
             "{one:?}"
+        );
+    }
+
+    /// OPENCV: a lens with tangential terms (a centre off the optical axis) comes back with
+    /// all four coefficients; RADIAL's two leave the tangential part as error.
+    #[test]
+    fn tangential_coefficients_are_recovered_with_the_opencv_model() {
+        let truth = [-0.1, 0.015, 0.002, -0.0015];
+        let scene = ring(truth);
+        let bundle = BundleOptions {
+            tolerance: 1e-12,
+            ..BundleOptions::default()
+        };
+        let opencv = LensRefinementOptions {
+            model: LensModel::Opencv,
+            ..LensRefinementOptions::default()
+        };
+        let four = refine(&scene, PINHOLE, &bundle, &opencv);
+        assert!(four.kept, "{four:?}");
+        for (k, t) in four.k[0].iter().zip(truth) {
+            assert!((k - t).abs() < 1e-4, "{four:?}");
+        }
+        assert!(four.adjustment.rms_after_px < 1e-3, "{four:?}");
+        let radial = LensRefinementOptions {
+            model: LensModel::Radial,
+            ..opencv
+        };
+        let two = refine(&scene, PINHOLE, &bundle, &radial);
+        assert_eq!((two.k[0][2], two.k[0][3]), (0.0, 0.0));
+        assert!(
+            two.adjustment.rms_after_px > 10.0 * four.adjustment.rms_after_px,
+            "{two:?}"
         );
     }
 }

@@ -920,20 +920,24 @@ fn the_options_tree_is_read_from_a_file_and_overridden_per_field() {
 /// the one model the calibration fits is the truth's, so its coefficient comes back within 0.01
 /// (−0.098 measured, after the bundle adjustment's refinement), every focal within 1 % and
 /// every pair's direction within 2°. With the calibration before the mapper off, the bundle
-/// adjustment's refinement alone finds the lens (−0.0945) from a pinhole start. The pinhole
-/// rendering of the same orbit is left pinhole by both.
+/// adjustment's refinement alone finds the lens (−0.0945) from a pinhole start. RADIAL and
+/// OPENCV fit the lens as the truth moves pixels (OPENCV's tangential terms near 0). The
+/// pinhole rendering of the same orbit is left pinhole by both.
 #[test]
 fn a_synthetic_wide_angle_lens_is_recovered() {
     use posediff_synth::{DatasetSpec, LensSpec, scene::PathKind, write_dataset};
     let dir = posediff_fixtures::temp_dir("geometric-synthetic-radial");
     let truth = -0.1;
-    for (radial_k, calibrate, radial_model) in [
-        (truth, true, false),
-        (truth, false, false),
-        (truth, true, true),
-        (0.0, true, false),
+    use posediff_sfm::lens_refinement::LensModel;
+    for (radial_k, calibrate, lens_model) in [
+        (truth, true, LensModel::SimpleRadial),
+        (truth, false, LensModel::SimpleRadial),
+        (truth, true, LensModel::Radial),
+        (truth, true, LensModel::Opencv),
+        (0.0, true, LensModel::SimpleRadial),
     ] {
-        let root = dir.join(format!("k{radial_k}-{calibrate}-{radial_model}"));
+        let radial_model = lens_model != LensModel::SimpleRadial;
+        let root = dir.join(format!("k{radial_k}-{calibrate}-{lens_model:?}"));
         write_dataset(
             &root,
             &DatasetSpec {
@@ -958,10 +962,8 @@ fn a_synthetic_wide_angle_lens_is_recovered() {
         if !calibrate {
             config.options.cameras.distortion = None;
         }
-        if radial_model {
-            let refinement = config.options.cameras.lens_refinement.as_mut().unwrap();
-            refinement.model = posediff_sfm::lens_refinement::LensModel::Radial;
-        }
+        let refinement = config.options.cameras.lens_refinement.as_mut().unwrap();
+        refinement.model = lens_model;
         let e = estimate_geometric(&images, &config).unwrap();
         let distortion = &e.report.cameras.distortion;
         assert_eq!(
@@ -987,12 +989,24 @@ fn a_synthetic_wide_angle_lens_is_recovered() {
                 .unwrap()
                 .lens_camera(0, &c.intrinsics)
                 .unwrap();
-            let model = if radial_model {
-                CameraModel::Radial
-            } else {
-                CameraModel::SimpleRadial
+            let model = match lens_model {
+                LensModel::SimpleRadial => CameraModel::SimpleRadial,
+                LensModel::Radial => CameraModel::Radial,
+                LensModel::Opencv => CameraModel::OpenCv,
             };
             assert_eq!(lens.model(), model);
+            // OPENCV: tangential terms near the truth's 0 (a pixel's worth at the corner is
+            // 1e-3), in run.json.
+            assert_eq!(
+                distortion.p1.is_empty(),
+                lens_model != LensModel::Opencv,
+                "{distortion:?}"
+            );
+            if lens_model == LensModel::Opencv {
+                let (p1, p2) = (distortion.p1[0].unwrap(), distortion.p2[0].unwrap());
+                assert!(p1.abs() < 1e-3 && p2.abs() < 1e-3, "{distortion:?}");
+                assert_eq!(lens.distortion()[2], p1);
+            }
             if radial_model {
                 // Two coefficients trade off where the points thin out (0.56 px off at the
                 // corners): inside the circle inscribed in the photo the lens they make moves
@@ -1017,7 +1031,18 @@ fn a_synthetic_wide_angle_lens_is_recovered() {
             );
         }
         let (rot, trans) = worst_pair_errors(&est, &gt);
-        assert!(rot < 1.0 && trans < 2.0, "worst pair: {rot}° / {trans}°");
+        // OPENCV's tangential terms (fitted at 6e-4, about 0.2 px at the corners, where the
+        // truth has none) trade off against the translations: its worst pair is 2.7° (mAA(30)
+        // 0.998 against RADIAL's 1.000).
+        let max_trans = if lens_model == LensModel::Opencv {
+            3.0
+        } else {
+            2.0
+        };
+        assert!(
+            rot < 1.0 && trans < max_trans,
+            "{lens_model:?}, calibrated {calibrate}: worst pair {rot}° / {trans}°"
+        );
     }
     std::fs::remove_dir_all(&dir).unwrap();
 }
