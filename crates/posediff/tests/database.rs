@@ -541,3 +541,53 @@ fn bad_databases_are_named_errors() {
     }
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// The store keeps each photo's content digest: a photo replaced under the same name is
+/// refused by name (its stored features are another photo's), while the same bytes copied
+/// again (a new modification time) resume as before.
+#[test]
+fn a_photo_replaced_under_its_name_is_refused() {
+    let dir = posediff_fixtures::temp_dir("database-replaced");
+    let set = shared_path("data/strecha_fountainP11/images");
+    let mut names: Vec<std::path::PathBuf> = std::fs::read_dir(&set)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
+    names.sort();
+    let images = dir.join("images");
+    std::fs::create_dir_all(&images).unwrap();
+    for p in &names[..3] {
+        std::fs::copy(p, images.join(p.file_name().unwrap())).unwrap();
+    }
+    let db = dir.join("d.db");
+    let features = || {
+        posediff(&[
+            "features".as_ref(),
+            images.as_os_str(),
+            "--database".as_ref(),
+            db.as_os_str(),
+            "--quiet".as_ref(),
+        ])
+    };
+    assert!(features().status.success());
+    // The same bytes again: resumed, nothing to extract.
+    let first = images.join(names[0].file_name().unwrap());
+    std::fs::copy(&names[0], &first).unwrap();
+    let again = features();
+    assert!(
+        again.status.success(),
+        "{}",
+        String::from_utf8_lossy(&again.stderr)
+    );
+    // Another photo under the first one's name.
+    std::fs::copy(&names[5], &first).unwrap();
+    let out = features();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{err}");
+    let name = names[0].file_name().unwrap().to_string_lossy();
+    assert!(
+        err.contains(name.as_ref()) && err.contains("was replaced") && err.contains("sha256:"),
+        "{err}"
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}

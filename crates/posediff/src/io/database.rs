@@ -10,7 +10,9 @@
 //!   matches (an `UNCALIBRATED` two-view geometry; a `DEGENERATE` one with no rows where too
 //!   few verified, so that the pair is not matched again).
 //!   A table of its own, `posediff_store`, records which matcher and settings made the
-//!   features, so that a run with others is refused instead of mixing them.
+//!   features, so that a run with others is refused instead of mixing them, and each stored
+//!   image's content (`image:<name>` → `sha256:<hex>`), so that a file replaced under the
+//!   same name is refused instead of being given another photo's features.
 //! - [`write_database`], Python's `write(..., formats=["database"])`: a snapshot of a result.
 //!   What a run knows goes in: a camera per distinct estimated camera (its lens model and
 //!   parameters, `prior_focal_length = 1`: the focal is an estimate), a camera per image that was
@@ -322,6 +324,32 @@ impl StoreIdentity {
             ("settings", self.settings.as_str()),
         ]
     }
+}
+
+/// The `posediff_store` key of an image's content digest.
+fn content_key(name: &str) -> String {
+    format!("image:{name}")
+}
+
+/// `sha256:<hex>` of a file's bytes (streamed).
+fn content_digest(path: &Path) -> Result<String> {
+    use sha2::Digest;
+    use std::io::Read;
+    let mut file = std::fs::File::open(path).map_err(|e| PosediffError::invalid(path, e))?;
+    let mut hasher = sha2::Sha256::new();
+    let mut buffer = vec![0u8; 1 << 16];
+    loop {
+        let n = file
+            .read(&mut buffer)
+            .map_err(|e| PosediffError::invalid(path, e))?;
+        if n == 0 {
+            break;
+        }
+        hasher.update(&buffer[..n]);
+    }
+    let digest = hasher.finalize();
+    let hex: String = digest.iter().map(|b| format!("{b:02x}")).collect();
+    Ok(format!("sha256:{hex}"))
 }
 
 /// The `posediff_store` value under `key`, if any.
@@ -673,6 +701,31 @@ impl Database {
         self.conn
             .lock()
             .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    /// Checks that `image`'s file is the photo whose features are stored under its name
+    /// (databases written before the digests were kept, and images stored without one, are
+    /// not checked).
+    fn check_content(&self, conn: &Connection, image: &StoreImage) -> Result<()> {
+        let Some(stored) =
+            store_value(conn, &content_key(&image.name)).map_err(sqlite_error(&self.path))?
+        else {
+            return Ok(());
+        };
+        let now = content_digest(&image.path)?;
+        if now != stored {
+            return Err(PosediffError::invalid(
+                &self.path,
+                format!(
+                    "holds the features of another photo named {:?} ({stored}; {} is {now}): \
+                     the file was replaced since they were stored. Use a new database, or \
+                     restore the photo",
+                    image.name,
+                    image.path.display()
+                ),
+            ));
+        }
+        Ok(())
     }
 
     fn image(&self, path: &Path) -> Result<&StoreImage> {
@@ -1179,6 +1232,9 @@ impl FeatureStore for Database {
                 out.push(None);
                 continue;
             };
+            if !self.map_only {
+                self.check_content(&conn, image)?;
+            }
             ids.push(id);
             let kp: Option<(i64, i64, Vec<u8>)> = conn
                 .query_row(
@@ -1323,6 +1379,11 @@ impl FeatureStore for Database {
             )
             .map_err(&e)?;
             let id = tx.last_insert_rowid();
+            tx.execute(
+                "INSERT OR REPLACE INTO posediff_store (key, value) VALUES (?1, ?2)",
+                params![content_key(&image.name), content_digest(&image.path)?],
+            )
+            .map_err(&e)?;
             tx.execute("INSERT INTO frames (rig_id) VALUES (?1)", params![rig])
                 .map_err(&e)?;
             let frame = tx.last_insert_rowid();
