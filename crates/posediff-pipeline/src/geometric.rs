@@ -242,6 +242,10 @@ impl RadialLens {
     pub fn coefficients(&self, i: usize, focal: f64) -> LensCoefficients {
         let lens = &self.lenses[i];
         let d = lens.distortion();
+        if lens.model() == CameraModel::OpenCvFisheye {
+            // Defined at its own focal, which the camera keeps (see `lens_camera`).
+            return [d[0], d[1], d[2], d[3]];
+        }
         let ratio = focal / lens.focal().0;
         let k1 = posediff_sfm::distortion_calibration::coefficient_at(d[0], 1.0, ratio);
         let k2 = d.get(1).map_or(0.0, |k2| k2 * ratio.powi(4));
@@ -259,6 +263,15 @@ impl RadialLens {
     pub fn lens_camera(&self, i: usize, k: &Intrinsics) -> Result<LensCamera> {
         let (cx, cy) = self.lenses[i].principal();
         let off = (k.cx() - cx).hypot(k.cy() - cy);
+        let fisheye = self.lenses[i].model() == CameraModel::OpenCvFisheye;
+        if fisheye && (k.fx() / self.lenses[i].focal().0 - 1.0).abs() > 1e-9 {
+            return Err(PosediffError::InvalidArgument(format!(
+                "image {i}: focal {} is not its fisheye lens's {}: the equidistant model holds \
+                 at that focal only",
+                k.fx(),
+                self.lenses[i].focal().0
+            )));
+        }
         if off > 1e-6 * k.fx() || k.fx() != k.fy() {
             return Err(PosediffError::InvalidArgument(format!(
                 "image {i}: focal ({}, {}) and principal point ({}, {}) are not the distortion's \
@@ -273,7 +286,9 @@ impl RadialLens {
         let [k1, k2, p1, p2] = self.coefficients(i, k.fx());
         let params = match model {
             CameraModel::Radial => vec![k.fx(), k.cx(), k.cy(), k1, k2],
-            CameraModel::OpenCv => vec![k.fx(), k.fx(), k.cx(), k.cy(), k1, k2, p1, p2],
+            CameraModel::OpenCv | CameraModel::OpenCvFisheye => {
+                vec![k.fx(), k.fx(), k.cx(), k.cy(), k1, k2, p1, p2]
+            }
             _ => vec![k.fx(), k.cx(), k.cy(), k1],
         };
         Ok(LensCamera::new(model, params)?)
@@ -450,13 +465,24 @@ fn refine_lens_after_mapping(
         .map(|c| c.as_ref().map(CameraPose::of_camera))
         .collect();
     // The start: each camera's coefficients at its focal (0 without a lens).
-    let mut start = vec![posediff_sfm::bundle::PINHOLE; groups];
+    let kind = options.model.kind();
+    let mut start = vec![kind.pinhole(); groups];
     if let Some(lens) = lens {
         let mut seen = vec![false; groups];
         for (i, c) in estimate.cameras.iter().enumerate() {
             if let (false, Some(c)) = (seen[group[i]], c) {
                 seen[group[i]] = true;
-                start[group[i]] = lens.coefficients(i, c.intrinsics.fx());
+                let k = lens.coefficients(i, c.intrinsics.fx());
+                start[group[i]] = match kind {
+                    posediff_sfm::bundle::LensKind::Brown => k,
+                    // A radial lens `1 + k r²` is a fisheye `θ (1 + (1/3 + k) θ² + …)` to the
+                    // third order: the start.
+                    posediff_sfm::bundle::LensKind::Fisheye => {
+                        let mut f = kind.pinhole();
+                        f[0] += k[0];
+                        f
+                    }
+                };
             }
         }
     }
@@ -522,6 +548,16 @@ fn refine_lens_after_mapping(
             }
             posediff_sfm::lens_refinement::LensModel::Opencv => {
                 (CameraModel::OpenCv, vec![s, s, c[0], c[1], k1, k2, p1, p2])
+            }
+            // Not covariant under a change of focal: at the adjusted focal itself, which the
+            // mapping again keeps fixed (`fixed_focals`).
+            posediff_sfm::lens_refinement::LensModel::OpencvFisheye => {
+                let f = focal[i] * refined.factors[group[i]];
+                let k = refined.k[group[i]];
+                (
+                    CameraModel::OpenCvFisheye,
+                    vec![f, f, c[0], c[1], k[0], k[1], k[2], k[3]],
+                )
             }
         };
         let camera = LensCamera::new(model, params)?;
@@ -679,14 +715,20 @@ pub fn estimate_geometric_counted(
     counter.stage("mapping", 0);
     let cache = TwoViewCache::default();
     let mut estimate = if features.is_some() {
-        map_supported_matches(&sizes, pairs.clone(), support.clone(), config, &cache)?
+        map_supported_matches(
+            &sizes,
+            pairs.clone(),
+            support.clone(),
+            config,
+            (&cache, None),
+        )?
     } else {
         map_supported_matches(
             &sizes,
             std::mem::take(&mut pairs),
             support.take(),
             config,
-            &cache,
+            (&cache, None),
         )?
     };
     let mut densified = 0;
@@ -709,7 +751,8 @@ pub fn estimate_geometric_counted(
             densified = extra.len();
             let first = estimate.report.times;
             counter.stage("mapping", 0);
-            estimate = map_supported_matches(&sizes, pairs.clone(), support, config, &cache)?;
+            estimate =
+                map_supported_matches(&sizes, pairs.clone(), support, config, (&cache, None))?;
             estimate.report.times.add_mapping(&first);
         }
     }
@@ -734,7 +777,7 @@ pub fn estimate_geometric_counted(
                 turned_pairs,
                 None,
                 config,
-                &TwoViewCache::default(),
+                (&TwoViewCache::default(), None),
             )?;
             estimate.report.times.add_mapping(&earlier);
             turned_images.extend(kept);
@@ -764,7 +807,11 @@ pub fn estimate_geometric_counted(
             let pairs = RadialLens::moved_pairs(lens.as_ref(), &refined, &estimate.pairs);
             counter.stage("mapping", 0);
             let estimated = estimate.cameras.iter().flatten().count();
-            match map_supported_matches(&sizes, pairs, None, config, &TwoViewCache::default()) {
+            let fixed: Option<Vec<f64>> = (options.model.kind()
+                == posediff_sfm::bundle::LensKind::Fisheye)
+                .then(|| refined.lenses.iter().map(|l| l.focal().0).collect());
+            let cache = TwoViewCache::default();
+            match map_supported_matches(&sizes, pairs, None, config, (&cache, fixed.as_deref())) {
                 Ok(mut again) if again.cameras.iter().flatten().count() >= estimated => {
                     again.report.times.add_mapping(&earlier);
                     estimate = again;
@@ -797,12 +844,20 @@ pub fn estimate_geometric_counted(
         }
         distortion.k1 = k.iter().map(|k| k.map(|k| k[0])).collect();
         let model = |m: CameraModel| lens.lenses.iter().any(|l| l.model() == m);
-        if model(CameraModel::Radial) || model(CameraModel::OpenCv) {
-            distortion.k2 = k.iter().map(|k| k.map(|k| k[1])).collect();
+        let column = |c: usize| k.iter().map(|k| k.map(|k| k[c])).collect();
+        if model(CameraModel::Radial)
+            || model(CameraModel::OpenCv)
+            || model(CameraModel::OpenCvFisheye)
+        {
+            distortion.k2 = column(1);
         }
         if model(CameraModel::OpenCv) {
-            distortion.p1 = k.iter().map(|k| k.map(|k| k[2])).collect();
-            distortion.p2 = k.iter().map(|k| k.map(|k| k[3])).collect();
+            distortion.p1 = column(2);
+            distortion.p2 = column(3);
+        }
+        if model(CameraModel::OpenCvFisheye) {
+            distortion.k3 = column(2);
+            distortion.k4 = column(3);
         }
     }
     estimate.report.cameras.distortion = distortion;
@@ -1275,7 +1330,13 @@ pub fn estimate_from_supported_matches(
     support: Option<Vec<bool>>,
     config: &GeometricConfig,
 ) -> Result<GeometricEstimate> {
-    map_supported_matches(sizes, pairs, support, config, &TwoViewCache::default())
+    map_supported_matches(
+        sizes,
+        pairs,
+        support,
+        config,
+        (&TwoViewCache::default(), None),
+    )
 }
 
 /// [`estimate_from_supported_matches`] with the two-view results of the estimate's earlier
@@ -1285,7 +1346,7 @@ fn map_supported_matches(
     pairs: Vec<PairMatches>,
     support: Option<Vec<bool>>,
     config: &GeometricConfig,
-    cache: &TwoViewCache,
+    (cache, fixed_focals): (&TwoViewCache, Option<&[f64]>),
 ) -> Result<GeometricEstimate> {
     let n = sizes.len();
     if n < 2 {
@@ -1298,7 +1359,12 @@ fn map_supported_matches(
         &config.hints,
         config.options.mapper.focal_prior,
     )?;
-    let (layout, known_phi) = (cameras.intrinsics.clone(), cameras.known_phi);
+    let (mut layout, mut known_phi) = (cameras.intrinsics.clone(), cameras.known_phi);
+    if let Some(focals) = fixed_focals {
+        // Each image's focal held (a fisheye lens is defined at it), the cameras as decided.
+        layout.scale = focals.to_vec();
+        known_phi = Some(1.0);
+    }
     let mapper = GlobalMapper::new(config.mapper_options());
     let solver = OpenCvTwoView {
         config: &config.options.two_view,

@@ -394,10 +394,12 @@ impl CameraOptions {
     /// `SIMPLE_PINHOLE` and `PINHOLE` turn the lens calibration and refinement off (one focal
     /// per camera, the principal point at the centre, no distortion), `SIMPLE_RADIAL` is the
     /// default (a coefficient where the data show one), `RADIAL` refines `k₁, k₂`, `OPENCV`
-    /// `k₁, k₂, p₁, p₂` (with one focal, `fx = fy`). Names as COLMAP spells them, in any case.
+    /// `k₁, k₂, p₁, p₂` (with one focal, `fx = fy`), `OPENCV_FISHEYE` `k₁…k₄` of the angle
+    /// (the focal then held at the adjusted one when the set is mapped again). Names as COLMAP
+    /// spells them, in any case.
     ///
     /// # Errors
-    /// An unknown name, or a model posediff does not estimate (OPENCV_FISHEYE).
+    /// An unknown name.
     pub fn set_model(&mut self, name: &str) -> Result<()> {
         use posediff_sfm::lens_refinement::{LensModel, LensRefinementOptions};
         let model = posediff_geometry::lens::CameraModel::from_name(&name.to_ascii_uppercase())
@@ -410,7 +412,8 @@ impl CameraOptions {
             }
             posediff_geometry::lens::CameraModel::SimpleRadial
             | posediff_geometry::lens::CameraModel::Radial
-            | posediff_geometry::lens::CameraModel::OpenCv => {
+            | posediff_geometry::lens::CameraModel::OpenCv
+            | posediff_geometry::lens::CameraModel::OpenCvFisheye => {
                 self.distortion.get_or_insert_with(Default::default);
                 let refinement = self
                     .lens_refinement
@@ -418,16 +421,9 @@ impl CameraOptions {
                 refinement.model = match model {
                     posediff_geometry::lens::CameraModel::Radial => LensModel::Radial,
                     posediff_geometry::lens::CameraModel::OpenCv => LensModel::Opencv,
+                    posediff_geometry::lens::CameraModel::OpenCvFisheye => LensModel::OpencvFisheye,
                     _ => LensModel::SimpleRadial,
                 };
-            }
-            other => {
-                return Err(PosediffError::InvalidArgument(format!(
-                    "camera model {}: not estimated by posediff (SIMPLE_PINHOLE, PINHOLE, \
-                     SIMPLE_RADIAL, RADIAL and OPENCV are); RADIAL or OPENCV is the nearest for \
-                     a wide-angle lens",
-                    other.name()
-                )));
             }
         }
         Ok(())
@@ -780,8 +776,8 @@ mod tests {
         c.set_model("simple_radial").unwrap();
         assert_eq!(c.lens_refinement.unwrap().model, LensModel::SimpleRadial);
         assert!(c.distortion.is_some());
-        let e = c.set_model("OPENCV_FISHEYE").unwrap_err().to_string();
-        assert!(e.contains("OPENCV_FISHEYE") && e.contains("RADIAL"), "{e}");
+        c.set_model("opencv_fisheye").unwrap();
+        assert_eq!(c.lens_refinement.unwrap().model, LensModel::OpencvFisheye);
         let e = c.set_model("fisheye62").unwrap_err().to_string();
         assert!(
             e.contains("fisheye62") && e.contains("SIMPLE_RADIAL"),

@@ -399,6 +399,11 @@ pub struct DistortionOutcome {
     pub p1: Vec<Option<f64>>,
     /// See `p1`.
     pub p2: Vec<Option<f64>>,
+    /// Per camera, OPENCV_FISHEYE's `k₃` (its `k₁, k₂` are `k1`, `k2`: coefficients of the
+    /// angle `θ`, not of `r`); empty unless the lens is OPENCV_FISHEYE.
+    pub k3: Vec<Option<f64>>,
+    /// See `k3`.
+    pub k4: Vec<Option<f64>>,
     /// The lens refined by the bundle adjustment after the mapper (`cameras.lens_refinement`);
     /// `null` when it did not run (off, given intrinsics, no points).
     pub refinement: Option<LensRefinementOutcome>,

@@ -21,8 +21,11 @@
 //! `∂uv/∂x = f ((1 + k₁ r² + k₂ r⁴) I + (2 k₁ + 4 k₂ r²) x xᵀ)`, `∂uv/∂k₁ = f r² x` and
 //! `∂uv/∂k₂ = f r⁴ x`.
 
-use nalgebra::{Matrix3, SMatrix, SVector, Vector3};
-use posediff_geometry::lens::{brown_coefficient_jacobian, distort_brown};
+use nalgebra::{Matrix2, Matrix3, SMatrix, SVector, Vector2, Vector3};
+use posediff_geometry::lens::{
+    FISHEYE_PINHOLE, brown_coefficient_jacobian, distort_brown, distort_fisheye,
+    fisheye_coefficient_jacobian,
+};
 use rayon::prelude::*;
 
 use crate::camera::{CameraPose, ParameterLayout, gauge_scale};
@@ -139,6 +142,45 @@ pub type LensCoefficients = [f64; 4];
 /// No distortion.
 pub const PINHOLE: LensCoefficients = [0.0; 4];
 
+/// The distortion model of the [`LensCoefficients`] of an adjustment: Brown's polynomial
+/// (COLMAP's SIMPLE_RADIAL, RADIAL, OPENCV: `k₁, k₂, p₁, p₂`) or OpenCV's fisheye (COLMAP's
+/// OPENCV_FISHEYE: `k₁…k₄` on `θ = atan r`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum LensKind {
+    /// `distort_brown`.
+    #[default]
+    Brown,
+    /// `distort_fisheye`.
+    Fisheye,
+}
+
+impl LensKind {
+    /// The distorted normalised coordinates and their Jacobian.
+    fn distort(self, k: LensCoefficients, u: f64, v: f64) -> (Vector2<f64>, Matrix2<f64>) {
+        match self {
+            Self::Brown => distort_brown(k, u, v),
+            Self::Fisheye => distort_fisheye(k, u, v),
+        }
+    }
+
+    /// `∂(u_d, v_d)/∂k`.
+    fn coefficient_jacobian(self, u: f64, v: f64) -> SMatrix<f64, 2, 4> {
+        match self {
+            Self::Brown => brown_coefficient_jacobian(u, v),
+            Self::Fisheye => fisheye_coefficient_jacobian(u, v),
+        }
+    }
+
+    /// The coefficients that are (Brown: exactly; fisheye: to `θ⁹`) the pinhole projection: the
+    /// start of an adjustment whose points come from pinhole cameras.
+    pub fn pinhole(self) -> LensCoefficients {
+        match self {
+            Self::Brown => PINHOLE,
+            Self::Fisheye => FISHEYE_PINHOLE,
+        }
+    }
+}
+
 /// [`project`] through a lens with coefficients `k` (COLMAP's OPENCV, on `x_c / z_c`; the
 /// distortion is [`posediff_geometry::lens::distort_brown`], the one place lens models are
 /// computed); [`PINHOLE`] is [`project`] exactly.
@@ -149,12 +191,23 @@ pub fn project_radial(
     k: LensCoefficients,
     x: &Vector3<f64>,
 ) -> Option<([f64; 2], Vector3<f64>)> {
-    if k == PINHOLE {
+    project_lens(c, f, pp, (LensKind::Brown, k), x)
+}
+
+/// [`project`] through a lens of either kind ([`project_radial`] for Brown's).
+pub fn project_lens(
+    c: &CameraPose,
+    f: f64,
+    pp: [f64; 2],
+    (kind, k): (LensKind, LensCoefficients),
+    x: &Vector3<f64>,
+) -> Option<([f64; 2], Vector3<f64>)> {
+    if kind == LensKind::Brown && k == PINHOLE {
         return project(c, f, pp, x);
     }
     let xc = c.rotation * (x - c.center);
     (xc.z > 1e-12).then(|| {
-        let (d, _) = distort_brown(k, xc.x / xc.z, xc.y / xc.z);
+        let (d, _) = kind.distort(k, xc.x / xc.z, xc.y / xc.z);
         ([f * d.x + pp[0], f * d.y + pp[1]], xc)
     })
 }
@@ -462,6 +515,8 @@ struct Problem<'a> {
     layout: ParameterLayout,
     /// The radial coefficients refined (none by [`bundle_adjust`]).
     lens: LensLayout,
+    /// Their model.
+    kind: LensKind,
     /// Parameters in all: the layout's and the free coefficients.
     n_params: usize,
     reference: usize,
@@ -499,7 +554,13 @@ impl LeastSquares for Problem<'_> {
                     let f = self.focal(factors, o.image);
                     let k = ks[self.intrinsics.group[o.image]];
                     total.add(
-                        match project_radial(&c, f, self.intrinsics.principal[o.image], k, x) {
+                        match project_lens(
+                            &c,
+                            f,
+                            self.intrinsics.principal[o.image],
+                            (self.kind, k),
+                            x,
+                        ) {
                             Some((uv, _)) => (uv[0] - o.xy[0]).powi(2) + (uv[1] - o.xy[1]).powi(2),
                             None => 1e6,
                         },
@@ -529,14 +590,14 @@ impl LeastSquares for Problem<'_> {
                     let f = this.focal(factors, o.image);
                     let pp = this.intrinsics.principal[o.image];
                     let k = ks[this.intrinsics.group[o.image]];
-                    let Some((uv, xc)) = project_radial(&cam, f, pp, k, x) else {
+                    let Some((uv, xc)) = project_lens(&cam, f, pp, (this.kind, k), x) else {
                         continue;
                     };
                     let r = SVector::<f64, 2>::new(uv[0] - o.xy[0], uv[1] - o.xy[1]);
                     let w = 1.0 / (1.0 + r.norm_squared() / c2);
                     let iz = 1.0 / xc.z;
                     let (u, v) = (xc.x * iz, xc.y * iz);
-                    let d = if k == PINHOLE {
+                    let d = if this.kind == LensKind::Brown && k == PINHOLE {
                         SMatrix::<f64, 2, 3>::new(
                             f * iz,
                             0.0,
@@ -547,7 +608,7 @@ impl LeastSquares for Problem<'_> {
                         )
                     } else {
                         // ∂uv/∂x_c = f ∂x_d/∂x · ∂x/∂x_c, with ∂x/∂x_c = [I | −x] / z.
-                        let (_, jd) = distort_brown(k, u, v);
+                        let (_, jd) = this.kind.distort(k, u, v);
                         jd * f * SMatrix::<f64, 2, 3>::new(iz, 0.0, -u * iz, 0.0, iz, -v * iz)
                     };
                     let jp = d * cam.rotation.matrix();
@@ -556,7 +617,7 @@ impl LeastSquares for Problem<'_> {
                     jc.fixed_view_mut::<2, 3>(0, 0).copy_from(&(d * (-skew)));
                     jc.fixed_view_mut::<2, 3>(0, 3).copy_from(&(-jp));
                     let jf = SVector::<f64, 2>::new(uv[0] - pp[0], uv[1] - pp[1]);
-                    let jk = brown_coefficient_jacobian(u, v) * f;
+                    let jk = this.kind.coefficient_jacobian(u, v) * f;
                     lin.c += jp.transpose() * jp * w;
                     lin.g += jp.transpose() * r * w;
                     lin.obs.push(ObservationLinearisation {
@@ -671,7 +732,7 @@ impl LeastSquares for Problem<'_> {
 fn filter(
     points: Vec<Point>,
     cameras: &[Option<CameraPose>],
-    (intrinsics, phi, ks): (&ImageIntrinsics, f64, &[LensCoefficients]),
+    (intrinsics, phi, ks, kind): (&ImageIntrinsics, f64, &[LensCoefficients], LensKind),
     max_error_px: f64,
 ) -> Vec<Point> {
     points
@@ -679,11 +740,11 @@ fn filter(
         .filter_map(|mut p| {
             p.observations.retain(|o| {
                 cameras[o.image].is_some_and(|c| {
-                    project_radial(
+                    project_lens(
                         &c,
                         intrinsics.focal(phi, o.image),
                         intrinsics.principal[o.image],
-                        ks[intrinsics.group[o.image]],
+                        (kind, ks[intrinsics.group[o.image]]),
                         &p.xyz,
                     )
                     .is_some_and(|(uv, _)| (uv[0] - o.xy[0]).hypot(uv[1] - o.xy[1]) <= max_error_px)
@@ -703,7 +764,7 @@ fn adjust(
     (factors, ks): (&mut [f64], &mut [LensCoefficients]),
     reference: usize,
     options: &BundleOptions,
-    refine_lens: &[usize],
+    (refine_lens, kind): (&[usize], LensKind),
 ) -> Result<LmReport> {
     // A group's focal (and coefficient) is refined when one of its images is observed by a
     // camera.
@@ -756,6 +817,7 @@ fn adjust(
         observations,
         layout,
         lens,
+        kind,
         n_params,
         reference,
         cauchy: options.cauchy_px,
@@ -843,7 +905,7 @@ pub fn bundle_adjust(
     let mut points = filter(
         points,
         cameras,
-        (&at_start, phi, &pinhole),
+        (&at_start, phi, &pinhole, LensKind::Brown),
         options.max_error_px,
     );
     let mut report = BundleReport {
@@ -863,10 +925,15 @@ pub fn bundle_adjust(
         (factors, &mut ks),
         reference,
         options,
-        &[],
+        (&[], LensKind::Brown),
     )?;
     let (between, phi) = folded(factors);
-    points = filter(points, cameras, (&between, phi, &ks), options.max_error_px);
+    points = filter(
+        points,
+        cameras,
+        (&between, phi, &ks, LensKind::Brown),
+        options.max_error_px,
+    );
     let second = adjust(
         &mut points,
         intrinsics,
@@ -874,7 +941,7 @@ pub fn bundle_adjust(
         (factors, &mut ks),
         reference,
         options,
-        &[],
+        (&[], LensKind::Brown),
     )?;
     let (t1, t2) = (first.termination, second.termination);
     report.iterations = first.iterations + second.iterations;
@@ -882,7 +949,7 @@ pub fn bundle_adjust(
     // The stage that did not converge, if one did not (else the last).
     report.termination = if t1.converged() { t2 } else { t1 };
     let (at_end, phi) = folded(factors);
-    let (rms, count) = rms_error(&points, cameras, (&at_end, phi, &ks));
+    let (rms, count) = rms_error(&points, cameras, (&at_end, phi, &ks, LensKind::Brown));
     report.points = points.len();
     report.observations = count;
     report.rms_px = rms;
@@ -894,17 +961,17 @@ pub fn bundle_adjust(
 fn rms_error(
     points: &[Point],
     cameras: &[Option<CameraPose>],
-    (intrinsics, phi, ks): (&ImageIntrinsics, f64, &[LensCoefficients]),
+    (intrinsics, phi, ks, kind): (&ImageIntrinsics, f64, &[LensCoefficients], LensKind),
 ) -> (f64, usize) {
     let (mut sum, mut count) = (0.0, 0usize);
     for p in points {
         for o in &p.observations {
             if let Some(c) = cameras[o.image]
-                && let Some((uv, _)) = project_radial(
+                && let Some((uv, _)) = project_lens(
                     &c,
                     intrinsics.focal(phi, o.image),
                     intrinsics.principal[o.image],
-                    ks[intrinsics.group[o.image]],
+                    (kind, ks[intrinsics.group[o.image]]),
                     &p.xyz,
                 )
             {
@@ -957,6 +1024,7 @@ pub fn adjust_lens(
     intrinsics: &ImageIntrinsics,
     cameras: &mut [Option<CameraPose>],
     (factors, ks, free): (&mut [f64], &mut [LensCoefficients], &[usize]),
+    kind: LensKind,
     reference: usize,
     options: &BundleOptions,
 ) -> Result<(Vec<Point>, LensAdjustment)> {
@@ -982,8 +1050,13 @@ pub fn adjust_lens(
     }
     let mut folded = intrinsics.clone();
     let phi = folded.fold_factors(factors);
-    let mut points = filter(points, cameras, (&folded, phi, ks), options.max_error_px);
-    let (rms_before_px, _) = rms_error(&points, cameras, (&folded, phi, ks));
+    let mut points = filter(
+        points,
+        cameras,
+        (&folded, phi, ks, kind),
+        options.max_error_px,
+    );
+    let (rms_before_px, _) = rms_error(&points, cameras, (&folded, phi, ks, kind));
     let lm = adjust(
         &mut points,
         intrinsics,
@@ -991,11 +1064,11 @@ pub fn adjust_lens(
         (factors, ks),
         reference,
         options,
-        free,
+        (free, kind),
     )?;
     let mut folded = intrinsics.clone();
     let phi = folded.fold_factors(factors);
-    let (rms_after_px, observations) = rms_error(&points, cameras, (&folded, phi, ks));
+    let (rms_after_px, observations) = rms_error(&points, cameras, (&folded, phi, ks, kind));
     let report = LensAdjustment {
         points: points.len(),
         observations,
@@ -1045,11 +1118,14 @@ mod tests {
             [-0.1, 0.03, 0.0, 0.0],
             [-0.1, 0.03, 0.002, -0.001],
         ] {
-            check_jacobian(k);
+            check_jacobian(LensKind::Brown, k);
+        }
+        for k in [FISHEYE_PINHOLE, [0.2, 0.05, -0.01, 0.004]] {
+            check_jacobian(LensKind::Fisheye, k);
         }
     }
 
-    fn check_jacobian(k: LensCoefficients) {
+    fn check_jacobian(kind: LensKind, k: LensCoefficients) {
         let intrinsics = ImageIntrinsics::new(vec![[320.0, 240.0]], vec![640.0]);
         let cam = CameraPose {
             rotation: Rotation3::from_euler_angles(0.1, -0.2, 0.3),
@@ -1070,6 +1146,7 @@ mod tests {
             observations: vec![&obs],
             layout,
             lens,
+            kind,
             n_params,
             reference: usize::MAX,
             cauchy: 1.0,
@@ -1085,16 +1162,19 @@ mod tests {
         let uv = |theta: &[f64; 14]| {
             let c = cam.moved(&theta[0..6]);
             let p = x + Vector3::new(theta[7], theta[8], theta[9]);
-            project_radial(
+            project_lens(
                 &c,
                 intrinsics.focal(phi * theta[6].exp(), 0),
                 [320.0, 240.0],
-                [
-                    k[0] + theta[10],
-                    k[1] + theta[11],
-                    k[2] + theta[12],
-                    k[3] + theta[13],
-                ],
+                (
+                    kind,
+                    [
+                        k[0] + theta[10],
+                        k[1] + theta[11],
+                        k[2] + theta[12],
+                        k[3] + theta[13],
+                    ],
+                ),
                 &p,
             )
             .unwrap()
@@ -1116,7 +1196,7 @@ mod tests {
                 };
                 assert!(
                     (fd - analytic).abs() <= 1e-6 * fd.abs().max(1.0),
-                    "k {k:?}, param {q} row {row}: {fd} vs {analytic}"
+                    "{kind:?} k {k:?}, param {q} row {row}: {fd} vs {analytic}"
                 );
             }
         }

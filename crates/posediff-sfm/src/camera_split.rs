@@ -13,7 +13,7 @@
 //! own. When that differs from the mapper's cameras, the caller maps again with them (the
 //! mapper's [`crate::mapper::MapperOptions::camera_split`]).
 
-use crate::bundle::{BundleOptions, LensAdjustment, PINHOLE, Point, adjust_lens};
+use crate::bundle::{BundleOptions, LensAdjustment, LensKind, PINHOLE, Point, adjust_lens};
 use crate::camera::CameraPose;
 use crate::error::Result;
 use crate::intrinsics::ImageIntrinsics;
@@ -131,6 +131,7 @@ pub fn split_cameras(
         &each,
         &mut adjusted,
         (&mut factors, &mut ks, &vec![0; n]),
+        LensKind::Brown,
         reference,
         &bundle,
     )?;

@@ -9,7 +9,9 @@
 //! robust reprojection cost by `min_improvement`, so a pinhole set stays pinhole; the caller
 //! then undistorts the matches with it and maps again.
 
-use crate::bundle::{BundleOptions, LensAdjustment, LensCoefficients, PINHOLE, Point, adjust_lens};
+use crate::bundle::{
+    BundleOptions, LensAdjustment, LensCoefficients, LensKind, Point, adjust_lens,
+};
 use crate::camera::CameraPose;
 use crate::error::Result;
 use crate::intrinsics::ImageIntrinsics;
@@ -30,6 +32,8 @@ pub enum LensModel {
     Radial,
     /// Two radial and two tangential coefficients.
     Opencv,
+    /// OpenCV's fisheye: four coefficients of the angle `θ = atan r`.
+    OpencvFisheye,
 }
 
 impl LensModel {
@@ -38,7 +42,15 @@ impl LensModel {
         match self {
             Self::SimpleRadial => 1,
             Self::Radial => 2,
-            Self::Opencv => 4,
+            Self::Opencv | Self::OpencvFisheye => 4,
+        }
+    }
+
+    /// The distortion model of its coefficients.
+    pub fn kind(self) -> LensKind {
+        match self {
+            Self::OpencvFisheye => LensKind::Fisheye,
+            _ => LensKind::Brown,
         }
     }
 }
@@ -101,6 +113,9 @@ pub struct LensRefinement {
     pub kept: bool,
     /// Why they are not kept (`None` when kept).
     pub reason: Option<&'static str>,
+    /// Per camera group, the factor the adjustment moved its focal by (1 where not refined):
+    /// a fisheye lens is defined at its focal, so its camera keeps that focal.
+    pub factors: Vec<f64>,
     /// The adjustment.
     pub adjustment: LensAdjustment,
 }
@@ -120,13 +135,14 @@ pub fn refine_lens(
     bundle: &BundleOptions,
     options: &LensRefinementOptions,
 ) -> Result<LensRefinement> {
-    let pinhole = k.iter().all(|k| *k == PINHOLE);
+    let pinhole = k.iter().all(|k| *k == options.model.kind().pinhole());
     let mut ks = k.to_vec();
     let Some(reference) = cameras.iter().position(Option::is_some) else {
         return Ok(LensRefinement {
             k: ks,
             kept: false,
             reason: Some("no camera estimated"),
+            factors: vec![1.0; k.len()],
             adjustment: LensAdjustment::default(),
         });
     };
@@ -155,6 +171,7 @@ pub fn refine_lens(
             k: ks,
             kept: false,
             reason: Some("no camera has min_images estimated images"),
+            factors: vec![1.0; k.len()],
             adjustment: LensAdjustment::default(),
         });
     }
@@ -167,6 +184,7 @@ pub fn refine_lens(
         intrinsics,
         &mut cameras,
         (&mut factors, &mut ks, &free),
+        options.model.kind(),
         reference,
         bundle,
     )?;
@@ -193,6 +211,7 @@ pub fn refine_lens(
         k: ks,
         kept: reason.is_none(),
         reason,
+        factors,
         adjustment,
     })
 }
@@ -201,13 +220,20 @@ pub fn refine_lens(
 mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
-    use crate::bundle::{LensCoefficients, PINHOLE, adjust_lens, project_radial};
+    use crate::bundle::{LensCoefficients, LensKind, PINHOLE, adjust_lens, project_lens};
     use crate::tracks::Observation;
     use nalgebra::{Rotation3, Vector3};
 
     /// A ring of cameras around a cloud of points, seen through a SIMPLE_RADIAL lens with
     /// coefficient `k`: the points with their exact observations (photo pixels).
     fn ring(k: LensCoefficients) -> (Vec<Option<CameraPose>>, ImageIntrinsics, Vec<Point>) {
+        ring_with((LensKind::Brown, k))
+    }
+
+    /// [`ring`] through a lens of either kind.
+    fn ring_with(
+        lens: (LensKind, LensCoefficients),
+    ) -> (Vec<Option<CameraPose>>, ImageIntrinsics, Vec<Point>) {
         let cameras: Vec<Option<CameraPose>> = (0..8)
             .map(|i| {
                 let a = f64::from(i) * 0.35;
@@ -234,7 +260,7 @@ mod tests {
                     .enumerate()
                     .filter_map(|(image, c)| {
                         let (uv, _) =
-                            project_radial(c.as_ref().unwrap(), 500.0, [320.0, 240.0], k, &xyz)?;
+                            project_lens(c.as_ref().unwrap(), 500.0, [320.0, 240.0], lens, &xyz)?;
                         Some(Observation {
                             image,
                             keypoint: 0,
@@ -268,6 +294,7 @@ mod tests {
             &intrinsics,
             &mut cameras,
             (&mut factors, &mut ks, &[1]),
+            LensKind::Brown,
             0,
             &options,
         )
@@ -306,6 +333,7 @@ mod tests {
             &intrinsics,
             &mut cameras,
             (&mut factors, &mut ks, &[4]),
+            LensKind::Brown,
             0,
             &BundleOptions::default(),
         )
@@ -317,6 +345,7 @@ mod tests {
             &intrinsics,
             &mut cameras,
             (&mut factors, &mut [PINHOLE; 2], &[1, 1]),
+            LensKind::Brown,
             0,
             &BundleOptions::default(),
         );
@@ -415,5 +444,40 @@ mod tests {
             two.adjustment.rms_after_px > 10.0 * four.adjustment.rms_after_px,
             "{two:?}"
         );
+    }
+
+    /// OPENCV_FISHEYE: from the start that stands for a pinhole, a fisheye lens comes back
+    /// moving every pixel as the truth does (coefficients of `θ⁶, θ⁸` are weakly determined at
+    /// these angles, so the lens is compared, not the coefficients), and is kept.
+    #[test]
+    fn a_fisheye_lens_is_recovered() {
+        let truth = [0.25, 0.05, 0.0, 0.0];
+        let scene = ring_with((LensKind::Fisheye, truth));
+        let bundle = BundleOptions {
+            tolerance: 1e-14,
+            max_iterations: 300,
+            ..BundleOptions::default()
+        };
+        let fisheye = LensRefinementOptions {
+            model: LensModel::OpencvFisheye,
+            ..LensRefinementOptions::default()
+        };
+        let start = LensKind::Fisheye.pinhole();
+        let found = refine(&scene, start, &bundle, &fisheye);
+        assert!(found.kept, "{found:?}");
+        assert!(found.adjustment.rms_before_px > 1.0, "{found:?}");
+        assert!(found.adjustment.rms_after_px < 1e-3, "{found:?}");
+        for step in 0..=30 {
+            let r = f64::from(step).to_radians().tan();
+            let a = posediff_geometry::lens::distort_fisheye(found.k[0], r, 0.0)
+                .0
+                .x;
+            let b = posediff_geometry::lens::distort_fisheye(truth, r, 0.0).0.x;
+            assert!(
+                (500.0 * (a - b)).abs() < 0.01,
+                "{step}°: {} px",
+                500.0 * (a - b)
+            );
+        }
     }
 }

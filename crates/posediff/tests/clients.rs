@@ -276,7 +276,8 @@ fn fountain_outputs_load_in_pycolmap_plyfile_chromium_and_import_colmap() {
 /// A wide-angle copy of the fountain (OpenCV k1 = −0.12, k2 = 0.02, as issue 40's): the
 /// distortion is measured, every camera comes out SIMPLE_RADIAL, pycolmap reads that model
 /// with the 2-D points in the photos' pixels (its own reprojection below a pixel, equal to
-/// ours), import-colmap keeps the lens, and the cameras are right.
+/// ours), import-colmap keeps the lens, and the cameras are right; so with `--camera-model
+/// OPENCV` and `OPENCV_FISHEYE`.
 #[test]
 fn a_wide_angle_fountain_is_calibrated_and_exported_with_its_lens() {
     let dir = posediff_fixtures::temp_dir("clients-radial");
@@ -398,54 +399,80 @@ fn a_wide_angle_fountain_is_calibrated_and_exported_with_its_lens() {
         serde_json::from_str(&std::fs::read_to_string(score).unwrap()).unwrap();
     let maa = score["scores"]["maa_30"].as_f64().unwrap();
     assert!(maa > 0.99, "mAA(30) {maa}");
-    // `--camera-model OPENCV`: every camera OPENCV with one focal, read so by pycolmap, and
-    // transforms.json's `k1 k2 p1 p2` are its coefficients.
-    let out = dir.join("opencv");
-    posediff(&[
-        "estimate".as_ref(),
-        set.join("images").as_os_str(),
-        "--out".as_ref(),
-        out.as_os_str(),
-        "--camera-model".as_ref(),
-        "OPENCV".as_ref(),
-        "--no-view".as_ref(),
-        "--quiet".as_ref(),
-    ]);
-    let cams: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("cameras.json")).unwrap()).unwrap();
-    let transforms: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("transforms.json")).unwrap())
-            .unwrap();
-    assert_eq!(transforms["camera_model"], "OPENCV");
-    for c in cams.as_array().unwrap() {
-        assert_eq!(c["model"], "OPENCV", "{c}");
-        let params: Vec<f64> = c["params"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|p| p.as_f64().unwrap())
-            .collect();
-        assert_eq!(params[0], params[1], "{c}");
-        assert!((-0.13..-0.11).contains(&params[4]), "k1 {c}");
-        // One camera: nerfstudio's intrinsics at the top, else the frame's own.
-        let frame = transforms["frames"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .find(|f| {
-                f["file_path"]
-                    .as_str()
-                    .unwrap()
-                    .ends_with(c["image"].as_str().unwrap())
-            })
-            .filter(|f| f.get("k1").is_some())
-            .unwrap_or(&transforms);
-        for (key, value) in ["k1", "k2", "p1", "p2"].iter().zip(&params[4..]) {
-            assert_eq!(frame[key].as_f64(), Some(*value), "{key} {frame}");
+    // `--camera-model OPENCV` and `OPENCV_FISHEYE`: every camera of that model with one focal
+    // (the fisheye's held at the adjusted one: K's focal is the lens's), read so by pycolmap
+    // (its reprojection below a pixel), transforms.json's camera_model and coefficients the
+    // lens's (`k1 k2 p1 p2`, or the fisheye's `k1 k2 k3 k4`), the cameras right.
+    for model in ["OPENCV", "OPENCV_FISHEYE"] {
+        let out = dir.join(model);
+        posediff(&[
+            "estimate".as_ref(),
+            set.join("images").as_os_str(),
+            "--out".as_ref(),
+            out.as_os_str(),
+            "--camera-model".as_ref(),
+            model.as_ref(),
+            "--no-view".as_ref(),
+            "--quiet".as_ref(),
+        ]);
+        let cams: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("cameras.json")).unwrap())
+                .unwrap();
+        let transforms: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("transforms.json")).unwrap())
+                .unwrap();
+        assert_eq!(transforms["camera_model"], model);
+        let keys = if model == "OPENCV" {
+            ["k1", "k2", "p1", "p2"]
+        } else {
+            ["k1", "k2", "k3", "k4"]
+        };
+        for c in cams.as_array().unwrap() {
+            assert_eq!(c["model"], model, "{c}");
+            let params: Vec<f64> = c["params"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|p| p.as_f64().unwrap())
+                .collect();
+            assert_eq!(params[0], params[1], "{c}");
+            assert_eq!(params[0], c["K"][0][0].as_f64().unwrap(), "{c}");
+            if model == "OPENCV" {
+                assert!((-0.13..-0.11).contains(&params[4]), "k1 {c}");
+            }
+            // One camera: nerfstudio's intrinsics at the top, else the frame's own.
+            let frame = transforms["frames"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .find(|f| {
+                    f["file_path"]
+                        .as_str()
+                        .unwrap()
+                        .ends_with(c["image"].as_str().unwrap())
+                })
+                .filter(|f| f.get("k1").is_some())
+                .unwrap_or(&transforms);
+            for (key, value) in keys.iter().zip(&params[4..]) {
+                assert_eq!(frame[key].as_f64(), Some(*value), "{key} {frame}");
+            }
         }
+        let summary = check_with_python(&out, 1000);
+        assert_eq!(summary["cameras"], 1, "{summary}");
+        let score = dir.join(format!("{model}.json"));
+        posediff(&[
+            "score".as_ref(),
+            out.join("cameras.json").as_os_str(),
+            "--gt".as_ref(),
+            set.join("cameras.json").as_os_str(),
+            "--out".as_ref(),
+            score.as_os_str(),
+        ]);
+        let score: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(score).unwrap()).unwrap();
+        let maa = score["scores"]["maa_30"].as_f64().unwrap();
+        assert!(maa > 0.99, "{model}: mAA(30) {maa}");
     }
-    let summary = check_with_python(&out, 1000);
-    assert_eq!(summary["cameras"], 1, "{summary}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
 

@@ -993,6 +993,7 @@ fn a_synthetic_wide_angle_lens_is_recovered() {
                 LensModel::SimpleRadial => CameraModel::SimpleRadial,
                 LensModel::Radial => CameraModel::Radial,
                 LensModel::Opencv => CameraModel::OpenCv,
+                LensModel::OpencvFisheye => CameraModel::OpenCvFisheye,
             };
             assert_eq!(lens.model(), model);
             // OPENCV: tangential terms near the truth's 0 (a pixel's worth at the corner is

@@ -99,7 +99,8 @@ pub struct Args {
     /// The lens model, as COLMAP names it (checkpoint-free path, unknown intrinsics):
     /// `SIMPLE_RADIAL` (the default: a radial coefficient per camera where the data show one),
     /// `RADIAL` (two coefficients, for a wide-angle lens), `OPENCV` (two radial and two
-    /// tangential coefficients, one focal), `SIMPLE_PINHOLE` or `PINHOLE` (no distortion). (Sets the options tree's `cameras.distortion` and
+    /// tangential coefficients, one focal), `OPENCV_FISHEYE` (four coefficients of the angle),
+    /// `SIMPLE_PINHOLE` or `PINHOLE` (no distortion). (Sets the options tree's `cameras.distortion` and
     /// `cameras.lens_refinement`.)
     #[arg(long, value_name = "MODEL")]
     camera_model: Option<String>,

@@ -232,30 +232,36 @@ pub struct NerfstudioIntrinsics {
     /// Tangential distortion (`p2`).
     #[serde(default)]
     pub p2: f64,
+    /// OPENCV_FISHEYE's `k3` (its `k1, k2` above; written only when not 0).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub k3: f64,
+    /// OPENCV_FISHEYE's `k4`.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub k4: f64,
+}
+
+fn is_zero(x: &f64) -> bool {
+    *x == 0.0
 }
 
 impl NerfstudioIntrinsics {
-    /// `c`'s intrinsics with `lens`'s distortion as nerfstudio's OPENCV model.
-    ///
-    /// # Errors
-    /// A fisheye lens (nerfstudio's OPENCV_FISHEYE is not written yet).
-    fn of(c: &Camera, lens: Option<&LensCamera>) -> Result<Self> {
+    /// `c`'s intrinsics with `lens`'s distortion as nerfstudio's OPENCV model (OPENCV_FISHEYE's
+    /// `k1…k4` for a fisheye lens).
+    fn of(c: &Camera, lens: Option<&LensCamera>) -> Self {
         let i = &c.intrinsics;
         let d = lens.map_or(&[][..], LensCamera::distortion);
         let at = |k: usize| d.get(k).copied().unwrap_or(0.0);
-        let (k1, k2, p1, p2) = match lens.map(LensCamera::model) {
-            None | Some(CameraModel::SimplePinhole | CameraModel::Pinhole) => (0.0, 0.0, 0.0, 0.0),
-            Some(CameraModel::SimpleRadial | CameraModel::Radial) => (at(0), at(1), 0.0, 0.0),
-            Some(CameraModel::OpenCv) => (at(0), at(1), at(2), at(3)),
-            Some(CameraModel::OpenCvFisheye) => {
-                return Err(PosediffError::InvalidArgument(
-                    "transforms.json: fisheye lenses (OPENCV_FISHEYE) are not written yet; \
-                     write COLMAP's model (sparse/0) instead"
-                        .into(),
-                ));
+        let ((k1, k2, p1, p2), (k3, k4)) = match lens.map(LensCamera::model) {
+            None | Some(CameraModel::SimplePinhole | CameraModel::Pinhole) => {
+                ((0.0, 0.0, 0.0, 0.0), (0.0, 0.0))
             }
+            Some(CameraModel::SimpleRadial | CameraModel::Radial) => {
+                ((at(0), at(1), 0.0, 0.0), (0.0, 0.0))
+            }
+            Some(CameraModel::OpenCv) => ((at(0), at(1), at(2), at(3)), (0.0, 0.0)),
+            Some(CameraModel::OpenCvFisheye) => ((at(0), at(1), 0.0, 0.0), (at(2), at(3))),
         };
-        Ok(Self {
+        Self {
             fl_x: i.fx(),
             fl_y: i.fy(),
             cx: i.cx() + PIXEL_CENTRE_OFFSET,
@@ -266,7 +272,9 @@ impl NerfstudioIntrinsics {
             k2,
             p1,
             p2,
-        })
+            k3,
+            k4,
+        }
     }
 }
 
@@ -288,7 +296,8 @@ pub struct NerfstudioFrame {
 /// nerfstudio's `transforms.json`, with the fields its own COLMAP converter writes.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct NerfstudioTransforms {
-    /// Always `"OPENCV"` (`k1 k2 p1 p2`, 0 for pinhole cameras).
+    /// `"OPENCV"` (`k1 k2 p1 p2`, 0 for pinhole cameras), or `"OPENCV_FISHEYE"` (`k1…k4`) when
+    /// the cameras are fisheye.
     pub camera_model: String,
     /// Shared intrinsics and distortion, when every frame has the same (then at the top level,
     /// otherwise in each frame: nerfstudio reads per-frame distortion only when the top level
@@ -347,7 +356,7 @@ pub struct NerfstudioCamera {
 /// OpenGL axes, intrinsics at the top level when shared, `ply_file_path` when given.
 ///
 /// # Errors
-/// I/O errors.
+/// I/O errors; fisheye and other cameras in one set (nerfstudio takes one model per file).
 pub fn write_nerfstudio(
     path: &Path,
     cameras: &[NerfstudioCamera],
@@ -357,7 +366,21 @@ pub fn write_nerfstudio(
     let all: Vec<NerfstudioIntrinsics> = cameras
         .iter()
         .map(|c| NerfstudioIntrinsics::of(&c.camera, c.lens.as_ref()))
-        .collect::<Result<_>>()?;
+        .collect();
+    // nerfstudio has one camera model per file: fisheye for all frames or for none.
+    let fisheye = |c: &NerfstudioCamera| {
+        c.lens
+            .as_ref()
+            .is_some_and(|l| l.model() == CameraModel::OpenCvFisheye)
+    };
+    let fisheyes = cameras.iter().filter(|c| fisheye(c)).count();
+    if fisheyes > 0 && fisheyes < cameras.len() {
+        return Err(PosediffError::InvalidArgument(format!(
+            "transforms.json: {fisheyes} of {} cameras are OPENCV_FISHEYE and nerfstudio takes \
+             one camera model per file; write COLMAP's model (sparse/0) instead",
+            cameras.len()
+        )));
+    }
     let shared = all
         .first()
         .filter(|first| all.iter().all(|i| i == *first))
@@ -382,7 +405,12 @@ pub fn write_nerfstudio(
         })
         .collect();
     let t = NerfstudioTransforms {
-        camera_model: "OPENCV".into(),
+        camera_model: if fisheyes > 0 {
+            "OPENCV_FISHEYE"
+        } else {
+            "OPENCV"
+        }
+        .into(),
         intrinsics: shared,
         frames,
         applied_transform: [0, 1, 2].map(|row| [0, 1, 2, 3].map(|col| applied[(row, col)])),
