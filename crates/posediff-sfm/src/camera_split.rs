@@ -172,9 +172,6 @@ pub fn split_cameras(
 mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
-    use crate::bundle::project_radial;
-    use crate::tracks::Observation;
-    use nalgebra::{Rotation3, Vector3};
 
     /// Ten cameras on a ring around a cloud of points, image `i` with focal `focal(i)` (640×480
     /// photos): the exact points and cameras, and intrinsics that give every image the first
@@ -182,49 +179,16 @@ mod tests {
     fn ring(
         focal: &dyn Fn(usize) -> f64,
     ) -> (Vec<Option<CameraPose>>, ImageIntrinsics, Vec<Point>) {
-        let n = 10;
-        let cameras: Vec<Option<CameraPose>> = (0..n)
-            .map(|i| {
-                let a = i as f64 * 0.3;
-                let center = Vector3::new(4.0 * a.sin(), 0.5 * a.cos(), -4.0 * a.cos());
-                Some(CameraPose {
-                    rotation: Rotation3::look_at_lh(&(-center), &Vector3::y()),
-                    center,
-                })
-            })
-            .collect();
-        let mut state = 99u64;
-        let mut next = || {
-            state = state
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (state >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
+        let ring = crate::test_scenes::Ring {
+            cameras: 10,
+            step: 0.3,
+            lift: 0.5,
+            points: 400,
+            extent: [1.2, 1.0, 1.2],
+            seed: 99,
         };
-        let points = (0..400)
-            .map(|_| {
-                let xyz = Vector3::new(1.2 * next(), 1.0 * next(), 1.2 * next());
-                let observations = cameras
-                    .iter()
-                    .enumerate()
-                    .filter_map(|(image, c)| {
-                        let (uv, _) = project_radial(
-                            c.as_ref().unwrap(),
-                            focal(image),
-                            [319.5, 239.5],
-                            PINHOLE,
-                            &xyz,
-                        )?;
-                        Some(Observation {
-                            image,
-                            keypoint: 0,
-                            xy: uv,
-                        })
-                    })
-                    .collect();
-                Point { xyz, observations }
-            })
-            .collect();
-        let intrinsics = ImageIntrinsics::new(vec![[319.5, 239.5]; n], vec![640.0; n]);
+        let (cameras, points) = ring.scene(focal, [319.5, 239.5], (LensKind::Brown, PINHOLE));
+        let intrinsics = ImageIntrinsics::new(vec![[319.5, 239.5]; 10], vec![640.0; 10]);
         (cameras, intrinsics, points)
     }
 

@@ -220,9 +220,8 @@ pub fn refine_lens(
 mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
-    use crate::bundle::{LensCoefficients, LensKind, PINHOLE, adjust_lens, project_lens};
-    use crate::tracks::Observation;
-    use nalgebra::{Rotation3, Vector3};
+    use crate::bundle::{LensCoefficients, LensKind, PINHOLE, adjust_lens};
+    use nalgebra::Vector3;
 
     /// A ring of cameras around a cloud of points, seen through a SIMPLE_RADIAL lens with
     /// coefficient `k`: the points with their exact observations (photo pixels).
@@ -234,43 +233,16 @@ mod tests {
     fn ring_with(
         lens: (LensKind, LensCoefficients),
     ) -> (Vec<Option<CameraPose>>, ImageIntrinsics, Vec<Point>) {
-        let cameras: Vec<Option<CameraPose>> = (0..8)
-            .map(|i| {
-                let a = f64::from(i) * 0.35;
-                let center = Vector3::new(4.0 * a.sin(), 0.4 * a.cos(), -4.0 * a.cos());
-                Some(CameraPose {
-                    rotation: Rotation3::look_at_lh(&(-center), &Vector3::y()),
-                    center,
-                })
-            })
-            .collect();
-        let intrinsics = ImageIntrinsics::new(vec![[320.0, 240.0]; 8], vec![500.0; 8]);
-        let mut state = 12345u64;
-        let mut next = || {
-            state = state
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (state >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
+        let ring = crate::test_scenes::Ring {
+            cameras: 8,
+            step: 0.35,
+            lift: 0.4,
+            points: 300,
+            extent: [1.5, 1.2, 1.5],
+            seed: 12345,
         };
-        let points = (0..300)
-            .map(|_| {
-                let xyz = Vector3::new(1.5 * next(), 1.2 * next(), 1.5 * next());
-                let observations = cameras
-                    .iter()
-                    .enumerate()
-                    .filter_map(|(image, c)| {
-                        let (uv, _) =
-                            project_lens(c.as_ref().unwrap(), 500.0, [320.0, 240.0], lens, &xyz)?;
-                        Some(Observation {
-                            image,
-                            keypoint: 0,
-                            xy: uv,
-                        })
-                    })
-                    .collect();
-                Point { xyz, observations }
-            })
-            .collect();
+        let (cameras, points) = ring.scene(&|_| 500.0, [320.0, 240.0], lens);
+        let intrinsics = ImageIntrinsics::new(vec![[320.0, 240.0]; 8], vec![500.0; 8]);
         (cameras, intrinsics, points)
     }
 

@@ -50,6 +50,8 @@ pub mod resection;
 pub mod rotation_averaging;
 pub mod sampson_refine;
 pub mod solver;
+#[cfg(test)]
+mod test_scenes;
 pub mod tracks;
 pub mod translation_averaging;
 pub mod view_graph;

@@ -54,6 +54,22 @@ fn posediff(args: &[&std::ffi::OsStr]) -> std::process::Output {
     out
 }
 
+/// `posediff score`'s mAA(30) of `cameras` against `gt` (its JSON written into `dir`).
+fn maa_30(cameras: &Path, gt: &Path, dir: &Path) -> f64 {
+    let score = dir.join("score.json");
+    posediff(&[
+        "score".as_ref(),
+        cameras.as_os_str(),
+        "--gt".as_ref(),
+        gt.as_os_str(),
+        "--out".as_ref(),
+        score.as_os_str(),
+    ]);
+    let score: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(score).unwrap()).unwrap();
+    score["scores"]["maa_30"].as_f64().unwrap()
+}
+
 /// pycolmap and plyfile on an output folder: the script's JSON summary.
 fn check_with_python(out: &Path, min_points: usize) -> serde_json::Value {
     let r = Command::new(python())
@@ -386,18 +402,7 @@ fn a_wide_angle_fountain_is_calibrated_and_exported_with_its_lens() {
         wrong / f64::from(n)
     );
     // The cameras against the copy's ground truth.
-    let score = dir.join("score.json");
-    posediff(&[
-        "score".as_ref(),
-        out.join("cameras.json").as_os_str(),
-        "--gt".as_ref(),
-        set.join("cameras.json").as_os_str(),
-        "--out".as_ref(),
-        score.as_os_str(),
-    ]);
-    let score: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(score).unwrap()).unwrap();
-    let maa = score["scores"]["maa_30"].as_f64().unwrap();
+    let maa = maa_30(&out.join("cameras.json"), &set.join("cameras.json"), &dir);
     assert!(maa > 0.99, "mAA(30) {maa}");
     // `--camera-model OPENCV` and `OPENCV_FISHEYE`: every camera of that model with one focal
     // (the fisheye's held at the adjusted one: K's focal is the lens's), read so by pycolmap
@@ -459,18 +464,7 @@ fn a_wide_angle_fountain_is_calibrated_and_exported_with_its_lens() {
         }
         let summary = check_with_python(&out, 1000);
         assert_eq!(summary["cameras"], 1, "{summary}");
-        let score = dir.join(format!("{model}.json"));
-        posediff(&[
-            "score".as_ref(),
-            out.join("cameras.json").as_os_str(),
-            "--gt".as_ref(),
-            set.join("cameras.json").as_os_str(),
-            "--out".as_ref(),
-            score.as_os_str(),
-        ]);
-        let score: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(score).unwrap()).unwrap();
-        let maa = score["scores"]["maa_30"].as_f64().unwrap();
+        let maa = maa_30(&out.join("cameras.json"), &set.join("cameras.json"), &dir);
         assert!(maa > 0.99, "{model}: mAA(30) {maa}");
     }
     std::fs::remove_dir_all(&dir).unwrap();
