@@ -254,12 +254,12 @@ impl RadialLens {
         [k1, k2, p1, p2]
     }
 
-    /// Image `i`'s lens around its estimated pinhole intrinsics `k`: SIMPLE_RADIAL
-    /// `[f, cx, cy, k]` at its focal.
+    /// Image `i`'s lens around its estimated pinhole intrinsics `k`: its model (SIMPLE_RADIAL,
+    /// RADIAL, OPENCV with `fx = fy`, OPENCV_FISHEYE) with the coefficients at that focal.
     ///
     /// # Errors
-    /// Two focals, or a principal point other than the calibration's (SIMPLE_RADIAL would then
-    /// not be the lens calibrated).
+    /// A fisheye lens at another focal than its own; two focals, or a principal point other
+    /// than the lens's (the model would then not be the lens calibrated).
     pub fn lens_camera(&self, i: usize, k: &Intrinsics) -> Result<LensCamera> {
         let (cx, cy) = self.lenses[i].principal();
         let off = (k.cx() - cx).hypot(k.cy() - cy);
@@ -420,8 +420,8 @@ fn image_index(images: &[PathBuf], path: &std::path::Path) -> Result<usize> {
         })
 }
 
-/// The lens refined after the mapper (`cameras.lens_refinement`): each camera's SIMPLE_RADIAL
-/// coefficient (RADIAL's two) by a bundle adjustment of the estimate's points on the photos' pixels
+/// The lens refined after the mapper (`cameras.lens_refinement`): each camera's coefficients
+/// (SIMPLE_RADIAL, RADIAL, OPENCV or OPENCV_FISHEYE) by a bundle adjustment of the estimate's points on the photos' pixels
 /// ([`posediff_sfm::lens_refinement`]), starting from `lens` (pinhole without one). Returns the
 /// refined lens of every image when it is kept, and what the refinement did.
 fn refine_lens_after_mapping(
@@ -526,8 +526,9 @@ fn refine_lens_after_mapping(
     if !refined.kept {
         return Ok((None, outcome));
     }
-    // Each image's lens in its frame: COLMAP's k₁ at the focal f is k₁ (s / f)² at s, k₂ is
-    // k₂ (s / f)⁴.
+    // Each image's lens in its frame: Brown's coefficients at the focal f rescaled to s (a
+    // coefficient of r^{2n} by (s / f)^{2n}, a tangential one by s / f; the inverse of
+    // `RadialLens::coefficients`).
     let mut lenses = Vec::with_capacity(n);
     for i in 0..n {
         let (s, c) = (scale[i], frame.principal[i]);

@@ -31,7 +31,8 @@ use crate::view_graph_calibration::group_by_focal;
 pub struct CameraSplitOptions {
     /// Images whose adjusted focals lie within this relative span are one camera. The copies'
     /// zoom factors start at 1.3; the per-image adjustment spread the temple's eight unzoomed
-    /// photos over 12 % (1511–1696 px for 1520).
+    /// photos over 12 % (1511–1696 px for 1520) in the first round, and the four originals'
+    /// photos over 1.0–6.3 % (one camera each, as they are).
     pub tolerance: f64,
     /// An image needs at least this many observations among the adjusted points for its focal
     /// to count (otherwise it joins the largest camera).

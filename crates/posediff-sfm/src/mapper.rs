@@ -116,8 +116,8 @@ pub struct MapperOptions {
     /// With the cameras decided from the data, the cameras split by a focal per image in the
     /// bundle adjustment after the mapper, and the map made again with them when they differ
     /// ([`crate::camera_split`]; `None`: not split). On the zoomed copies without EXIF
-    /// (docs/BENCHMARKS.md, "Real cameras: cameras split by the bundle adjustment") it lifts
-    /// the temple's mAA(30) from 0.52 to 0.76 and the synthetic orbit's from 0.21 to 0.83.
+    /// (docs/BENCHMARKS.md, "Cameras split by the bundle adjustment") it lifts the temple's
+    /// mAA(30) from 0.518 to 0.748 and the synthetic orbit's from 0.210 to 0.470.
     pub camera_split: Option<CameraSplitOptions>,
     /// With more images than this, the focal starts are compared on a connected subset of this
     /// many images (grown breadth-first from the best-matched image along the strongest
