@@ -146,6 +146,10 @@ pub struct GeometricReport {
     pub bundle_observations: usize,
     /// RMS reprojection error after the bundle adjustment, px.
     pub bundle_rms_px: f64,
+    /// Conjugate-gradient iterations of the bundle adjustment's iterative reduced solver, and
+    /// its solves stopped at their limit (`mapper.bundle.iterative`; 0 and 0: the sparse
+    /// Cholesky solved every step).
+    pub bundle_linear_iterations: [usize; 2],
     /// How the bundle adjustment ended.
     pub bundle: StageOutcome,
     /// Stage timings.
@@ -326,6 +330,7 @@ impl GeometricReport {
             self.bundle_points = b.points;
             self.bundle_observations = b.observations;
             self.bundle_rms_px = b.rms_px;
+            self.bundle_linear_iterations = [b.linear_iterations, b.linear_unconverged];
             self.bundle = StageOutcome {
                 iterations: b.iterations,
                 converged: b.converged,
