@@ -307,8 +307,8 @@ impl RadialLens {
         }
     }
 
-    /// Undistorts every match of `pairs` (in place; once).
-    fn undistort_pairs(&self, pairs: &mut [PairMatches]) {
+    /// Undistorts every keypoint of `pairs` (in place; once: the caller's invariant).
+    pub fn undistort_pairs(&self, pairs: &mut [PairMatches]) {
         for p in pairs {
             for x in &mut p.kp1 {
                 if let Some(u) = self.undistort_pixel(p.first, *x) {
@@ -346,10 +346,14 @@ fn lens_frame(
     Ok((layout, scale))
 }
 
-/// The lens calibration before the mapper: with unknown intrinsics and `cameras.distortion`
-/// on, each camera group's radial coefficient from the verified matches; `None` when off,
-/// given intrinsics, or no distortion measured (then the report says which).
-fn calibrate_lens(
+/// The lens calibration before the mapper (and before GGS on the network path): with unknown
+/// intrinsics and `cameras.distortion` on, each camera group's radial coefficient from the
+/// verified matches; `None` when off, given intrinsics, or no distortion measured (then the
+/// report says which).
+///
+/// # Errors
+/// An invalid camera layout (hints of another count than the images, bad known intrinsics).
+pub fn calibrate_lens(
     sizes: &[ImageSize],
     pairs: &[PairMatches],
     config: &GeometricConfig,

@@ -283,3 +283,83 @@ fn progress_reports_every_stage_and_every_sampling_step() {
     // once, but the hook was called).
     assert!(estimate.matches_per_pair[0].2 >= 20);
 }
+
+/// `--weights` on distorted photos (issue 40): the fountain's wide-angle copy (OpenCV
+/// k1 = −0.12, k2 = 0.02) has its distortion measured from GGS's matches, which are undistorted
+/// before they are mapped into the crops; every camera comes out SIMPLE_RADIAL around the
+/// lens's centre with one focal, and its pixel displacement at the corner is the true lens's
+/// (whatever focal the random weights give, `k` is at that focal). The original photos:
+/// nothing measured, pinhole cameras.
+#[test]
+fn the_network_path_undistorts_the_matches_of_a_wide_angle_copy() {
+    let dir = posediff_fixtures::temp_dir("e2e-network-radial");
+    let set = dir.join("set");
+    let status = posediff()
+        .arg("variant")
+        .arg(shared_path("data/strecha_fountainP11"))
+        .arg("--radial=-0.12:0.02")
+        .arg("--out")
+        .arg(&set)
+        .status()
+        .unwrap();
+    assert!(status.success());
+    let weights = shared_path("reference/tiny/model_tiny.safetensors");
+    let run = |images: &std::path::Path, out: &std::path::Path| {
+        let status = posediff()
+            .arg("estimate")
+            .arg(images)
+            .arg("--weights")
+            .arg(&weights)
+            .arg("--out")
+            .arg(out)
+            .args(["--no-view", "--quiet"])
+            .status()
+            .unwrap();
+        assert!(status.success());
+        let report: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("run.json")).unwrap()).unwrap();
+        let cameras: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("cameras.json")).unwrap())
+                .unwrap();
+        (report["distortion"].clone(), cameras)
+    };
+    let (distortion, cameras) = run(&set.join("images"), &dir.join("wide"));
+    assert_eq!(distortion["measured"], true, "{distortion}");
+    let truth: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(set.join("cameras.json")).unwrap()).unwrap();
+    let cameras = cameras.as_array().unwrap();
+    assert_eq!(cameras.len(), 11);
+    for (i, (c, t)) in cameras.iter().zip(truth.as_array().unwrap()).enumerate() {
+        assert_eq!(c["model"], "SIMPLE_RADIAL", "{c}");
+        let p: Vec<f64> = c["params"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_f64().unwrap())
+            .collect();
+        let (f, cx, cy, k) = (p[0], p[1], p[2], p[3]);
+        assert_eq!((cx, cy), (511.5, 341.0), "{c}");
+        assert_eq!(
+            c["K"][0][0].as_f64().unwrap(),
+            c["K"][1][1].as_f64().unwrap()
+        );
+        assert_eq!(distortion["k1"][i].as_f64().unwrap(), k);
+        // The displacement at the corner, ours and the truth's (OPENCV at its own focal).
+        let r = cx.hypot(cy);
+        let ours = k * r.powi(3) / (f * f);
+        let rn = r / t["params"][0].as_f64().unwrap();
+        let theirs = r * (-0.12 * rn.powi(2) + 0.02 * rn.powi(4));
+        assert!(
+            theirs < -20.0 && (ours / theirs - 1.0).abs() < 0.2,
+            "image {i}: {ours} px against {theirs} px"
+        );
+    }
+    let (distortion, cameras) = run(
+        &shared_path("data/strecha_fountainP11/images"),
+        &dir.join("original"),
+    );
+    assert_eq!(distortion["measured"], false, "{distortion}");
+    for c in cameras.as_array().unwrap() {
+        assert!(c.get("model").is_none_or(|m| m.is_null()), "{c}");
+    }
+}

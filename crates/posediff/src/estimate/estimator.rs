@@ -74,8 +74,15 @@ pub struct Estimate {
     pub samples: Vec<Vec<NamedCamera>>,
     /// Per matched pair: `(first, second, matches)`.
     pub matches_per_pair: Vec<(usize, usize, usize)>,
-    /// The matches of every pair (original pixels, keypoint ids); empty without GGS.
+    /// The matches of every pair (original pixels, keypoint ids; undistorted when `lens`);
+    /// empty without GGS.
     pub pairs: Vec<PairMatches>,
+    /// The photos' lens distortion measured from the matches ([`EstimateInput::lens_from`]),
+    /// when one was: the cameras are pinholes of the undistorted pixels, and each image's lens
+    /// ([`posediff_pipeline::geometric::RadialLens::lens_camera`]) maps back to the photo.
+    pub lens: Option<posediff_pipeline::geometric::RadialLens>,
+    /// The calibration's report (`None`: not asked for, or GGS off).
+    pub distortion: Option<posediff_pipeline::report::DistortionOutcome>,
     /// Stage timings.
     pub times: StageTimes,
     /// Things the user should know (e.g. GGS skipped).
@@ -277,6 +284,11 @@ pub struct EstimateInput<'a> {
     pub root: Option<&'a Path>,
     /// Initial cameras (one per image) and the step they are noised to.
     pub init: Option<(&'a [Camera], usize)>,
+    /// The checkpoint-free path's configuration whose lens calibration
+    /// ([`posediff_pipeline::geometric::calibrate_lens`]: `cameras.distortion`, the camera
+    /// mode and EXIF hints, unknown intrinsics only) undistorts GGS's matches before they are
+    /// mapped into the 224 crops; `None`: the matches as matched (pinhole photos).
+    pub lens_from: Option<&'a posediff_pipeline::geometric::GeometricConfig>,
 }
 
 impl<'a> EstimateInput<'a> {
@@ -286,6 +298,7 @@ impl<'a> EstimateInput<'a> {
             images,
             root: None,
             init: None,
+            lens_from: None,
         }
     }
 }
@@ -443,7 +456,12 @@ impl Estimator {
         input: EstimateInput<'_>,
         progress: &mut dyn Progress,
     ) -> Result<Estimate> {
-        let EstimateInput { images, root, init } = input;
+        let EstimateInput {
+            images,
+            root,
+            init,
+            lens_from,
+        } = input;
         if let Some((cams, _)) = init
             && cams.len() != images.len()
         {
@@ -480,15 +498,29 @@ impl Estimator {
 
         let mut matches_per_pair = Vec::new();
         let mut all_pairs = Vec::new();
+        let mut lens = None;
+        let mut distortion = None;
         let match_set = if self.config.ggs {
             progress.start("matching", 0);
             let start = Instant::now();
-            let (_, pairs) = crate::correspondences::match_images(
+            let (_, mut pairs) = crate::correspondences::match_images(
                 images,
                 None,
                 &self.config.matching,
                 self.config.learned.as_ref(),
             )?;
+            if let Some(config) = lens_from {
+                // The photos' distortion, measured from the matches as the checkpoint-free
+                // path does; the model's cameras are pinholes of the undistorted pixels.
+                let sizes: Vec<ImageSize> = loaded.iter().map(|l| l.size).collect();
+                let (measured, outcome) =
+                    posediff_pipeline::geometric::calibrate_lens(&sizes, &pairs, config)?;
+                if let Some(l) = &measured {
+                    l.undistort_pairs(&mut pairs);
+                }
+                lens = measured;
+                distortion = Some(outcome);
+            }
             times.matching = start.elapsed().as_secs_f64();
             progress.finish();
             matches_per_pair = pairs.iter().map(|p| (p.first, p.second, p.len())).collect();
@@ -559,6 +591,15 @@ impl Estimator {
                         if let Some(k) = &known {
                             camera.intrinsics = k[index];
                         }
+                        if let Some(lens) = &lens {
+                            // A lens model has one focal and its own centre: the network's
+                            // two focals averaged, the principal point the lens's (the crop
+                            // centre, within half a pixel).
+                            let (cx, cy) = lens.lenses[index].principal();
+                            let k = camera.intrinsics;
+                            let f = 0.5 * (k.fx() + k.fy());
+                            camera.intrinsics = Intrinsics::new(f, f, cx, cy)?;
+                        }
                         Ok(NamedCamera {
                             image: name.clone(),
                             camera,
@@ -573,6 +614,8 @@ impl Estimator {
             pairs: all_pairs,
             times,
             warnings,
+            lens,
+            distortion,
         })
     }
 }

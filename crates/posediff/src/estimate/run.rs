@@ -1002,6 +1002,7 @@ fn network_run(
             images: files,
             root: inputs.images.folder.as_deref(),
             init: init_cameras.as_deref().map(|c| (c, options.start_step)),
+            lens_from: Some(geometric),
         },
         progress,
     )?;
@@ -1027,13 +1028,22 @@ fn network_run(
     }
     let entries: Vec<ImageCamera> = first
         .iter()
-        .map(|c| ImageCamera {
-            image: c.image.clone(),
-            size: c.camera.image_size,
-            camera: Some(c.camera),
-            lens: None,
+        .enumerate()
+        .map(|(i, c)| {
+            // The measured distortion, as a COLMAP model around each camera.
+            let lens = estimate
+                .lens
+                .as_ref()
+                .map(|lens| lens.lens_camera(i, &c.camera.intrinsics))
+                .transpose()?;
+            Ok(ImageCamera {
+                image: c.image.clone(),
+                size: c.camera.image_size,
+                camera: Some(c.camera),
+                lens,
+            })
         })
-        .collect();
+        .collect::<Result<_>>()?;
     warnings.extend(estimate.warnings.iter().cloned());
     if estimate.pairs.iter().all(|p| p.is_empty()) {
         warnings.push(Warning::NoVerifiedMatches);
@@ -1056,6 +1066,17 @@ fn network_run(
             seed: options.seed,
             samples: options.samples,
             ggs: options.ggs,
+            distortion: estimate.distortion.clone().map(|mut d| {
+                // Each camera's k at its image's focal, as the checkpoint-free path reports.
+                if let Some(lens) = &estimate.lens {
+                    d.k1 = first
+                        .iter()
+                        .enumerate()
+                        .map(|(i, c)| Some(lens.coefficients(i, c.camera.intrinsics.fx())[0]))
+                        .collect();
+                }
+                d
+            }),
             bundle,
             device: net.device,
             seconds: NetworkSeconds {

@@ -51,6 +51,10 @@ pub struct NetworkReport {
     pub samples: usize,
     /// Whether GGS ran.
     pub ggs: bool,
+    /// The photos' distortion measured from GGS's matches before they were mapped into the
+    /// crops (`cameras.distortion`, as the checkpoint-free path's; its `k1` per image, at the
+    /// image's focal); `null` without GGS.
+    pub distortion: Option<posediff_pipeline::report::DistortionOutcome>,
     /// The hybrid bundle adjustment's report (`--refine bundle`).
     pub bundle: Option<crate::estimate::geometric_report::BundleRefinement>,
     /// `cpu` or `cuda`.
