@@ -9,7 +9,7 @@ use rayon::prelude::*;
 use std::f64::consts::TAU;
 
 use crate::render::Triangle;
-use crate::scene::{Material, Object, PathKind, Scene, Shape, trajectory_with};
+use crate::scene::{Material, Object, PathKind, Pattern, Scene, Shape, trajectory_with};
 use crate::{Result, SynthError, render_frame};
 
 /// What to render.
@@ -23,30 +23,73 @@ pub struct VideoSpec {
     pub fps: f64,
     /// Length, seconds.
     pub seconds: f64,
-    /// A moving distractor object (and its masks).
-    pub distractor: bool,
+    /// A moving distractor object (and its masks), and how it moves.
+    pub distractor: Option<Distractor>,
 }
 
-/// The scene of frame `i` of `n`: the objects, and the distractor (object index
-/// `scene.objects.len()`, the ground after it) at its place at that time.
-fn scene_at(base: &Scene, distractor: Option<&Object>, i: usize, n: usize) -> Scene {
-    let Some(d) = distractor else {
+/// How a video's distractor moves.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Distractor {
+    /// A figure walking half a circle around the objects over the video (a few percent of a
+    /// frame; its matches across keyframes do not fit the scene's epipolar geometry).
+    Walking,
+    /// A larger figure that keeps its place in the camera's view, as a companion walking
+    /// beside the camera or the photographer's shadow: its matches say the camera stands
+    /// still, the failure masks are for.
+    Companion,
+}
+
+impl Distractor {
+    /// Its name (`walking`, `companion`).
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Walking => "walking",
+            Self::Companion => "companion",
+        }
+    }
+}
+
+/// The scene of frame `i` of `n`, seen by `camera`: the objects, and the distractor (object
+/// index `scene.objects.len()`, the ground after it) at its place at that time.
+fn scene_at(
+    base: &Scene,
+    distractor: Option<(&Object, Distractor)>,
+    camera: &Camera,
+    i: usize,
+    n: usize,
+) -> Scene {
+    let Some((d, kind)) = distractor else {
         return base.clone();
     };
     let s = i as f64 / n.max(2).saturating_sub(1) as f64;
     let mut scene = base.clone();
     let id = scene.objects.len() as u32;
-    // Half a circle around the objects over the video, bobbing.
-    let angle = 0.3 + 0.5 * TAU * s;
     let mut obj = d.clone();
-    obj.center = base.target
-        + Vector3::new(
-            1.05 * base.radius * angle.cos(),
-            1.05 * base.radius * angle.sin(),
-            0.0,
-        );
-    obj.center.z = d.scale.z * (1.0 + 0.05 * (TAU * 6.0 * s).sin());
-    obj.rotation = Rotation3::from_axis_angle(&Vector3::z_axis(), angle);
+    match kind {
+        Distractor::Walking => {
+            // Half a circle around the objects over the video, bobbing.
+            let angle = 0.3 + 0.5 * TAU * s;
+            obj.center = base.target
+                + Vector3::new(
+                    1.05 * base.radius * angle.cos(),
+                    1.05 * base.radius * angle.sin(),
+                    0.0,
+                );
+            obj.center.z = d.scale.z * (1.0 + 0.05 * (TAU * 6.0 * s).sin());
+            obj.rotation = Rotation3::from_axis_angle(&Vector3::z_axis(), angle);
+        }
+        Distractor::Companion => {
+            // Fixed in the camera's frame: to the right of the view and halfway to the
+            // objects, turned with the camera, bobbing a little.
+            let r_cw = camera.cam_from_world.rotation.transpose();
+            let c = camera.center().coords;
+            let depth = 0.5 * (base.target - c).norm();
+            let bob = 0.02 * depth * (TAU * 6.0 * s).sin();
+            obj.center = c + r_cw * Vector3::new(0.3 * depth, 0.1 * depth + bob, depth);
+            obj.rotation = Rotation3::from_matrix_unchecked(r_cw)
+                * Rotation3::from_axis_angle(&Vector3::x_axis(), -0.5 * std::f64::consts::PI);
+        }
+    }
     for t in &mut scene.triangles {
         if t.object == id {
             t.object = id + 1;
@@ -58,18 +101,34 @@ fn scene_at(base: &Scene, distractor: Option<&Object>, i: usize, n: usize) -> Sc
     scene
 }
 
-/// The distractor: a textured upright figure about a third of the scene's radius wide.
-fn distractor(scene: &Scene, seed: u64) -> Object {
+/// The distractor: a textured upright figure about a third of the scene's radius wide (the
+/// companion: half that, as it stands nearer).
+fn distractor(scene: &Scene, seed: u64, kind: Distractor) -> Object {
     use rand::SeedableRng;
     let mut rng = rand::rngs::StdRng::seed_from_u64(seed ^ 0xD157_AC70);
-    let r = scene.radius;
+    let r = scene.radius
+        * match kind {
+            Distractor::Walking => 1.0,
+            Distractor::Companion => 1.5,
+        };
     Object {
         shape: Shape::Superquadric { e1: 0.6, e2: 0.9 },
         center: scene.target,
         scale: Vector3::new(0.16 * r, 0.16 * r, 0.42 * r),
         rotation: Rotation3::identity(),
         deformation: (0.1, 2.0),
-        material: Material::random(&mut rng, 5.0),
+        material: match kind {
+            Distractor::Walking => Material::random(&mut rng, 5.0),
+            // The companion, near the camera: a black and white checkerboard, as many
+            // corners as the scene behind it.
+            Distractor::Companion => Material {
+                base: [0.05; 3],
+                accent: [0.95; 3],
+                pattern: Pattern::Checker,
+                frequency: 6.0,
+                seed: 7,
+            },
+        },
     }
 }
 
@@ -140,13 +199,21 @@ pub fn render_video(
     let scene = Scene::random(spec.seed);
     let cameras: Vec<Camera> =
         trajectory_with(&scene, n, spec.size, spec.seed, Some(PathKind::Orbit));
-    let extra = spec.distractor.then(|| distractor(&scene, spec.seed));
+    let extra = spec
+        .distractor
+        .map(|kind| (distractor(&scene, spec.seed, kind), kind));
     let id = scene.objects.len() as u32;
     for chunk in (0..n).collect::<Vec<_>>().chunks(16) {
         let frames: Vec<VideoFrame> = chunk
             .par_iter()
             .map(|&i| {
-                let s = scene_at(&scene, extra.as_ref(), i, n);
+                let s = scene_at(
+                    &scene,
+                    extra.as_ref().map(|(o, k)| (o, *k)),
+                    &cameras[i],
+                    i,
+                    n,
+                );
                 let f = render_frame(&s, &cameras[i]);
                 let mask = extra.as_ref().map(|_| {
                     let (w, h) = (f.buffers.width, f.buffers.height);
@@ -199,7 +266,7 @@ mod tests {
             size: ImageSize::new(64, 48).unwrap_or_else(|_| unreachable!()),
             fps: 4.0,
             seconds: 1.0,
-            distractor: true,
+            distractor: Some(Distractor::Walking),
         };
         let mut masks = Vec::new();
         let cams = render_video(&spec, |f| {
@@ -210,5 +277,48 @@ mod tests {
         assert_eq!(cams.len(), 4);
         assert!(masks.iter().any(|m| m.contains(&0)));
         assert_ne!(masks[0], masks[3]);
+    }
+
+    /// The companion stays where it is in the view while the camera moves (its masks overlap
+    /// almost wholly from the first frame to the last, the walking figure's do not), and
+    /// covers a large part of it.
+    #[test]
+    fn the_companion_keeps_its_place_in_the_view() {
+        let masks = |distractor| {
+            let spec = VideoSpec {
+                seed: 3,
+                size: ImageSize::new(64, 48).unwrap_or_else(|_| unreachable!()),
+                fps: 4.0,
+                seconds: 2.0,
+                distractor: Some(distractor),
+            };
+            let mut masks = Vec::new();
+            render_video(&spec, |f| {
+                masks.push(f.mask.unwrap_or_default());
+                Ok(())
+            })
+            .unwrap_or_default();
+            masks
+        };
+        // Intersection over union of the masked pixels of the first and last frames.
+        let iou = |m: &[Vec<u8>]| {
+            let (a, b) = (&m[0], &m[m.len() - 1]);
+            let both = a
+                .iter()
+                .zip(b)
+                .filter(|(x, y)| **x == 0 && **y == 0)
+                .count();
+            let either = a
+                .iter()
+                .zip(b)
+                .filter(|(x, y)| **x == 0 || **y == 0)
+                .count();
+            both as f64 / either.max(1) as f64
+        };
+        let companion = masks(Distractor::Companion);
+        let covered = companion[0].iter().filter(|v| **v == 0).count() as f64 / (64.0 * 48.0);
+        assert!(covered > 0.15, "{covered}");
+        assert!(iou(&companion) > 0.8, "{}", iou(&companion));
+        assert!(iou(&masks(Distractor::Walking)) < 0.5);
     }
 }

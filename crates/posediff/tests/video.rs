@@ -20,7 +20,7 @@ fn spec() -> VideoSpec {
         size: ImageSize::new(320, 240).unwrap(),
         fps: 15.0,
         seconds: 4.0,
-        distractor: true,
+        distractor: Some(posediff_synth::video::Distractor::Walking),
     }
 }
 
@@ -314,7 +314,7 @@ fn a_truncated_video_uses_what_decodes_and_says_so() {
     let avi = write_video(
         &dir.join("avi"),
         &VideoSpec {
-            distractor: false,
+            distractor: None,
             seconds: 3.0,
             ..spec()
         },

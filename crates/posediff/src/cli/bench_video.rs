@@ -1,5 +1,6 @@
 //! `posediff bench-video`: the capture benchmark. A `posediff-synth` orbit with a moving
-//! distractor, rendered at 30 fps and encoded as phones do (H.264 in MP4 where the system's
+//! distractor (a figure walking around the objects; then a checkered companion that keeps its
+//! place in the camera's view), rendered at 30 fps and encoded as phones do (H.264 in MP4 where the system's
 //! FFmpeg has the encoder, else Motion JPEG), estimated from the video with and without its
 //! masks (keyframes' cameras against the exact ones: mAA(30), RRA@5, RTA@5); and the streaming
 //! cost at 1280×720: wall time, peak memory, seconds per decoded frame and per keyframe.
@@ -13,7 +14,7 @@ use anyhow::{Context, bail};
 use posediff::io::synthetic_video::write_video;
 use posediff_geometry::ImageSize;
 use posediff_geometry::camera_json::CameraRecord;
-use posediff_synth::video::VideoSpec;
+use posediff_synth::video::{Distractor, VideoSpec};
 use serde::Serialize;
 
 /// The capture benchmark (JSON + Markdown).
@@ -53,7 +54,7 @@ struct Row {
 fn video(
     out: &Path,
     name: &str,
-    size: ImageSize,
+    (size, distractor): (ImageSize, Distractor),
     seconds: f64,
 ) -> anyhow::Result<(PathBuf, String)> {
     let dir = out.join(name);
@@ -62,7 +63,7 @@ fn video(
         size,
         fps: 30.0,
         seconds,
-        distractor: true,
+        distractor: Some(distractor),
     };
     let summary =
         write_video(&dir, &spec, false).with_context(|| format!("rendering {}", dir.display()))?;
@@ -138,24 +139,25 @@ impl Args {
         std::fs::create_dir_all(&self.out)?;
         let exe = std::env::current_exe()?;
         let mut rows = Vec::new();
-        let (dir, codec) = video(
-            &self.out,
-            "orbit-640x480",
-            ImageSize::new(640, 480)?,
-            self.seconds,
-        )?;
-        for masks in [true, false] {
-            let out = self.out.join(format!(
-                "estimate-640x480-{}",
-                if masks { "masks" } else { "no-masks" }
-            ));
-            rows.push(estimate(&exe, &dir, &codec, masks, &out)?);
+        let vga = ImageSize::new(640, 480)?;
+        for (name, distractor) in [
+            ("orbit-640x480", Distractor::Walking),
+            ("orbit-640x480-companion", Distractor::Companion),
+        ] {
+            let (dir, codec) = video(&self.out, name, (vga, distractor), self.seconds)?;
+            for masks in [true, false] {
+                let out = self.out.join(format!(
+                    "estimate-{name}-{}",
+                    if masks { "masks" } else { "no-masks" }
+                ));
+                rows.push(estimate(&exe, &dir, &codec, masks, &out)?);
+            }
         }
         if !self.no_streaming {
             let (dir, codec) = video(
                 &self.out,
                 "orbit-1280x720",
-                ImageSize::new(1280, 720)?,
+                (ImageSize::new(1280, 720)?, Distractor::Walking),
                 self.seconds,
             )?;
             let out = self.out.join("estimate-1280x720");

@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use anyhow::Context;
 use posediff::io::synthetic_video::write_video;
 use posediff_synth::parse_size;
-use posediff_synth::video::VideoSpec;
+use posediff_synth::video::{Distractor, VideoSpec};
 
 /// The arguments of `posediff synth-video`.
 #[derive(clap::Args)]
@@ -26,12 +26,21 @@ pub struct Args {
     /// Scene and camera path seed.
     #[arg(long, default_value_t = 3)]
     seed: u64,
-    /// A textured figure walking around the objects, and its masks in out/masks.
-    #[arg(long)]
-    distractor: bool,
+    /// A distractor and its masks in out/masks: `walking` (a textured figure walking around
+    /// the objects; the default of a bare `--distractor`) or `companion` (one that keeps its
+    /// place in the camera's view, as a person walking beside the camera).
+    #[arg(long, value_enum, num_args = 0..=1, default_missing_value = "walking")]
+    distractor: Option<DistractorArg>,
     /// Motion JPEG (AVI) even where H.264 can be encoded.
     #[arg(long)]
     mjpeg: bool,
+}
+
+/// `--distractor`'s values.
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+enum DistractorArg {
+    Walking,
+    Companion,
 }
 
 impl Args {
@@ -42,7 +51,10 @@ impl Args {
             size: parse_size(&self.size)?,
             fps: self.fps,
             seconds: self.seconds,
-            distractor: self.distractor,
+            distractor: self.distractor.map(|d| match d {
+                DistractorArg::Walking => Distractor::Walking,
+                DistractorArg::Companion => Distractor::Companion,
+            }),
         };
         let start = std::time::Instant::now();
         let summary = write_video(&self.out, &spec, self.mjpeg)

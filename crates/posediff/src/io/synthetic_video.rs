@@ -74,7 +74,7 @@ pub fn write_video(out: &Path, spec: &VideoSpec, mjpeg: bool) -> Result<VideoSum
         move |source| PosediffError::Write { path, source }
     };
     std::fs::create_dir_all(out).map_err(io(out))?;
-    let masks = spec.distractor.then(|| out.join("masks"));
+    let masks = spec.distractor.map(|_| out.join("masks"));
     if let Some(m) = &masks {
         std::fs::create_dir_all(m).map_err(io(m))?;
     }
@@ -131,7 +131,7 @@ pub fn write_video(out: &Path, spec: &VideoSpec, mjpeg: bool) -> Result<VideoSum
         "fps": spec.fps,
         "width": spec.size.width(),
         "height": spec.size.height(),
-        "distractor": spec.distractor,
+        "distractor": spec.distractor.map(|d| d.as_str()),
         "cameras": "cameras.json: frame_<index> for every frame, OpenCV x_cam = R x_world + t",
     });
     let path = out.join("video.json");
