@@ -82,6 +82,11 @@ pub struct LensRefinementOptions {
     pub min_improvement: f64,
     /// Largest `|k|` kept (COLMAP's coefficient on `x_c / z_c`; a strong wide-angle lens is
     /// about −0.3): beyond it the adjustment has gone astray and the lens is left as it was.
+    /// OPENCV_FISHEYE: `k₁, k₂` only, and the lens must not fold inside the image; its `k₃,
+    /// k₄` are weakly determined over a narrow field (the fountain's fisheye copy, `posediff
+    /// variant --fisheye=0.05:-0.02:0.01:0`, corners 31° off the axis: (0.04, 0.18, −1.14,
+    /// 2.56), within 0.5 px of the truth's displacement to 28°; docs/BENCHMARKS.md, "A fisheye
+    /// copy").
     pub max_k: f64,
     /// Fewest estimated images of a camera for its coefficient to be refined (the others keep
     /// theirs). On a few photos of a small object the coefficient trades off against the
@@ -120,6 +125,16 @@ pub struct LensRefinement {
     pub adjustment: LensAdjustment,
 }
 
+/// Whether the fisheye `k`'s distorted radius `θ (1 + k₁θ² + k₂θ⁴ + k₃θ⁶ + k₄θ⁸)` grows
+/// with the angle `θ` up to `widest` (radians): one pixel per direction, no fold.
+fn fisheye_unfolded(k: LensCoefficients, widest: f64) -> bool {
+    (0..=100).all(|s| {
+        let t = widest * f64::from(s) / 100.0;
+        let t2 = t * t;
+        1.0 + t2 * (3.0 * k[0] + t2 * (5.0 * k[1] + t2 * (7.0 * k[2] + t2 * 9.0 * k[3]))) > 0.0
+    })
+}
+
 /// Each group's radial coefficients (`options.model`) from `points` (observations in the photos' pixels) seen by
 /// `cameras` with focal `intrinsics.focal(1.0, i)` (the estimated focal in `scale`), starting
 /// from `k` (per group). The cameras and points given are not changed.
@@ -154,6 +169,14 @@ pub fn refine_lens(
             && let Some(n) = intrinsics.group.get(i).and_then(|g| estimated.get_mut(*g))
         {
             *n += 1;
+        }
+    }
+    // Each group's widest corner angle off the axis (the principal point at the centre).
+    let mut widest = vec![0.0f64; ks.len()];
+    for (i, &g) in intrinsics.group.iter().enumerate() {
+        if let Some(w) = widest.get_mut(g) {
+            let [cx, cy] = intrinsics.principal[i];
+            *w = w.max(((cx + 0.5).hypot(cy + 0.5) / intrinsics.focal(1.0, i)).atan());
         }
     }
     let free: Vec<usize> = estimated
@@ -192,12 +215,23 @@ pub fn refine_lens(
         Some("no observation")
     } else if !(adjustment.cost_before.is_finite() && adjustment.cost_after.is_finite()) {
         Some("a reprojection cost that is not finite")
-    } else if !ks
-        .iter()
-        .flatten()
-        .all(|k| k.is_finite() && k.abs() <= options.max_k)
-    {
+    } else if !ks.iter().all(|k| {
+        // A fisheye's k₃, k₄ (of θ⁷, θ⁹) are weakly determined over a narrow field and may
+        // be large there without harm: its first two are bounded.
+        let bounded = match options.model {
+            LensModel::OpencvFisheye => &k[..2],
+            _ => &k[..],
+        };
+        k.iter().all(|v| v.is_finite()) && bounded.iter().all(|v| v.abs() <= options.max_k)
+    }) {
         Some("a coefficient beyond max_k")
+    } else if options.model == LensModel::OpencvFisheye
+        && !ks
+            .iter()
+            .zip(&widest)
+            .all(|(k, &theta)| fisheye_unfolded(*k, theta))
+    {
+        Some("the fisheye folds inside the image")
     } else if adjustment.cost_after > adjustment.cost_before {
         Some("the reprojection cost did not fall")
     } else if pinhole

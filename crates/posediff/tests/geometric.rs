@@ -1173,3 +1173,70 @@ fn masked_pixels_give_no_keypoints() {
     assert!(!dir.join("out-wrong/cameras.json").exists());
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// A fisheye copy of the fountain (`posediff variant --fisheye`: OpenCV's fisheye model, nearly
+/// equidistant, far from a pinhole's tan) estimated with `--camera-model OPENCV_FISHEYE`: the
+/// lens is kept, every camera is OPENCV_FISHEYE with one focal within 1 % of the truth's, and
+/// its radius moves every angle out to the image's corners as the truth's does (within a pixel,
+/// two at the corners: the coefficients of `θ⁷, θ⁹` are weakly determined over 31°, so the lens is compared, not
+/// the coefficients); the cameras are right.
+#[test]
+fn a_fisheye_copy_is_calibrated_with_its_model() {
+    let dir = posediff_fixtures::temp_dir("geometric-fisheye");
+    let set = dir.join("set");
+    posediff(
+        [
+            "variant".into(),
+            shared_path("data/strecha_fountainP11").into(),
+            "--fisheye=0.05:-0.02:0.01:0".into(),
+            "--out".into(),
+            set.clone().into(),
+        ],
+        true,
+    );
+    let out = dir.join("out");
+    posediff(
+        [
+            "estimate".into(),
+            set.join("images").into(),
+            "--camera-model".into(),
+            "OPENCV_FISHEYE".into(),
+            "--out".into(),
+            out.clone().into(),
+            "--no-view".into(),
+            "--quiet".into(),
+        ],
+        true,
+    );
+    let truth = read_cameras_json_partial(&set.join("cameras.json")).unwrap();
+    let found = read_cameras_json_partial(&out.join("cameras.json")).unwrap();
+    assert_eq!(truth.len(), found.len());
+    let radius = |params: &[f64], theta: f64| {
+        let t2 = theta * theta;
+        let k = &params[4..8];
+        params[0] * theta * (1.0 + t2 * (k[0] + t2 * (k[1] + t2 * (k[2] + t2 * k[3]))))
+    };
+    for (t, f) in truth.iter().zip(&found) {
+        let (tl, fl) = (t.lens.as_ref().unwrap(), f.lens.as_ref().unwrap());
+        assert_eq!(fl.model(), CameraModel::OpenCvFisheye, "{:?}", fl.params());
+        let (tp, fp) = (tl.params(), fl.params());
+        assert_eq!(fp[0], fp[1]);
+        assert!((fp[0] / tp[0] - 1.0).abs() < 0.01, "{fp:?} vs {tp:?}");
+        // Out to the corner (the image is 1024 × 683).
+        let corner = (512.0f64.hypot(341.5) / tp[0]).atan();
+        for s in 0..=20 {
+            let theta = corner * f64::from(s) / 20.0;
+            let (a, b) = (radius(fp, theta), radius(tp, theta));
+            // Within a pixel over the image's inner 80 %, two at the corners (fewest points).
+            let bound = if s <= 16 { 1.0 } else { 2.0 };
+            assert!(
+                (a - b).abs() < bound,
+                "θ {theta}: {a} px vs {b} px ({fp:?})"
+            );
+        }
+    }
+    let est: Vec<Camera> = found.iter().map(|c| c.camera.unwrap()).collect();
+    let gt: Vec<Camera> = truth.iter().map(|c| c.camera.unwrap()).collect();
+    let (rot, _) = worst_pair_errors(&est, &gt);
+    assert!(rot < 1.0, "worst pair rotation error {rot}°");
+}

@@ -15,8 +15,18 @@ pub struct Args {
     set: PathBuf,
     /// Distort instead of zooming: `K1:K2` of OpenCV's radial model (issue 40's wide-angle
     /// copies use `-0.12:0.02`).
-    #[arg(long, value_name = "K1:K2", allow_hyphen_values = true)]
+    #[arg(
+        long,
+        value_name = "K1:K2",
+        allow_hyphen_values = true,
+        conflicts_with = "fisheye"
+    )]
     radial: Option<String>,
+    /// Distort through OpenCV's fisheye model instead: `K1:K2:K3:K4` of the angle (the copy's
+    /// cameras.json then carries OPENCV_FISHEYE), e.g. `0.05:-0.02:0.01:0` (`0:0:0:0` is the
+    /// equidistant lens).
+    #[arg(long, value_name = "K1:K2:K3:K4", allow_hyphen_values = true)]
+    fisheye: Option<String>,
     /// Zoom every N-th photo.
     #[arg(long, default_value_t = 2)]
     every: usize,
@@ -38,12 +48,36 @@ pub struct Args {
 impl Args {
     /// Runs the command.
     pub fn run(self) -> anyhow::Result<()> {
+        if let Some(fisheye) = &self.fisheye {
+            let k: Vec<f64> = fisheye
+                .split(':')
+                .map(str::parse)
+                .collect::<Result<_, _>>()
+                .ok()
+                .filter(|k: &Vec<f64>| k.len() == 4)
+                .with_context(|| {
+                    format!("--fisheye {fisheye}: expected K1:K2:K3:K4, e.g. 0.05:-0.02:0.01:0")
+                })?;
+            let variant = RadialVariant {
+                k1: k[0],
+                k2: k[1],
+                fisheye: Some([k[2], k[3]]),
+            };
+            radial_copy(&self.set, &self.out, &variant)?;
+            println!("fisheye copy (k {k:?}) written to {}", self.out.display());
+            return Ok(());
+        }
         if let Some(radial) = &self.radial {
             let (k1, k2) = radial
                 .split_once(':')
                 .and_then(|(a, b)| Some((a.parse().ok()?, b.parse().ok()?)))
                 .with_context(|| format!("--radial {radial}: expected K1:K2, e.g. -0.12:0.02"))?;
-            radial_copy(&self.set, &self.out, &RadialVariant { k1, k2 })?;
+            let variant = RadialVariant {
+                k1,
+                k2,
+                fisheye: None,
+            };
+            radial_copy(&self.set, &self.out, &variant)?;
             println!(
                 "distorted copy (k1 {k1}, k2 {k2}) written to {}",
                 self.out.display()

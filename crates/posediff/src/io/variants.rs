@@ -9,6 +9,7 @@ use std::path::{Path, PathBuf};
 use opencv::core::{Mat, Rect, Size};
 use opencv::prelude::*;
 use posediff_geometry::camera_json::CameraRecord;
+use posediff_geometry::{CameraModel, LensCamera};
 
 use crate::error::{PosediffError, Result};
 
@@ -239,13 +240,17 @@ pub fn zoom_copy(set: &Path, out: &Path, variant: &ZoomVariant) -> Result<Vec<f6
 
 /// The "wide-angle" variant: every photo seen through an OpenCV radial distortion
 /// (`x_d = x (1 + k1 r² + k2 r⁴)` in normalised coordinates of its own `K`), so the copy's
-/// ground truth is the same `K` with an OPENCV model `[fx, fy, cx, cy, k1, k2, 0, 0]`.
+/// ground truth is the same `K` with an OPENCV model `[fx, fy, cx, cy, k1, k2, 0, 0]`; or,
+/// with `fisheye`, through OpenCV's fisheye model (`r_d = θ (1 + k1 θ² + k2 θ⁴ + k3 θ⁶ +
+/// k4 θ⁸)`, `θ = atan r`: OPENCV_FISHEYE `[fx, fy, cx, cy, k1, k2, k3, k4]`).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct RadialVariant {
     /// `k1`.
     pub k1: f64,
     /// `k2`.
     pub k2: f64,
+    /// OPENCV_FISHEYE's `k3, k4` (`None`: the OPENCV model, whose tangential terms are 0).
+    pub fisheye: Option<[f64; 2]>,
 }
 
 impl Default for RadialVariant {
@@ -254,6 +259,32 @@ impl Default for RadialVariant {
         Self {
             k1: -0.12,
             k2: 0.02,
+            fisheye: None,
+        }
+    }
+}
+
+impl RadialVariant {
+    /// The lens at focal `(fx, fy)` and centre `(cx, cy)`.
+    fn lens(&self, (fx, fy): (f64, f64), (cx, cy): (f64, f64)) -> Result<LensCamera> {
+        let (model, rest) = match self.fisheye {
+            None => (CameraModel::OpenCv, [0.0, 0.0]),
+            Some(k34) => (CameraModel::OpenCvFisheye, k34),
+        };
+        Ok(LensCamera::new(
+            model,
+            vec![fx, fy, cx, cy, self.k1, self.k2, rest[0], rest[1]],
+        )?)
+    }
+
+    /// How errors name it.
+    fn describe(&self) -> String {
+        match self.fisheye {
+            None => format!("radial variant k1 {} k2 {}", self.k1, self.k2),
+            Some([k3, k4]) => format!(
+                "fisheye variant k1 {} k2 {} k3 {k3} k4 {k4}",
+                self.k1, self.k2
+            ),
         }
     }
 }
@@ -269,7 +300,6 @@ impl Default for RadialVariant {
 /// A set without cameras.json or with unreadable images, a distortion that folds inside an
 /// image, writing failures.
 pub fn radial_copy(set: &Path, out: &Path, variant: &RadialVariant) -> Result<()> {
-    use posediff_geometry::{CameraModel, LensCamera};
     let records = read_records(set)?;
     let mut written = Vec::with_capacity(records.len());
     for record in &records {
@@ -282,20 +312,14 @@ pub fn radial_copy(set: &Path, out: &Path, variant: &RadialVariant) -> Result<()
         k[0][0] *= alpha;
         k[1][1] *= alpha;
         let original = record.k;
-        let lens = LensCamera::new(
-            CameraModel::OpenCv,
-            vec![
-                k[0][0], k[1][1], k[0][2], k[1][2], variant.k1, variant.k2, 0.0, 0.0,
-            ],
-        )?;
+        let lens = variant.lens((k[0][0], k[1][1]), (k[0][2], k[1][2]))?;
         let distorted = resample(&image, |x, y| {
             let ray = lens
                 .unproject(&nalgebra::Vector2::new(f64::from(x), f64::from(y)))
                 .map_err(|e| {
                     PosediffError::InvalidArgument(format!(
-                        "radial variant k1 {} k2 {}: pixel ({x}, {y}) of {}: {e}",
-                        variant.k1,
-                        variant.k2,
+                        "{}: pixel ({x}, {y}) of {}: {e}",
+                        variant.describe(),
                         source.display()
                     ))
                 })?;
@@ -334,19 +358,7 @@ fn inside_factor(k: &[[f64; 3]; 3], (w, h): (i32, i32), variant: &RadialVariant)
         (f64::from(w - 1), f64::from(h - 1)),
     ];
     let inside = |alpha: f64| -> Result<bool> {
-        let lens = posediff_geometry::LensCamera::new(
-            posediff_geometry::CameraModel::OpenCv,
-            vec![
-                alpha * fx,
-                alpha * fy,
-                cx,
-                cy,
-                variant.k1,
-                variant.k2,
-                0.0,
-                0.0,
-            ],
-        )?;
+        let lens = variant.lens((alpha * fx, alpha * fy), (cx, cy))?;
         for (u, v) in corners {
             let Ok(ray) = lens.unproject(&nalgebra::Vector2::new(u, v)) else {
                 return Ok(false);
@@ -366,8 +378,8 @@ fn inside_factor(k: &[[f64; 3]; 3], (w, h): (i32, i32), variant: &RadialVariant)
     let (mut lo, mut hi) = (1.0, 2.0);
     if !inside(hi)? {
         return Err(PosediffError::InvalidArgument(format!(
-            "radial variant k1 {} k2 {}: the lens sees beyond the photo even at twice its focal",
-            variant.k1, variant.k2
+            "{}: the lens sees beyond the photo even at twice its focal",
+            variant.describe()
         )));
     }
     for _ in 0..50 {
