@@ -461,6 +461,48 @@ impl PointBlocks {
 /// threads of a large machine, few enough that their copies of the reduced system stay small.
 const SCHUR_PARTS: usize = 8;
 
+/// A point's `C` damped as every solve of the reduced system damps it (`C_kk (1 + λ) + 1e-12`),
+/// inverted; `None` when not invertible (more damping makes it so).
+fn damped_inverse(c: &Matrix3<f64>, lambda: f64) -> Option<Matrix3<f64>> {
+    let mut c = *c;
+    for k in 0..3 {
+        c[(k, k)] = c[(k, k)] * (1.0 + lambda) + 1e-12;
+    }
+    c.try_inverse()
+}
+
+/// Adds one observation's `E = J_uᵀ W J_p` and gradient `J_uᵀ W r` to its entries' `es`, `gs`
+/// (`entries`: its camera's, focal's and lens coefficients' entry; rows beyond a block's
+/// size are never read).
+fn add_coupling(
+    o: &ObservationLinearisation,
+    (camera, focal, coefficient): (Option<usize>, Option<usize>, Option<usize>),
+    es: &mut [SMatrix<f64, 6, 3>],
+    gs: &mut [SVector<f64, 6>],
+) {
+    if let Some(u) = camera {
+        es[u] += o.jc.transpose() * o.jp * o.w;
+        gs[u] += o.jc.transpose() * o.r * o.w;
+    }
+    if let Some(v) = focal {
+        let e = o.jf.transpose() * o.jp * o.w;
+        for j in 0..3 {
+            es[v][(0, j)] += e[(0, j)];
+        }
+        gs[v][0] += o.jf.dot(&o.r) * o.w;
+    }
+    if let Some(l) = coefficient {
+        let e = o.jk.transpose() * o.jp * o.w;
+        let g = o.jk.transpose() * o.r * o.w;
+        for i in 0..4 {
+            for j in 0..3 {
+                es[l][(i, j)] += e[(i, j)];
+            }
+            gs[l][i] += g[i];
+        }
+    }
+}
+
 /// The reduced camera system of `linear`'s points at damping `lambda`, into a part of
 /// `system`'s pattern, with each point's `C⁻¹`; `None` when a point's `C` is not invertible.
 fn eliminate(
@@ -479,14 +521,7 @@ fn eliminate(
     // Per point: the direct terms J_uᵀ W J_v of each observation, then minus the point's
     // elimination, S = A − Σ E C⁻¹ Eᵀ and rhs = −g + Σ E C⁻¹ g_p, each lower block once.
     for (lin, blocks) in linear.iter().zip(blocks) {
-        let mut c = lin.c;
-        for k in 0..3 {
-            c[(k, k)] = c[(k, k)] * (1.0 + lambda) + 1e-12;
-        }
-        let Some(c_inv) = c.try_inverse() else {
-            // Not invertible at this damping: more damping makes it so.
-            return None;
-        };
+        let c_inv = damped_inverse(&lin.c, lambda)?;
         let entries = blocks.entries.len();
         es.clear();
         es.resize(entries, SMatrix::zeros());
@@ -494,11 +529,8 @@ fn eliminate(
         gs.resize(entries, SVector::zeros());
         for o in &lin.obs {
             let (camera, focal, coefficient) = blocks.obs[o.index];
+            add_coupling(o, (camera, focal, coefficient), &mut es, &mut gs);
             if let Some(u) = camera {
-                let e = o.jc.transpose() * o.jp * o.w;
-                es[u] += e;
-                let gc = o.jc.transpose() * o.r * o.w;
-                gs[u] += gc;
                 let h = o.jc.transpose() * o.jc * o.w;
                 let b = blocks.entries[u];
                 system.add_block_in(&mut part, blocks.slots[pair_index(u, u)], b, b, |i, j| {
@@ -506,11 +538,6 @@ fn eliminate(
                 });
             }
             if let Some(v) = focal {
-                let e = o.jf.transpose() * o.jp * o.w;
-                for j in 0..3 {
-                    es[v][(0, j)] += e[(0, j)];
-                }
-                gs[v][0] += o.jf.dot(&o.r) * o.w;
                 let h = o.jf.norm_squared() * o.w;
                 let b = blocks.entries[v];
                 system.add_block_in(&mut part, blocks.slots[pair_index(v, v)], b, b, |_, _| h);
@@ -528,14 +555,6 @@ fn eliminate(
             }
             if let Some(l) = coefficient {
                 // Rows beyond the block's size (k₂ of a SIMPLE_RADIAL block) are never read.
-                let e = o.jk.transpose() * o.jp * o.w;
-                let g = o.jk.transpose() * o.r * o.w;
-                for i in 0..4 {
-                    for j in 0..3 {
-                        es[l][(i, j)] += e[(i, j)];
-                    }
-                    gs[l][i] += g[i];
-                }
                 let h = o.jk.transpose() * o.jk * o.w;
                 let b = blocks.entries[l];
                 system.add_block_in(&mut part, blocks.slots[pair_index(l, l)], b, b, |i, j| {

@@ -16,10 +16,13 @@
 //! per point. Both are filled in [`super::SCHUR_PARTS`] runs of points added in order, so the
 //! result does not depend on the thread count.
 
-use nalgebra::{DMatrix, DVector, Matrix3, SMatrix, SVector, Vector2};
+use nalgebra::{DMatrix, Matrix3, SMatrix, SVector, Vector2};
 use rayon::prelude::*;
 
-use super::{IterativeSchurOptions, PointBlocks, PointLinearisation, SCHUR_PARTS};
+use super::{
+    IterativeSchurOptions, PointBlocks, PointLinearisation, SCHUR_PARTS, add_coupling,
+    damped_inverse,
+};
 
 /// The reduced system's block layout and the iteration count so far.
 #[derive(Debug, Clone)]
@@ -90,11 +93,7 @@ impl ImplicitSchur {
         let mut es: Vec<SMatrix<f64, 6, 3>> = Vec::new();
         let mut gs: Vec<SVector<f64, 6>> = Vec::new();
         for (lin, blocks) in linear.iter().zip(blocks) {
-            let mut c = lin.c;
-            for k in 0..3 {
-                c[(k, k)] = c[(k, k)] * (1.0 + lambda) + 1e-12;
-            }
-            let c_inv = c.try_inverse()?;
+            let c_inv = damped_inverse(&lin.c, lambda)?;
             let entries = blocks.entries.len();
             es.clear();
             es.resize(entries, SMatrix::zeros());
@@ -102,31 +101,16 @@ impl ImplicitSchur {
             gs.resize(entries, SVector::zeros());
             for o in &lin.obs {
                 let (camera, focal, coefficient) = blocks.obs[o.index];
+                add_coupling(o, (camera, focal, coefficient), &mut es, &mut gs);
                 if let Some(u) = camera {
-                    es[u] += o.jc.transpose() * o.jp * o.w;
-                    gs[u] += o.jc.transpose() * o.r * o.w;
                     let h = o.jc.transpose() * o.jc * o.w;
                     self.add_diagonal(&mut diagonal, blocks.entries[u], |i, j| h[(i, j)]);
                 }
                 if let Some(v) = focal {
-                    let e = o.jf.transpose() * o.jp * o.w;
-                    for j in 0..3 {
-                        es[v][(0, j)] += e[(0, j)];
-                    }
-                    gs[v][0] += o.jf.dot(&o.r) * o.w;
                     let h = o.jf.norm_squared() * o.w;
                     self.add_diagonal(&mut diagonal, blocks.entries[v], |_, _| h);
                 }
                 if let Some(l) = coefficient {
-                    // Rows beyond the block's size are never read.
-                    let e = o.jk.transpose() * o.jp * o.w;
-                    let g = o.jk.transpose() * o.r * o.w;
-                    for i in 0..4 {
-                        for j in 0..3 {
-                            es[l][(i, j)] += e[(i, j)];
-                        }
-                        gs[l][i] += g[i];
-                    }
                     let h = o.jk.transpose() * o.jk * o.w;
                     self.add_diagonal(&mut diagonal, blocks.entries[l], |i, j| h[(i, j)]);
                 }
@@ -247,20 +231,23 @@ impl ImplicitSchur {
         for d in &mut damping {
             *d = lambda * *d + 1e-12 * largest;
         }
-        // Block-Jacobi preconditioner: each damped diagonal block inverted.
-        let mut preconditioner = Vec::with_capacity(self.sizes.len());
+        // Block-Jacobi preconditioner: each damped diagonal block inverted once (by Cholesky:
+        // not positive definite is more damping), packed as the diagonal is.
+        let mut preconditioner = vec![0.0; self.diagonal_len];
         for (b, (&o, &s)) in self.offsets.iter().zip(&self.sizes).enumerate() {
             let at = self.diagonal_at[b];
             let m = DMatrix::from_fn(s, s, |i, j| {
                 diagonal[at + i * s + j] + if i == j { damping[o + i] } else { 0.0 }
             });
-            preconditioner.push(m.cholesky()?);
+            preconditioner[at..at + s * s].copy_from_slice(m.cholesky()?.inverse().as_slice());
         }
         let precondition = |r: &[f64]| -> Vec<f64> {
             let mut z = vec![0.0; r.len()];
-            for ((&o, &s), llt) in self.offsets.iter().zip(&self.sizes).zip(&preconditioner) {
-                let v = llt.solve(&DVector::from_column_slice(&r[o..o + s]));
-                z[o..o + s].copy_from_slice(v.as_slice());
+            for (b, (&o, &s)) in self.offsets.iter().zip(&self.sizes).enumerate() {
+                let inverse = &preconditioner[self.diagonal_at[b]..][..s * s];
+                for i in 0..s {
+                    z[o + i] = (0..s).map(|j| inverse[i * s + j] * r[o + j]).sum();
+                }
             }
             z
         };
@@ -348,6 +335,7 @@ fn conjugate_gradients(
 mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
+    use nalgebra::DVector;
 
     /// On a small symmetric positive definite system, the iterate solves it.
     #[test]
