@@ -59,6 +59,20 @@ pub fn mutual_nearest_neighbours(
             },
         ) if dim == dim_b => l2_best(da, db, *dim),
         (
+            Descriptors::Bytes { data: da, dim },
+            Descriptors::Bytes {
+                data: db,
+                dim: dim_b,
+            },
+        ) if dim == dim_b => l2_best_u8(da, db, *dim),
+        (Descriptors::Float { .. }, Descriptors::Bytes { .. })
+        | (Descriptors::Bytes { .. }, Descriptors::Float { .. }) => {
+            match (a.floats(), b.floats()) {
+                (Some((da, dim)), Some((db, dim_b))) if dim == dim_b => l2_best(&da, &db, dim),
+                _ => return Vec::new(),
+            }
+        }
+        (
             Descriptors::Binary { data: da, words },
             Descriptors::Binary {
                 data: db,
@@ -68,7 +82,7 @@ pub fn mutual_nearest_neighbours(
         _ => return Vec::new(),
     };
     // With squared L2, the ratio test compares squared distances with ρ².
-    let squared = matches!(a, Descriptors::Float { .. });
+    let squared = matches!(a, Descriptors::Float { .. } | Descriptors::Bytes { .. });
     rows.iter()
         .enumerate()
         .filter(|(i, r)| r.j != usize::MAX && cols[r.j] == *i)
@@ -92,22 +106,31 @@ pub fn mutual_nearest_neighbours(
 /// distances wins, in rows and in columns), so the result is the same.
 fn l2_best(a: &[f32], b: &[f32], dim: usize) -> (Vec<RowBest>, Vec<usize>) {
     #[cfg(target_arch = "x86_64")]
-    if let Some(found) = l2_best_bytes(a, b, dim) {
+    if vnni::available()
+        && let (Some(ab), Some(bb)) = (vnni::as_bytes(a), vnni::as_bytes(b))
+        && let Some(found) = l2_best_vnni(&ab, &bb, dim)
+    {
         return found;
     }
     l2_best_f32(a, b, dim)
 }
 
-/// [`l2_best`] of byte-valued descriptors (SIFT) by the exact integer kernel ([`vnni`]), when
-/// the CPU has AVX-512 VNNI and every value is a whole number 0–255; `None` otherwise.
-#[cfg(target_arch = "x86_64")]
-fn l2_best_bytes(a: &[f32], b: &[f32], dim: usize) -> Option<(Vec<RowBest>, Vec<usize>)> {
-    // Asked first so that a CPU without VNNI converts nothing; the sizes are `best`'s check.
-    if !vnni::available() {
-        return None;
+/// [`l2_best`] of byte descriptors (SIFT): the exact integer kernel where the CPU has it, the
+/// F32 products of the same values otherwise (the same result: `the_byte_kernel_is_the_f32_path_exactly`).
+fn l2_best_u8(a: &[u8], b: &[u8], dim: usize) -> (Vec<RowBest>, Vec<usize>) {
+    #[cfg(target_arch = "x86_64")]
+    if let Some(found) = l2_best_vnni(a, b, dim) {
+        return found;
     }
-    let (ab, bb) = (vnni::as_bytes(a)?, vnni::as_bytes(b)?);
-    let (rows, cols) = vnni::best(&ab, &bb, dim)?;
+    let floats = |v: &[u8]| v.iter().map(|&x| f32::from(x)).collect::<Vec<f32>>();
+    l2_best_f32(&floats(a), &floats(b), dim)
+}
+
+/// [`l2_best`] of byte descriptors by the exact integer kernel ([`vnni`]) when the CPU has
+/// AVX-512 VNNI; `None` otherwise.
+#[cfg(target_arch = "x86_64")]
+fn l2_best_vnni(a: &[u8], b: &[u8], dim: usize) -> Option<(Vec<RowBest>, Vec<usize>)> {
+    let (rows, cols) = vnni::best(a, b, dim)?;
     let rows = rows
         .into_iter()
         .map(|(j, d1, d2)| RowBest {
@@ -419,7 +442,10 @@ mod bytes {
             for k in 0..m.min(n) / 4 {
                 b[k * dim..(k + 1) * dim].copy_from_slice(&a[2 * k * dim..(2 * k + 1) * dim]);
             }
-            let Some((rows, cols)) = l2_best_bytes(&a, &b, dim) else {
+            let (Some(ab), Some(bb)) = (vnni::as_bytes(&a), vnni::as_bytes(&b)) else {
+                panic!("{n}×{m}×{dim}: byte values not taken as bytes");
+            };
+            let Some((rows, cols)) = l2_best_vnni(&ab, &bb, dim) else {
                 panic!("the byte path refused {n}×{m}×{dim}");
             };
             let (want_rows, want_cols) = l2_best_f32(&a, &b, dim);
@@ -434,17 +460,98 @@ mod bytes {
             assert_eq!(rows.len(), n);
         }
         // Values that are not bytes go to the F32 path.
-        assert!(l2_best_bytes(&[0.5; 128], &[1.0; 128], 128).is_none());
-        assert!(l2_best_bytes(&[256.0; 128], &[1.0; 128], 128).is_none());
-        assert!(l2_best_bytes(&[-1.0; 128], &[1.0; 128], 128).is_none());
+        assert!(vnni::as_bytes(&[0.5; 128]).is_none());
+        assert!(vnni::as_bytes(&[256.0; 128]).is_none());
+        assert!(vnni::as_bytes(&[-1.0; 128]).is_none());
         // Too wide for the kernel's i32 distances to stay below its padding's.
-        assert!(l2_best_bytes(&[1.0; 4096], &[1.0; 4096], 4096).is_none());
+        assert!(l2_best_vnni(&[1; 4096], &[1; 4096], 4096).is_none());
     }
 }
 
 #[cfg(test)]
 mod odd_sizes {
     use super::*;
+
+    /// SIFT's whole-number floats are kept as bytes, anything else as floats, and bytes match
+    /// exactly as the same values in floats do (on every host: the integer kernel where the
+    /// CPU has it, the F32 products otherwise), also against floats, with the ratio test.
+    #[test]
+    fn byte_descriptors_match_as_their_floats() {
+        let whole = |n: usize, seed: u64| -> Vec<f32> {
+            let mut s = seed;
+            (0..n * 128)
+                .map(|_| {
+                    s = s
+                        .wrapping_mul(6_364_136_223_846_793_005)
+                        .wrapping_add(1_442_695_040_888_963_407);
+                    let v = (s >> 33) as u32;
+                    if v.is_multiple_of(3) {
+                        0.0
+                    } else {
+                        (v % 256) as f32
+                    }
+                })
+                .collect()
+        };
+        let (a, mut b) = (whole(300, 1), whole(517, 5));
+        // A hundred columns are rows of `a` moved a little: mutual nearest neighbours that
+        // pass the ratio test.
+        for k in 0..100 {
+            let row = &a[2 * k * 128..(2 * k + 1) * 128];
+            for (d, (bv, av)) in b[k * 128..(k + 1) * 128].iter_mut().zip(row).enumerate() {
+                *bv = if d % 17 == 0 {
+                    (av + 1.0).min(255.0)
+                } else {
+                    *av
+                };
+            }
+        }
+        let (fa, fb) = (
+            Descriptors::Float {
+                data: a.clone(),
+                dim: 128,
+            },
+            Descriptors::Float {
+                data: b.clone(),
+                dim: 128,
+            },
+        );
+        let (ba, bb) = (
+            Descriptors::from_floats(a, 128),
+            Descriptors::from_floats(b, 128),
+        );
+        assert!(matches!(ba, Descriptors::Bytes { dim: 128, .. }));
+        assert_eq!(ba.len(), 300);
+        for ratio in [None, Some(0.9)] {
+            let want = mutual_nearest_neighbours(&fa, &fb, ratio);
+            assert!(!want.is_empty());
+            assert_eq!(mutual_nearest_neighbours(&ba, &bb, ratio), want);
+            assert_eq!(mutual_nearest_neighbours(&ba, &fb, ratio), want);
+            assert_eq!(mutual_nearest_neighbours(&fa, &bb, ratio), want);
+        }
+        for not_bytes in [0.5, 256.0, -1.0, f32::NAN] {
+            let mut v = vec![3.0; 128];
+            v[77] = not_bytes;
+            assert!(
+                matches!(Descriptors::from_floats(v, 128), Descriptors::Float { .. }),
+                "{not_bytes} kept as a byte"
+            );
+        }
+        let (Some((floats, 128)), None) = (
+            ba.floats(),
+            Descriptors::Binary {
+                data: vec![1],
+                words: 1,
+            }
+            .floats(),
+        ) else {
+            panic!("floats of bytes and of binary descriptors");
+        };
+        assert_eq!(
+            &floats[..],
+            &fa.floats().map(|(f, _)| f.into_owned()).unwrap_or_default()[..]
+        );
+    }
 
     #[test]
     fn partial_last_block() {

@@ -294,6 +294,13 @@ fn float_rows(d: &Descriptors, max_rows: usize) -> (Vec<f32>, usize) {
             let rows = (data.len() / dim.max(&1)).min(max_rows);
             (data[..rows * dim].to_vec(), *dim)
         }
+        Descriptors::Bytes { data, dim } => {
+            let rows = (data.len() / dim.max(&1)).min(max_rows);
+            (
+                data[..rows * dim].iter().map(|&b| f32::from(b)).collect(),
+                *dim,
+            )
+        }
         Descriptors::Binary { data, words } => {
             let rows = (data.len() / words.max(&1)).min(max_rows);
             let dim = 64 * words;

@@ -1054,6 +1054,9 @@ impl Database {
     /// The descriptors of `f` as COLMAP stores them: type, columns, bytes.
     fn encode_descriptors(&self, f: &ImageFeatures) -> Result<(i64, usize, Vec<u8>)> {
         match &f.descriptors {
+            Descriptors::Bytes { data, dim } if self.matcher == "sift" => {
+                Ok((DESCRIPTOR_SIFT, *dim, data.clone()))
+            }
             Descriptors::Float { data, dim } if self.matcher == "sift" => {
                 // OpenCV's SIFT values are whole numbers 0-255 in floats: COLMAP's 8 bits.
                 let bytes = data
@@ -1082,6 +1085,15 @@ impl Database {
                     data.iter().flat_map(|v| v.to_le_bytes()).collect(),
                 ))
             }
+            // Byte rows under another matcher's name: stored as that matcher's floats (the same
+            // distances when read back).
+            Descriptors::Bytes { data, dim } => Ok((
+                DESCRIPTOR_UNDEFINED,
+                dim * 4,
+                data.iter()
+                    .flat_map(|&v| f32::from(v).to_le_bytes())
+                    .collect(),
+            )),
             Descriptors::Binary { data, words } => Ok((
                 DESCRIPTOR_UNDEFINED,
                 words * 8,
@@ -1111,8 +1123,8 @@ impl Database {
             return Err(bad());
         }
         match (self.matcher.as_str(), kind) {
-            ("sift", DESCRIPTOR_SIFT) => Ok(Descriptors::Float {
-                data: data.iter().map(|&b| f32::from(b)).collect(),
+            ("sift", DESCRIPTOR_SIFT) => Ok(Descriptors::Bytes {
+                data: data.to_vec(),
                 dim: cols,
             }),
             ("orb", DESCRIPTOR_UNDEFINED) if cols.is_multiple_of(8) => Ok(Descriptors::Binary {
