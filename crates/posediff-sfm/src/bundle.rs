@@ -627,24 +627,29 @@ fn solve_explicit(
 ) -> Result<Option<Solved>> {
     // The points in `SCHUR_PARTS` runs, each eliminated into its own copy of the reduced
     // system's values by one task, then added in order: the same sum on any thread count.
+    // The runs go as many at a time as there are threads, each batch added and dropped before
+    // the next, so that at most that many copies live at once (all eight at once were 0.6 GB
+    // of the 1000-frame forward walk's 2.2 GB peak; docs/BENCHMARKS.md, "Peak memory").
     let chunk = linear.len().div_ceil(SCHUR_PARTS).max(1);
-    let shared = &*system;
-    let parts: Vec<Option<(BlockValues, Vec<Matrix3<f64>>)>> = linear
-        .par_chunks(chunk)
-        .zip(blocks.par_chunks(chunk))
-        .map(|(linear, blocks)| eliminate(shared, linear, blocks, lambda))
-        .collect();
+    let runs: Vec<_> = linear.chunks(chunk).zip(blocks.chunks(chunk)).collect();
+    let at_once = rayon::current_num_threads().clamp(1, SCHUR_PARTS);
     let mut inverses = Vec::with_capacity(linear.len());
-    let mut values = Vec::with_capacity(parts.len());
-    for part in parts {
-        // A point not invertible at this damping: more damping makes it so.
-        let Some((v, inv)) = part else {
-            return Ok(None);
-        };
-        values.push(v);
-        inverses.extend(inv);
+    system.clear();
+    for batch in runs.chunks(at_once) {
+        let shared = &*system;
+        let parts: Vec<Option<(BlockValues, Vec<Matrix3<f64>>)>> = batch
+            .par_iter()
+            .map(|(linear, blocks)| eliminate(shared, linear, blocks, lambda))
+            .collect();
+        for part in parts {
+            // A point not invertible at this damping: more damping makes it so.
+            let Some((v, inv)) = part else {
+                return Ok(None);
+            };
+            system.add_part(&v);
+            inverses.extend(inv);
+        }
     }
-    system.set_parts(&values);
     Ok(system
         .solve_regularised(lambda)?
         .map(|delta| (delta, inverses)))

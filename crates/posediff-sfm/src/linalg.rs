@@ -286,12 +286,18 @@ impl BlockSystem {
     pub fn set_parts<'p>(&mut self, parts: impl IntoIterator<Item = &'p BlockValues>) {
         self.clear();
         for p in parts {
-            for (v, x) in self.values.iter_mut().zip(&p.values) {
-                *v += x;
-            }
-            for (v, x) in self.rhs.iter_mut().zip(&p.rhs) {
-                *v += x;
-            }
+            self.add_part(p);
+        }
+    }
+
+    /// Adds `part` to the matrix and right-hand side: [`Self::set_parts`] one part at a time
+    /// (after [`Self::clear`]), so that a caller need not hold every part at once.
+    pub fn add_part(&mut self, part: &BlockValues) {
+        for (v, x) in self.values.iter_mut().zip(&part.values) {
+            *v += x;
+        }
+        for (v, x) in self.rhs.iter_mut().zip(&part.rhs) {
+            *v += x;
         }
     }
 
