@@ -45,6 +45,32 @@ fn peak_rss_mb() -> f64 {
         .map_or(f64::NAN, |kb| kb / 1024.0)
 }
 
+/// CPU seconds (user + system) this process has used so far (Linux `/proc/self/stat`): the
+/// measure that other work on the host does not inflate, written beside the wall time.
+fn cpu_seconds() -> f64 {
+    let ticks = Command::new("getconf")
+        .arg("CLK_TCK")
+        .output()
+        .ok()
+        .and_then(|o| {
+            String::from_utf8_lossy(&o.stdout)
+                .trim()
+                .parse::<f64>()
+                .ok()
+        })
+        .unwrap_or(f64::NAN);
+    std::fs::read_to_string("/proc/self/stat")
+        .ok()
+        .and_then(|s| {
+            // Fields after the command name (which may hold spaces) start at the state, field 3;
+            // utime and stime are fields 14 and 15.
+            let rest = &s[s.rfind(')')? + 2..];
+            let f: Vec<&str> = rest.split_whitespace().collect();
+            Some(f.get(11)?.parse::<f64>().ok()? + f.get(12)?.parse::<f64>().ok()?)
+        })
+        .map_or(f64::NAN, |t| t / ticks)
+}
+
 /// One case, in this process: `--case IMAGES GT OUT.json PAIRS`.
 fn run_case(images_dir: &Path, gt: &Path, out: &Path, pairs: &str) -> Result<()> {
     let images = posediff::io::loader::image_files(images_dir)?;
@@ -97,6 +123,7 @@ fn run_case(images_dir: &Path, gt: &Path, out: &Path, pairs: &str) -> Result<()>
         "pairs_matched": pair_list.len(),
         "pairs_verified": verified,
         "seconds": seconds,
+        "cpu_seconds": cpu_seconds(),
         "peak_rss_mb": peak_rss_mb(),
         "stages": stages.iter().map(|(s, t, r)| json!({"stage": s, "seconds": t, "peak_rss_mb_after": r})).collect::<Vec<_>>(),
         "rra_5": scores.rra[0],
@@ -130,7 +157,7 @@ fn run_colmap(colmap: &Colmap, images: &Path, gt: &Path, out: &Path) -> Value {
     let _ = std::fs::create_dir_all(out.parent().unwrap_or(Path::new(".")));
     let clock = Instant::now();
     let output = Command::new("/usr/bin/time")
-        .args(["-f", "%M", "-o"])
+        .args(["-f", "%M %U %S", "-o"])
         .arg(&rss_file)
         .arg(&colmap.python)
         .arg(&colmap.script)
@@ -160,16 +187,29 @@ fn run_colmap(colmap: &Colmap, images: &Path, gt: &Path, out: &Path) -> Value {
             .find(|v| v[key] == json!(name))
             .and_then(|v| v["seconds"].as_f64())
     };
-    let peak_rss_mb = std::fs::read_to_string(&rss_file)
+    // `/usr/bin/time -f "%M %U %S"`: peak kB, user and system seconds (its last line).
+    let time_fields: Vec<f64> = std::fs::read_to_string(&rss_file)
         .ok()
-        .and_then(|s| s.lines().last()?.trim().parse::<f64>().ok())
-        .map_or(f64::NAN, |kb| kb / 1024.0);
+        .and_then(|s| {
+            s.lines()
+                .last()?
+                .split_whitespace()
+                .map(|x| x.parse::<f64>().ok())
+                .collect()
+        })
+        .unwrap_or_default();
+    let peak_rss_mb = time_fields.first().map_or(f64::NAN, |kb| kb / 1024.0);
+    let cpu_seconds = match time_fields[..] {
+        [_, user, system] => user + system,
+        _ => f64::NAN,
+    };
     match posediff::bench::score_cameras_files(&out.join("global/cameras.json"), gt) {
         Ok(s) => json!({
             "mapper": "COLMAP 4.2 global (pycolmap 4.2.1)",
             "matching": format!("sequential:{}", colmap.overlap),
             "seconds": seconds_of("mapper", "global").unwrap_or(wall),
             "features_matching_seconds": seconds_of("stage", "features+matching"),
+            "cpu_seconds": cpu_seconds,
             "peak_rss_mb": peak_rss_mb,
             "rra_5": s.scores.rra[0],
             "rta_5": s.scores.rta[0],
@@ -407,13 +447,13 @@ fn main() -> Result<()> {
         }
     }
     if colmap.is_some() {
-        md.push_str("\nAgainst COLMAP 4.2's global mapper (pycolmap 4.2.1, SIFT, sequential matching) on the same frames, in the same run:\n\n| path | N | posediff s | COLMAP s | speed-up | posediff / COLMAP peak RSS MB | posediff / COLMAP mAA(30) | RRA@5 | RTA@5 | registered |\n|---|---|---|---|---|---|---|---|---|---|\n");
+        md.push_str("\nAgainst COLMAP 4.2's global mapper (pycolmap 4.2.1, SIFT, sequential matching) on the same frames, in the same run:\n\n| path | N | posediff s | COLMAP s | speed-up | CPU s, posediff / COLMAP (whole process) | posediff / COLMAP peak RSS MB | posediff / COLMAP mAA(30) | RRA@5 | RTA@5 | registered |\n|---|---|---|---|---|---|---|---|---|---|---|\n");
         for c in &cases {
             let ours = |k: &str| c[k].as_f64().unwrap_or(f64::NAN);
             let theirs = |k: &str| c["colmap"][k].as_f64().unwrap_or(f64::NAN);
             if let Some(e) = c["colmap"]["error"].as_str() {
                 md.push_str(&format!(
-                    "| {} | {} | {:.1} | failed: {e} | | | | | | |\n",
+                    "| {} | {} | {:.1} | failed: {e} | | | | | | | |\n",
                     c["path"].as_str().unwrap_or(""),
                     c["frames"],
                     ours("seconds")
@@ -421,12 +461,14 @@ fn main() -> Result<()> {
                 continue;
             }
             md.push_str(&format!(
-                "| {} | {} | {:.1} | {:.1} | {:.2}× | {:.0} / {:.0} | {:.3} / {:.3} | {:.3} / {:.3} | {:.3} / {:.3} | {:.3} / {:.3} |\n",
+                "| {} | {} | {:.1} | {:.1} | {:.2}× | {:.0} / {:.0} | {:.0} / {:.0} | {:.3} / {:.3} | {:.3} / {:.3} | {:.3} / {:.3} | {:.3} / {:.3} |\n",
                 c["path"].as_str().unwrap_or(""),
                 c["frames"],
                 ours("seconds"),
                 theirs("seconds"),
                 theirs("seconds") / ours("seconds"),
+                ours("cpu_seconds"),
+                theirs("cpu_seconds"),
                 ours("peak_rss_mb"),
                 theirs("peak_rss_mb"),
                 ours("maa_30"),
