@@ -14,7 +14,8 @@
 //!   the mapper on synthetic sequences of growing length (per-stage time, peak RSS, accuracy,
 //!   growth exponents; JSON + Markdown). `--against-colmap [--python P] [--colmap-overlap 15]
 //!   [--colmap-script ../shared/tools/pycolmap_run.py]` runs COLMAP 4.2's global mapper on the
-//!   same frames in the same run and writes both columns.
+//!   same frames in the same run and writes both columns (wall, CPU seconds, peak RSS,
+//!   accuracy).
 //! - `bench-distributed [--frames 1000] [--profile release] [--out D]`: extraction and matching
 //!   of a synthetic orbit through a local Ray against the single process, the database written
 //!   and read back, the projection to 100,000 images (`scripts/bench_distributed.py`).
