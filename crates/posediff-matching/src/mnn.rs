@@ -8,7 +8,7 @@
 
 use nalgebra::DMatrix;
 
-use crate::features::Descriptors;
+use crate::features::{Descriptors, whole_bytes};
 
 #[cfg(target_arch = "x86_64")]
 mod vnni;
@@ -107,7 +107,7 @@ pub fn mutual_nearest_neighbours(
 fn l2_best(a: &[f32], b: &[f32], dim: usize) -> (Vec<RowBest>, Vec<usize>) {
     #[cfg(target_arch = "x86_64")]
     if vnni::available()
-        && let (Some(ab), Some(bb)) = (vnni::as_bytes(a), vnni::as_bytes(b))
+        && let (Some(ab), Some(bb)) = (whole_bytes(a), whole_bytes(b))
         && let Some(found) = l2_best_vnni(&ab, &bb, dim)
     {
         return found;
@@ -442,7 +442,7 @@ mod bytes {
             for k in 0..m.min(n) / 4 {
                 b[k * dim..(k + 1) * dim].copy_from_slice(&a[2 * k * dim..(2 * k + 1) * dim]);
             }
-            let (Some(ab), Some(bb)) = (vnni::as_bytes(&a), vnni::as_bytes(&b)) else {
+            let (Some(ab), Some(bb)) = (whole_bytes(&a), whole_bytes(&b)) else {
                 panic!("{n}×{m}×{dim}: byte values not taken as bytes");
             };
             let Some((rows, cols)) = l2_best_vnni(&ab, &bb, dim) else {
@@ -460,9 +460,9 @@ mod bytes {
             assert_eq!(rows.len(), n);
         }
         // Values that are not bytes go to the F32 path.
-        assert!(vnni::as_bytes(&[0.5; 128]).is_none());
-        assert!(vnni::as_bytes(&[256.0; 128]).is_none());
-        assert!(vnni::as_bytes(&[-1.0; 128]).is_none());
+        assert!(whole_bytes(&[0.5; 128]).is_none());
+        assert!(whole_bytes(&[256.0; 128]).is_none());
+        assert!(whole_bytes(&[-1.0; 128]).is_none());
         // Too wide for the kernel's i32 distances to stay below its padding's.
         assert!(l2_best_vnni(&[1; 4096], &[1; 4096], 4096).is_none());
     }

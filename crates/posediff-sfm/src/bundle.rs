@@ -629,7 +629,8 @@ fn solve_explicit(
     // system's values by one task, then added in order: the same sum on any thread count.
     // The runs go as many at a time as there are threads, each batch added and dropped before
     // the next, so that at most that many copies live at once (all eight at once were 0.6 GB
-    // of the 1000-frame forward walk's 2.2 GB peak; docs/BENCHMARKS.md, "Peak memory").
+    // of the 1000-frame forward walk's 2.2 GB peak; docs/BENCHMARKS.md, "COLMAP at 1000 frames in the same
+    // run, and peak memory").
     let chunk = linear.len().div_ceil(SCHUR_PARTS).max(1);
     let runs: Vec<_> = linear.chunks(chunk).zip(blocks.chunks(chunk)).collect();
     let at_once = rayon::current_num_threads().clamp(1, SCHUR_PARTS);

@@ -51,20 +51,6 @@ pub(super) fn available() -> bool {
     })
 }
 
-/// `v` as bytes when every value is a whole number 0–255, else `None`.
-pub(super) fn as_bytes(v: &[f32]) -> Option<Vec<u8>> {
-    // The saturating cast round-trips exactly the whole numbers 0–255 (not NaN, fractions,
-    // negatives or values above 255), and vectorises where `fract` is a libm call per value.
-    // No short cut on the first failure: a fold over chunks of 64 vectorises.
-    let bytes: Vec<u8> = v.iter().map(|&x| x as u8).collect();
-    let whole = bytes.chunks(64).zip(v.chunks(64)).all(|(b, x)| {
-        b.iter()
-            .zip(x)
-            .fold(true, |ok, (&b, &x)| ok & (f32::from(b) == x))
-    });
-    whole.then_some(bytes)
-}
-
 /// Per row of `a`: `(column, nearest, second)` as squared distances (`None`: no second
 /// column).
 pub(super) type RowBests = Vec<(u32, i32, Option<i32>)>;

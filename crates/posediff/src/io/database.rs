@@ -31,6 +31,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 
 use posediff_geometry::{ImageSize, PairMatches};
+use posediff_matching::features::whole_bytes;
 use posediff_matching::{Descriptors, ImageFeatures};
 use posediff_pipeline::store::{FeatureStore, StoredMatches};
 use rusqlite::{Connection, OptionalExtension, params};
@@ -1059,18 +1060,13 @@ impl Database {
             }
             Descriptors::Float { data, dim } if self.matcher == "sift" => {
                 // OpenCV's SIFT values are whole numbers 0-255 in floats: COLMAP's 8 bits.
-                let bytes = data
-                    .iter()
-                    .map(|&v| {
-                        (v.fract() == 0.0 && (0.0..=255.0).contains(&v))
-                            .then_some(v as u8)
-                            .ok_or_else(|| {
-                                PosediffError::InvalidArgument(format!(
-                                    "a SIFT descriptor value {v} is not 8-bit"
-                                ))
-                            })
-                    })
-                    .collect::<Result<Vec<u8>>>()?;
+                let bytes = whole_bytes(data).ok_or_else(|| {
+                    let v = data.iter().find(|&&v| whole_bytes(&[v]).is_none());
+                    PosediffError::InvalidArgument(format!(
+                        "a SIFT descriptor value {} is not 8-bit",
+                        v.copied().unwrap_or(f32::NAN)
+                    ))
+                })?;
                 Ok((DESCRIPTOR_SIFT, *dim, bytes))
             }
             Descriptors::Float { data, dim } => {
