@@ -638,6 +638,38 @@ fn other_commands_name_what_is_wrong() {
             ],
             "s.json",
         ),
+        case(
+            "bench with a misspelt option",
+            &[
+                &"bench-real",
+                &"--data",
+                &dir,
+                &"--subsets",
+                &dir.join("s.json"),
+                &"--out",
+                &out,
+                &"--set",
+                &"matching.min_verifed=15",
+            ],
+            "min_verifed",
+        ),
+        case(
+            "bench options for the ground truth",
+            &[
+                &"bench-real",
+                &"--data",
+                &dir,
+                &"--subsets",
+                &dir.join("s.json"),
+                &"--out",
+                &out,
+                &"--method",
+                &"ground-truth",
+                &"--set",
+                &"matching.min_verified=15",
+            ],
+            "apply to --method geometric",
+        ),
     ];
     run_cases(&cases, None);
     std::fs::remove_dir_all(&dir).unwrap();

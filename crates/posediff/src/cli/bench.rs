@@ -50,6 +50,14 @@ pub struct RealArgs {
     /// Report path (JSON; the Markdown table is written beside it).
     #[arg(long)]
     out: PathBuf,
+    /// The geometric method's options from a TOML or JSON file (as `posediff estimate
+    /// --config`), to measure a setting against the defaults on the same sets.
+    #[arg(long, value_name = "FILE")]
+    config: Option<PathBuf>,
+    /// One option of the geometric method's tree, `key.path=value` (as `posediff estimate
+    /// --set`; repeatable).
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    set: Vec<String>,
 }
 
 impl RealArgs {
@@ -64,10 +72,15 @@ impl RealArgs {
             weights_dir,
             sets,
             out,
+            config,
+            set,
         } = self;
+        let options = (config.is_some() || !set.is_empty())
+            .then(|| super::estimate::pipeline_options(config.as_deref(), None, (None, None), &set))
+            .transpose()?;
         let method = with_matcher(
             bench_method(method, weights.as_deref(), false)?,
-            matcher,
+            (matcher, options),
             weights_dir,
         )?;
         let rows =
@@ -143,7 +156,7 @@ impl Co3dArgs {
         let list = categories.0;
         let method = with_matcher(
             bench_method(method, weights.as_deref(), no_ggs)?,
-            matcher,
+            (matcher, None),
             weights_dir,
         )?;
         let report = posediff::bench::bench_co3d(
@@ -164,32 +177,38 @@ impl Co3dArgs {
     }
 }
 
-/// The geometric method with `matcher` instead of SIFT (other methods, and SIFT, unchanged).
+/// The geometric method with `matcher` instead of SIFT and with `options` instead of the
+/// defaults (other methods, and SIFT with the defaults, unchanged).
 fn with_matcher(
     method: Box<dyn posediff::bench::Method>,
-    matcher: Matcher,
+    (matcher, options): (Matcher, Option<posediff_pipeline::options::PipelineOptions>),
     weights_dir: Option<PathBuf>,
 ) -> anyhow::Result<Box<dyn posediff::bench::Method>> {
     let choice: MatcherChoice = matcher.into();
-    if choice == MatcherChoice::Sift {
+    if choice == MatcherChoice::Sift && options.is_none() {
         return Ok(method);
     }
     if !method.name().starts_with("posediff geometric") {
-        bail!("--matcher {choice} applies to --method geometric");
+        bail!("--matcher {choice}, --config and --set apply to --method geometric");
     }
-    let options = posediff::estimate::run::RunOptions {
+    let custom = options.is_some();
+    let run = posediff::estimate::run::RunOptions {
         matcher: choice,
         weights_dir,
         ..posediff::estimate::run::RunOptions::default()
     };
     let mut config = posediff::estimate::geometric::GeometricConfig {
-        learned: options.load_learned()?,
+        learned: run.load_learned()?,
+        options: options.unwrap_or_default(),
         ..Default::default()
     };
     config.options.matching.features.detector = choice.detector();
     Ok(Box::new(posediff::bench::Geometric {
         config,
-        label: Some(format!("posediff geometric ({choice})")),
+        label: Some(format!(
+            "posediff geometric ({choice}{})",
+            if custom { ", options changed" } else { "" }
+        )),
     }))
 }
 
