@@ -77,6 +77,88 @@ const CUDA_LINK_NAMES: [&str; 5] = [
 /// The most that travels to the GPU machine in one call (its `run` limit, the tree included).
 const SIZE_LIMIT: u64 = 64 << 20;
 
+/// Which static OpenCV.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Flavour {
+    /// For an executable (the CUDA binary): the system's static codecs and reference LAPACK,
+    /// configured as Debian's build, so the numbers are the system build's.
+    System,
+    /// For a shared library (the portable wheel): Debian's static archives are not
+    /// position-independent (and libgfortran's TLS cannot go into a shared object), and its
+    /// OpenCV source has no bundled codecs (`+dfsg`), so the codecs are the system's shared
+    /// zlib, libjpeg and libpng (which the wheel carries: auditwheel's repair), and the
+    /// decompositions OpenCV's own (Eigen for USAC's minimal solvers, no LAPACK).
+    Portable,
+}
+
+/// The static OpenCV of [`static_opencv`] (with its CMake and Ninja venv in
+/// `target/cuda-build/tools`), built when missing or when its options changed: `System` in
+/// `target/cuda-build/opencv` (the CUDA binary), `Portable` in `target/portable-wheel/opencv`
+/// (`cargo xtask wheel --portable`).
+pub(crate) fn shared_static_opencv(flavour: Flavour) -> Result<PathBuf> {
+    let tools_base = workspace_root().join("target/cuda-build");
+    let base = match flavour {
+        Flavour::System => tools_base.clone(),
+        Flavour::Portable => workspace_root().join("target/portable-wheel"),
+    };
+    std::fs::create_dir_all(&base).with_context(|| format!("creating {}", base.display()))?;
+    check_system_libraries()?;
+    let tools = tools_venv(&tools_base)?;
+    static_opencv(&base, &tools, flavour)
+}
+
+/// The system's shared codecs the portable build links, in link order.
+const SHARED_CODECS: [&str; 3] = ["png16", "jpeg", "z"];
+
+/// The environment of the `opencv` crate's build script that links the static OpenCV at
+/// `opencv` (its modules, then the codecs and LAPACK of `flavour`) instead of probing for the
+/// system's shared one.
+pub(crate) fn static_opencv_env(opencv: &Path, flavour: Flavour) -> Vec<(&'static str, String)> {
+    let mut link_libs: Vec<String> = OPENCV_MODULES
+        .iter()
+        .map(|m| format!("static=opencv_{m}"))
+        .collect();
+    let paths = match flavour {
+        Flavour::System => {
+            link_libs.extend(SYSTEM_STATIC.iter().map(|(l, _, _)| format!("static={l}")));
+            format!(
+                "{},{SYSTEM_LIB_DIR},{GCC_LIB_DIR}",
+                opencv.join("lib").display()
+            )
+        }
+        Flavour::Portable => {
+            link_libs.extend(SHARED_CODECS.iter().map(|l| (*l).to_owned()));
+            format!("{},{SYSTEM_LIB_DIR}", opencv.join("lib").display())
+        }
+    };
+    vec![
+        ("OPENCV_LINK_LIBS", link_libs.join(",")),
+        ("OPENCV_LINK_PATHS", paths),
+        (
+            "OPENCV_INCLUDE_PATHS",
+            opencv
+                .join("include/opencv4")
+                .to_string_lossy()
+                .into_owned(),
+        ),
+        (
+            "OPENCV_DISABLE_PROBES",
+            "pkg_config,cmake,vcpkg_cmake,vcpkg".to_owned(),
+        ),
+    ]
+}
+
+/// The shared libraries an ELF file needs (`readelf -d`'s NEEDED entries).
+pub(crate) fn needed_libraries(file: &Path) -> Result<Vec<String>> {
+    let dynamic = output("readelf", &["-d", &file.to_string_lossy()])?;
+    Ok(dynamic
+        .lines()
+        .filter(|l| l.contains("(NEEDED)"))
+        .filter_map(|l| l.split('[').nth(1))
+        .map(|l| l.trim_end_matches(']').to_owned())
+        .collect())
+}
+
 /// `cargo xtask cuda-build`.
 pub fn cuda_build(args: &[String]) -> Result<()> {
     let root = workspace_root();
@@ -95,11 +177,9 @@ pub fn cuda_build(args: &[String]) -> Result<()> {
         bail!("--compute-cap {compute_cap}: expected digits such as 90 (Hopper) or 80 (Ampere)");
     }
     let base = root.join("target/cuda-build");
-    std::fs::create_dir_all(&base).with_context(|| format!("creating {}", base.display()))?;
-    check_system_libraries()?;
+    let opencv = shared_static_opencv(Flavour::System)?;
     let tools = tools_venv(&base)?;
     let cuda = cuda_toolkit(&base, &tools)?;
-    let opencv = static_opencv(&base, &tools)?;
     build(&base, &cuda, &opencv, &compute_cap, &out)
 }
 
@@ -125,7 +205,7 @@ fn check_system_libraries() -> Result<()> {
     for tool in ["cc", "c++", "curl", "tar", "readelf"] {
         if output("sh", &["-c", &format!("command -v {tool}")]).is_err() {
             bail!(
-                "cuda-build needs `{tool}` on the PATH (Debian: build-essential, curl, binutils)"
+                "the static OpenCV needs `{tool}` on the PATH (Debian: build-essential, curl, binutils)"
             );
         }
     }
@@ -307,7 +387,7 @@ fn cudarc_source() -> Result<PathBuf> {
 /// same dispatched kernels, `-O2`; no optional back end that only changes speed or I/O (IPP,
 /// TBB, OpenMP, OpenCL), no codec beyond JPEG and PNG (plus OpenCV's own PNM/HDR), and the
 /// system's static zlib, libjpeg and libpng.
-fn opencv_options(prefix: &Path) -> Vec<String> {
+fn opencv_options(prefix: &Path, flavour: Flavour) -> Vec<String> {
     let lib = |name: &str| format!("{SYSTEM_LIB_DIR}/lib{name}.a");
     let lapack = ["lapack", "blas"]
         .iter()
@@ -386,13 +466,25 @@ fn opencv_options(prefix: &Path) -> Vec<String> {
         "WITH_VTK",
     ];
     options.extend(off.iter().map(|o| format!("-D{o}=OFF")));
+    if flavour == Flavour::Portable {
+        // The system's shared codecs (CMake finds them by default), no LAPACK.
+        let system_static = [
+            "-DZLIB_LIBRARY=",
+            "-DJPEG_LIBRARY=",
+            "-DPNG_LIBRARY",
+            "-DWITH_LAPACK=",
+            "-DLAPACK_",
+        ];
+        options.retain(|o| !system_static.iter().any(|p| o.starts_with(p)));
+        options.push("-DWITH_LAPACK=OFF".to_owned());
+    }
     options
 }
 
 /// `target/cuda-build/opencv`: the static OpenCV, downloaded, checked and built when missing.
-fn static_opencv(base: &Path, tools: &Path) -> Result<PathBuf> {
+fn static_opencv(base: &Path, tools: &Path, flavour: Flavour) -> Result<PathBuf> {
     let prefix = base.join("opencv");
-    let options = opencv_options(&prefix);
+    let options = opencv_options(&prefix, flavour);
     let key = format!("{OPENCV_URL} {OPENCV_SHA256}\n{}", options.join("\n"));
     let tarball = base.join("opencv.tar.xz");
     let source = base.join(OPENCV_DIR);
@@ -468,20 +560,7 @@ fn build(base: &Path, cuda: &Path, opencv: &Path, compute_cap: &str, out: &Path)
         cuda.join("bin").display(),
         std::env::var("PATH").unwrap_or_default()
     );
-    let mut link_libs: Vec<String> = OPENCV_MODULES
-        .iter()
-        .map(|m| format!("static=opencv_{m}"))
-        .collect();
-    link_libs.extend(SYSTEM_STATIC.iter().map(|(l, _, _)| format!("static={l}")));
-    let link_libs = link_libs.join(",");
-    let link_paths = format!(
-        "{},{SYSTEM_LIB_DIR},{GCC_LIB_DIR}",
-        opencv.join("lib").display()
-    );
-    let include = opencv
-        .join("include/opencv4")
-        .to_string_lossy()
-        .into_owned();
+    let opencv_env = static_opencv_env(opencv, Flavour::System);
     let cuda_home = cuda.to_string_lossy().into_owned();
     let target_dir = base.join("cargo").to_string_lossy().into_owned();
     let envs = [
@@ -494,14 +573,11 @@ fn build(base: &Path, cuda: &Path, opencv: &Path, compute_cap: &str, out: &Path)
         // them the references that would pull candle-kernels' 33 MB of MoE/GGUF machine code
         // (`.nv_fatbin`) out of its static library.
         ("CARGO_PROFILE_RELEASE_LTO", "fat"),
-        ("OPENCV_LINK_LIBS", link_libs.as_str()),
-        ("OPENCV_LINK_PATHS", link_paths.as_str()),
-        ("OPENCV_INCLUDE_PATHS", include.as_str()),
-        (
-            "OPENCV_DISABLE_PROBES",
-            "pkg_config,cmake,vcpkg_cmake,vcpkg",
-        ),
     ];
+    let envs: Vec<(&str, &str)> = envs
+        .into_iter()
+        .chain(opencv_env.iter().map(|(k, v)| (*k, v.as_str())))
+        .collect();
     run(
         "cargo",
         &[
@@ -526,13 +602,7 @@ fn build(base: &Path, cuda: &Path, opencv: &Path, compute_cap: &str, out: &Path)
             .with_context(|| format!("copying {} to {}", built.display(), out.display()))?;
     }
     let size = std::fs::metadata(out)?.len();
-    let dynamic = output("readelf", &["-d", &out.to_string_lossy()])?;
-    let needed: Vec<&str> = dynamic
-        .lines()
-        .filter(|l| l.contains("(NEEDED)"))
-        .filter_map(|l| l.split('[').nth(1))
-        .map(|l| l.trim_end_matches(']'))
-        .collect();
+    let needed = needed_libraries(out)?;
     eprintln!(
         "\n{}: {:.1} MiB (limit {} MiB), compute capability {compute_cap}\nneeds: {}",
         out.display(),
@@ -557,4 +627,44 @@ fn build(base: &Path, cuda: &Path, opencv: &Path, compute_cap: &str, out: &Path)
         out.display()
     );
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+
+    #[test]
+    fn the_portable_opencv_links_nothing_static_from_the_system() {
+        let prefix = Path::new("/tmp/opencv");
+        let system = opencv_options(prefix, Flavour::System);
+        let portable = opencv_options(prefix, Flavour::Portable);
+        // The executable's build takes Debian's static archives and LAPACK …
+        assert!(system.iter().any(|o| o.ends_with("libz.a")));
+        assert!(system.contains(&"-DWITH_LAPACK=ON".to_owned()));
+        // … the shared library's none of them (not position-independent), and no LAPACK.
+        assert!(
+            portable
+                .iter()
+                .all(|o| !o.contains(".a;") && !o.ends_with(".a"))
+        );
+        assert!(portable.contains(&"-DWITH_LAPACK=OFF".to_owned()));
+        assert!(!portable.contains(&"-DWITH_LAPACK=ON".to_owned()));
+        assert!(portable.contains(&"-DWITH_EIGEN=ON".to_owned()));
+        // Everything else is configured alike.
+        let common = |o: &&String| !o.contains("LAPACK") && !o.contains("_LIBRARY");
+        assert_eq!(
+            system.iter().filter(common).collect::<Vec<_>>(),
+            portable.iter().filter(common).collect::<Vec<_>>()
+        );
+        let env = static_opencv_env(prefix, Flavour::Portable);
+        let libs = &env
+            .iter()
+            .find(|(k, _)| *k == "OPENCV_LINK_LIBS")
+            .unwrap()
+            .1;
+        assert!(libs.starts_with("static=opencv_video,"));
+        assert!(libs.ends_with(",png16,jpeg,z"), "{libs}");
+        assert!(!libs.contains("lapack") && !libs.contains("gfortran"));
+    }
 }

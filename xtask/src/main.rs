@@ -20,7 +20,10 @@
 //!   of a synthetic orbit through a local Ray against the single process, the database written
 //!   and read back, the projection to 100,000 images (`scripts/bench_distributed.py`).
 //! - `wheel [--profile release]`: the Python module `crates/posediff-py` as an abi3 wheel in
-//!   `target/wheels/` (maturin from the test venv).
+//!   `target/wheels/` (maturin from the test venv), linked to the system's OpenCV
+//!   (`linux_x86_64`). `wheel --portable [--profile release] [--check-set D]`: a `manylinux_2_35`
+//!   wheel with a static OpenCV in `target/portable-wheel/wheels/`, checked by auditwheel and
+//!   by an estimate in a fresh venv with the system's OpenCV hidden (`portable_wheel.rs`).
 //! - `py-test [--profile release]`: that wheel installed into the test venv and its pytest suite
 //!   (`crates/posediff-py/tests`) against the `posediff` binary of the same profile.
 //! - `setup`: only the system set-up (Debian packages for the OpenCV bindings and the browser
@@ -71,6 +74,7 @@
 
 mod cuda_build;
 mod modcycles;
+mod portable_wheel;
 
 use std::process::Command;
 use std::time::Instant;
@@ -173,7 +177,14 @@ fn main() -> Result<()> {
         "vendor-three" => vendor_three(),
         "fuzz" => fuzz(&std::env::args().skip(2).collect::<Vec<_>>()),
         "deps-check" => deps_check(),
-        "wheel" => wheel(&profile_arg()?).map(|_| ()),
+        "wheel" => {
+            let args: Vec<String> = std::env::args().skip(2).collect();
+            if args.iter().any(|a| a == "--portable") {
+                portable_wheel::portable_wheel(&args).map(|_| ())
+            } else {
+                wheel(&profile_arg()?).map(|_| ())
+            }
+        }
         "py-test" => py_test(&profile_arg()?),
         "bench-matching" => cargo_run(
             &["-p", "posediff", "--example", "bench_matching"],
