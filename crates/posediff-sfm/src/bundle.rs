@@ -457,6 +457,37 @@ impl PointBlocks {
     }
 }
 
+/// The distinct block pairs of the points' [`PointBlocks::block_pairs`], sorted. A track of
+/// `k` observations has `k(k+1)/2` of them: on the 1000-frame forward walk, tracks of up to
+/// `max_track_span` (200) frames make tens of millions with repeats for some 10⁵ distinct
+/// pairs, a transient list of hundreds of megabytes that was the run's peak memory. So the
+/// list is sorted and deduplicated whenever it grows past twice its distinct pairs (plus a
+/// million): it never holds much more than that, and the result is the same.
+fn distinct_block_pairs(blocks: &[PointBlocks]) -> Vec<(usize, usize)> {
+    distinct_pairs(blocks.iter().map(PointBlocks::block_pairs), 1 << 20)
+}
+
+/// The distinct pairs of `lists`, sorted, deduplicated whenever more than `slack` past twice
+/// the distinct pairs so far ([`distinct_block_pairs`]).
+fn distinct_pairs<I: IntoIterator<Item = (usize, usize)>>(
+    lists: impl Iterator<Item = I>,
+    slack: usize,
+) -> Vec<(usize, usize)> {
+    let mut pairs: Vec<(usize, usize)> = Vec::new();
+    let mut distinct = 0;
+    for list in lists {
+        pairs.extend(list);
+        if pairs.len() > 2 * distinct + slack {
+            pairs.sort_unstable();
+            pairs.dedup();
+            distinct = pairs.len();
+        }
+    }
+    pairs.sort_unstable();
+    pairs.dedup();
+    pairs
+}
+
 /// Points the Schur complement is split into ([`Problem::solve`]): enough runs for the
 /// threads of a large machine, few enough that their copies of the reduced system stay small.
 const SCHUR_PARTS: usize = 8;
@@ -941,14 +972,10 @@ fn adjust(
             Reduced::Implicit(ImplicitSchur::new(&block_sizes, iterative))
         }
         _ => {
-            let mut block_pairs: Vec<(usize, usize)> =
-                blocks.iter().flat_map(PointBlocks::block_pairs).collect();
-            block_pairs.sort_unstable();
-            block_pairs.dedup();
             let system = BlockSystem::new(
                 "bundle adjustment (reduced camera system)",
                 &block_sizes,
-                block_pairs,
+                distinct_block_pairs(&blocks),
                 options.solver,
             )?;
             for b in &mut blocks {
@@ -1253,6 +1280,41 @@ mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
     use nalgebra::Rotation3;
+
+    #[test]
+    fn block_pairs_are_deduplicated_as_they_come() {
+        // Tracks of random lengths over 50 cameras, their pairs with repeats.
+        let mut seed = 7u64;
+        let mut next = |m: usize| {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (seed >> 33) as usize % m
+        };
+        let lists: Vec<Vec<(usize, usize)>> = (0..400)
+            .map(|_| {
+                let start = next(45);
+                let k = 1 + next(6);
+                let cams: Vec<usize> = (start..start + k).collect();
+                cams.iter()
+                    .enumerate()
+                    .flat_map(|(u, &a)| cams[..=u].iter().map(move |&b| (a, b)))
+                    .collect()
+            })
+            .collect();
+        let mut all: Vec<(usize, usize)> = lists.iter().flatten().copied().collect();
+        let total = all.len();
+        all.sort_unstable();
+        all.dedup();
+        assert!(all.len() < total / 2, "the test needs repeats");
+        for slack in [0, 1, 7, 1 << 20] {
+            assert_eq!(
+                distinct_pairs(lists.iter().cloned(), slack),
+                all,
+                "slack {slack}"
+            );
+        }
+    }
 
     #[test]
     fn long_tracks_are_spread_evenly() {
