@@ -37,14 +37,19 @@ pub enum Distractor {
     /// beside the camera or the photographer's shadow: its matches say the camera stands
     /// still, the failure masks are for.
     Companion,
+    /// The companion nearer and in the middle of the view, covering about half of every frame
+    /// (a close object in front of the scene, a car's dashboard): its matches outnumber the
+    /// scene's, so they, not the scene, decide what a pair's geometry looks like unless masked.
+    Cover,
 }
 
 impl Distractor {
-    /// Its name (`walking`, `companion`).
+    /// Its name (`walking`, `companion`, `cover`).
     pub fn as_str(self) -> &'static str {
         match self {
             Self::Walking => "walking",
             Self::Companion => "companion",
+            Self::Cover => "cover",
         }
     }
 }
@@ -78,14 +83,19 @@ fn scene_at(
             obj.center.z = d.scale.z * (1.0 + 0.05 * (TAU * 6.0 * s).sin());
             obj.rotation = Rotation3::from_axis_angle(&Vector3::z_axis(), angle);
         }
-        Distractor::Companion => {
+        Distractor::Companion | Distractor::Cover => {
             // Fixed in the camera's frame: to the right of the view and halfway to the
-            // objects, turned with the camera, bobbing a little.
+            // objects (the cover: a third of the way, nearer the middle), turned with the
+            // camera, bobbing a little.
             let r_cw = camera.cam_from_world.rotation.transpose();
             let c = camera.center().coords;
-            let depth = 0.5 * (base.target - c).norm();
+            let (near, right) = match kind {
+                Distractor::Cover => (0.33, 0.12),
+                _ => (0.5, 0.3),
+            };
+            let depth = near * (base.target - c).norm();
             let bob = 0.02 * depth * (TAU * 6.0 * s).sin();
-            obj.center = c + r_cw * Vector3::new(0.3 * depth, 0.1 * depth + bob, depth);
+            obj.center = c + r_cw * Vector3::new(right * depth, 0.1 * depth + bob, depth);
             obj.rotation = Rotation3::from_matrix_unchecked(r_cw)
                 * Rotation3::from_axis_angle(&Vector3::x_axis(), -0.5 * std::f64::consts::PI);
         }
@@ -109,7 +119,7 @@ fn distractor(scene: &Scene, seed: u64, kind: Distractor) -> Object {
     let r = scene.radius
         * match kind {
             Distractor::Walking => 1.0,
-            Distractor::Companion => 1.5,
+            Distractor::Companion | Distractor::Cover => 1.5,
         };
     Object {
         shape: Shape::Superquadric { e1: 0.6, e2: 0.9 },
@@ -121,7 +131,7 @@ fn distractor(scene: &Scene, seed: u64, kind: Distractor) -> Object {
             Distractor::Walking => Material::random(&mut rng, 5.0),
             // The companion, near the camera: a black and white checkerboard, as many
             // corners as the scene behind it.
-            Distractor::Companion => Material {
+            Distractor::Companion | Distractor::Cover => Material {
                 base: [0.05; 3],
                 accent: [0.95; 3],
                 pattern: Pattern::Checker,
@@ -315,10 +325,18 @@ mod tests {
                 .count();
             both as f64 / either.max(1) as f64
         };
+        let covered = |m: &[Vec<u8>]| {
+            m.iter()
+                .map(|f| f.iter().filter(|v| **v == 0).count() as f64 / (64.0 * 48.0))
+                .fold(f64::INFINITY, f64::min)
+        };
         let companion = masks(Distractor::Companion);
-        let covered = companion[0].iter().filter(|v| **v == 0).count() as f64 / (64.0 * 48.0);
-        assert!(covered > 0.15, "{covered}");
+        assert!(covered(&companion) > 0.15, "{}", covered(&companion));
         assert!(iou(&companion) > 0.8, "{}", iou(&companion));
+        // The cover: half of every frame or more, in place.
+        let cover = masks(Distractor::Cover);
+        assert!(covered(&cover) > 0.45, "{}", covered(&cover));
+        assert!(iou(&cover) > 0.8, "{}", iou(&cover));
         assert!(iou(&masks(Distractor::Walking)) < 0.5);
     }
 }

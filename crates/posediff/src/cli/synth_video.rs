@@ -28,7 +28,8 @@ pub struct Args {
     seed: u64,
     /// A distractor and its masks in out/masks: `walking` (a textured figure walking around
     /// the objects; the default of a bare `--distractor`) or `companion` (one that keeps its
-    /// place in the camera's view, as a person walking beside the camera).
+    /// place in the camera's view, as a person walking beside the camera) or `cover` (the
+    /// companion nearer and in the middle, about half of every frame).
     #[arg(long, value_enum, num_args = 0..=1, default_missing_value = "walking")]
     distractor: Option<DistractorArg>,
     /// Motion JPEG (AVI) even where H.264 can be encoded.
@@ -41,6 +42,7 @@ pub struct Args {
 enum DistractorArg {
     Walking,
     Companion,
+    Cover,
 }
 
 impl Args {
@@ -54,6 +56,7 @@ impl Args {
             distractor: self.distractor.map(|d| match d {
                 DistractorArg::Walking => Distractor::Walking,
                 DistractorArg::Companion => Distractor::Companion,
+                DistractorArg::Cover => Distractor::Cover,
             }),
         };
         let start = std::time::Instant::now();
