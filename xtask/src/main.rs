@@ -1067,12 +1067,17 @@ fn wheel(profile: &str) -> Result<std::path::PathBuf> {
         ],
         &[],
     )?;
-    let wheel = std::fs::read_dir(&out)?
+    built_wheel(&out, "wheel", start)
+}
+
+/// The wheel maturin wrote into `out`, its size and the time since `start` printed as `what`.
+fn built_wheel(out: &std::path::Path, what: &str, start: Instant) -> Result<std::path::PathBuf> {
+    let wheel = std::fs::read_dir(out)?
         .filter_map(|e| e.ok().map(|e| e.path()))
         .find(|p| p.extension().is_some_and(|x| x == "whl"))
         .context("maturin wrote no wheel")?;
     eprintln!(
-        "wheel {} ({:.1} MB) built in {:.0} s",
+        "{what} {} ({:.1} MB) built in {:.0} s",
         wheel.display(),
         std::fs::metadata(&wheel)?.len() as f64 / 1e6,
         start.elapsed().as_secs_f64()

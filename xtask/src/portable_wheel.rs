@@ -119,16 +119,7 @@ pub fn portable_wheel(args: &[String]) -> Result<PathBuf> {
         ],
         &envs,
     )?;
-    let wheel = std::fs::read_dir(&out)?
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .find(|p| p.extension().is_some_and(|x| x == "whl"))
-        .context("maturin wrote no wheel")?;
-    eprintln!(
-        "portable wheel {} ({:.1} MB) built in {:.0} s",
-        wheel.display(),
-        std::fs::metadata(&wheel)?.len() as f64 / 1e6,
-        start.elapsed().as_secs_f64()
-    );
+    let wheel = crate::built_wheel(&out, "portable wheel", start)?;
     check(&base, &wheel, &set)?;
     Ok(wheel)
 }
