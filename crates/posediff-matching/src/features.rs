@@ -123,10 +123,7 @@ impl Descriptors {
     pub fn floats(&self) -> Option<(std::borrow::Cow<'_, [f32]>, usize)> {
         match self {
             Self::Float { data, dim } => Some((std::borrow::Cow::Borrowed(data), *dim)),
-            Self::Bytes { data, dim } => Some((
-                std::borrow::Cow::Owned(data.iter().map(|&b| f32::from(b)).collect()),
-                *dim,
-            )),
+            Self::Bytes { data, dim } => Some((std::borrow::Cow::Owned(byte_floats(data)), *dim)),
             Self::Binary { .. } => None,
         }
     }
@@ -144,6 +141,12 @@ impl Descriptors {
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }
+}
+
+/// Byte descriptor values as the floats they stand for ([`Descriptors::Bytes`]).
+#[must_use]
+pub fn byte_floats(v: &[u8]) -> Vec<f32> {
+    v.iter().map(|&b| f32::from(b)).collect()
 }
 
 /// `v` as bytes when every value is a whole number 0–255 (OpenCV's SIFT), else `None`.

@@ -8,7 +8,7 @@
 
 use nalgebra::DMatrix;
 
-use crate::features::{Descriptors, whole_bytes};
+use crate::features::{Descriptors, byte_floats};
 
 #[cfg(target_arch = "x86_64")]
 mod vnni;
@@ -57,7 +57,7 @@ pub fn mutual_nearest_neighbours(
                 data: db,
                 dim: dim_b,
             },
-        ) if dim == dim_b => l2_best(da, db, *dim),
+        ) if dim == dim_b => l2_best_f32(da, db, *dim),
         (
             Descriptors::Bytes { data: da, dim },
             Descriptors::Bytes {
@@ -68,7 +68,7 @@ pub fn mutual_nearest_neighbours(
         (Descriptors::Float { .. }, Descriptors::Bytes { .. })
         | (Descriptors::Bytes { .. }, Descriptors::Float { .. }) => {
             match (a.floats(), b.floats()) {
-                (Some((da, dim)), Some((db, dim_b))) if dim == dim_b => l2_best(&da, &db, dim),
+                (Some((da, dim)), Some((db, dim_b))) if dim == dim_b => l2_best_f32(&da, &db, dim),
                 _ => return Vec::new(),
             }
         }
@@ -97,36 +97,17 @@ pub fn mutual_nearest_neighbours(
         .collect()
 }
 
-/// Row bests and column argmins of squared L2 distances.
-///
-/// The product of a block of query rows with Bᵀ is column-major (`rb × m`), so the scan walks
-/// it column by column: each column's `rb` distances are contiguous, the block's row bests are
-/// kept as arrays (nearest, second, index) updated by selects, and both loops vectorise. The
-/// order of the comparisons is the plain row-by-row scan's (strict `<`: the first of equal
-/// distances wins, in rows and in columns), so the result is the same.
-fn l2_best(a: &[f32], b: &[f32], dim: usize) -> (Vec<RowBest>, Vec<usize>) {
-    #[cfg(target_arch = "x86_64")]
-    if vnni::available()
-        && let (Some(ab), Some(bb)) = (whole_bytes(a), whole_bytes(b))
-        && let Some(found) = l2_best_vnni(&ab, &bb, dim)
-    {
-        return found;
-    }
-    l2_best_f32(a, b, dim)
-}
-
-/// [`l2_best`] of byte descriptors (SIFT): the exact integer kernel where the CPU has it, the
+/// [`l2_best_f32`] of byte descriptors (SIFT): the exact integer kernel where the CPU has it, the
 /// F32 products of the same values otherwise (the same result: `the_byte_kernel_is_the_f32_path_exactly`).
 fn l2_best_u8(a: &[u8], b: &[u8], dim: usize) -> (Vec<RowBest>, Vec<usize>) {
     #[cfg(target_arch = "x86_64")]
     if let Some(found) = l2_best_vnni(a, b, dim) {
         return found;
     }
-    let floats = |v: &[u8]| v.iter().map(|&x| f32::from(x)).collect::<Vec<f32>>();
-    l2_best_f32(&floats(a), &floats(b), dim)
+    l2_best_f32(&byte_floats(a), &byte_floats(b), dim)
 }
 
-/// [`l2_best`] of byte descriptors by the exact integer kernel ([`vnni`]) when the CPU has
+/// [`l2_best_f32`] of byte descriptors by the exact integer kernel ([`vnni`]) when the CPU has
 /// AVX-512 VNNI; `None` otherwise.
 #[cfg(target_arch = "x86_64")]
 fn l2_best_vnni(a: &[u8], b: &[u8], dim: usize) -> Option<(Vec<RowBest>, Vec<usize>)> {
@@ -142,7 +123,15 @@ fn l2_best_vnni(a: &[u8], b: &[u8], dim: usize) -> Option<(Vec<RowBest>, Vec<usi
     Some((rows, cols.into_iter().map(|c| c as usize).collect()))
 }
 
-/// [`l2_best`] by F32 matrix products (any descriptor values).
+/// Row bests and column argmins of squared L2 distances, by F32 matrix products (any
+/// descriptor values: float descriptors are never bytes here, `Descriptors::from_floats`
+/// decided that once per image).
+///
+/// The product of a block of query rows with Bᵀ is column-major (`rb × m`), so the scan walks
+/// it column by column: each column's `rb` distances are contiguous, the block's row bests are
+/// kept as arrays (nearest, second, index) updated by selects, and both loops vectorise. The
+/// order of the comparisons is the plain row-by-row scan's (strict `<`: the first of equal
+/// distances wins, in rows and in columns), so the result is the same.
 fn l2_best_f32(a: &[f32], b: &[f32], dim: usize) -> (Vec<RowBest>, Vec<usize>) {
     let (n, m) = (a.len() / dim, b.len() / dim);
     let mut rows = vec![RowBest::EMPTY; n];
@@ -313,7 +302,7 @@ mod tests {
         // 700 query rows (three blocks) repeating 40 codes; 90 columns repeating 30 codes.
         let a: Vec<f32> = (0..700).flat_map(|i| code(i % 40)).collect();
         let b: Vec<f32> = (0..90).flat_map(|j| code(j % 30)).collect();
-        let (rows, cols) = l2_best(&a, &b, dim);
+        let (rows, cols) = l2_best_f32(&a, &b, dim);
         let (want_rows, want_cols) = plain_best(&a, &b, dim);
         assert_eq!(cols, want_cols);
         for (r, w) in rows.iter().zip(&want_rows) {
@@ -388,6 +377,7 @@ mod tests {
 #[cfg(all(test, target_arch = "x86_64"))]
 mod bytes {
     use super::*;
+    use crate::features::whole_bytes;
 
     /// Byte-valued descriptors (SIFT-like: sparse, whole numbers 0–255), with repeats so that
     /// equal distances (ties) occur in rows and in columns.

@@ -296,10 +296,7 @@ fn float_rows(d: &Descriptors, max_rows: usize) -> (Vec<f32>, usize) {
         }
         Descriptors::Bytes { data, dim } => {
             let rows = (data.len() / dim.max(&1)).min(max_rows);
-            (
-                data[..rows * dim].iter().map(|&b| f32::from(b)).collect(),
-                *dim,
-            )
+            (crate::features::byte_floats(&data[..rows * dim]), *dim)
         }
         Descriptors::Binary { data, words } => {
             let rows = (data.len() / words.max(&1)).min(max_rows);

@@ -36,9 +36,17 @@ struct Case {
 }
 
 fn case(name: &'static str, args: &[&dyn AsRef<std::ffi::OsStr>], message: &'static str) -> Case {
+    owned_case(
+        name,
+        args.iter().map(|a| a.as_ref().to_owned()).collect(),
+        message,
+    )
+}
+
+fn owned_case(name: &'static str, args: Vec<std::ffi::OsString>, message: &'static str) -> Case {
     Case {
         name,
-        args: args.iter().map(|a| a.as_ref().to_owned()).collect(),
+        args,
         message,
         early: true,
     }
@@ -579,6 +587,23 @@ fn other_commands_name_what_is_wrong() {
     );
     write(&unknown_model.join("images.txt"), b"");
     let out = dir.join("out.json");
+    let subsets = dir.join("s.json");
+    // `bench-real` on this folder (no subsets.json in it) with `extra` arguments.
+    let bench = |extra: &[&dyn AsRef<std::ffi::OsStr>]| -> Vec<std::ffi::OsString> {
+        let base: [&dyn AsRef<std::ffi::OsStr>; 7] = [
+            &"bench-real",
+            &"--data",
+            &dir,
+            &"--subsets",
+            &subsets,
+            &"--out",
+            &out,
+        ];
+        base.iter()
+            .chain(extra)
+            .map(|a| a.as_ref().to_owned())
+            .collect()
+    };
     let cases = vec![
         case(
             "score for other images",
@@ -625,49 +650,20 @@ fn other_commands_name_what_is_wrong() {
             &[&"view", &dir],
             "is not a posediff output folder",
         ),
-        case(
-            "bench without subsets",
-            &[
-                &"bench-real",
-                &"--data",
-                &dir,
-                &"--subsets",
-                &dir.join("s.json"),
-                &"--out",
-                &out,
-            ],
-            "s.json",
-        ),
-        case(
+        owned_case("bench without subsets", bench(&[]), "s.json"),
+        owned_case(
             "bench with a misspelt option",
-            &[
-                &"bench-real",
-                &"--data",
-                &dir,
-                &"--subsets",
-                &dir.join("s.json"),
-                &"--out",
-                &out,
-                &"--set",
-                &"matching.min_verifed=15",
-            ],
+            bench(&[&"--set", &"matching.min_verifed=15"]),
             "min_verifed",
         ),
-        case(
+        owned_case(
             "bench options for the ground truth",
-            &[
-                &"bench-real",
-                &"--data",
-                &dir,
-                &"--subsets",
-                &dir.join("s.json"),
-                &"--out",
-                &out,
+            bench(&[
                 &"--method",
                 &"ground-truth",
                 &"--set",
                 &"matching.min_verified=15",
-            ],
+            ]),
             "apply to --method geometric",
         ),
     ];

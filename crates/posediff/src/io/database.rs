@@ -31,7 +31,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 
 use posediff_geometry::{ImageSize, PairMatches};
-use posediff_matching::features::whole_bytes;
+use posediff_matching::features::{byte_floats, whole_bytes};
 use posediff_matching::{Descriptors, ImageFeatures};
 use posediff_pipeline::store::{FeatureStore, StoredMatches};
 use rusqlite::{Connection, OptionalExtension, params};
@@ -1086,8 +1086,9 @@ impl Database {
             Descriptors::Bytes { data, dim } => Ok((
                 DESCRIPTOR_UNDEFINED,
                 dim * 4,
-                data.iter()
-                    .flat_map(|&v| f32::from(v).to_le_bytes())
+                byte_floats(data)
+                    .iter()
+                    .flat_map(|v| v.to_le_bytes())
                     .collect(),
             )),
             Descriptors::Binary { data, words } => Ok((
