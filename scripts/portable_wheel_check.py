@@ -45,9 +45,8 @@ def main():
             rel_gt = gb @ ga.T
             cos = (np.trace(rel_est.T @ rel_gt) - 1.0) / 2.0
             worst = max(worst, float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))))
-    print(f"posediff {posediff.__version__ if hasattr(posediff, '__version__') else ''} from "
-          f"{pathlib.Path(posediff.__file__).parent}: {len(cams)} cameras, worst relative "
-          f"rotation error {worst:.3f} deg; no OpenCV library loaded")
+    print(f"posediff from {pathlib.Path(posediff.__file__).parent}: {len(cams)} cameras, "
+          f"worst relative rotation error {worst:.3f} deg; no OpenCV library loaded")
     if worst > 1.0:
         sys.exit(f"worst relative rotation error {worst:.3f} deg > 1 deg")
 
