@@ -150,6 +150,12 @@ pub struct GeometricReport {
     /// its solves stopped at their limit (`mapper.bundle.iterative`; 0 and 0: the sparse
     /// Cholesky solved every step).
     pub bundle_linear_iterations: [usize; 2],
+    /// The keyframe adjustment (`mapper.bundle.keyframes`; absent: every camera was adjusted
+    /// jointly): `keyframes` adjusted with the points (`promoted` of them for too few points
+    /// or as their camera's only one), `refined_alone` others refined alone against the
+    /// points, `unrefined` left where they were (fewer than 6 points within
+    /// `mapper.bundle.max_error_px`).
+    pub bundle_keyframes: Option<KeyframeOutcome>,
     /// How the bundle adjustment ended.
     pub bundle: StageOutcome,
     /// Stage timings.
@@ -331,6 +337,12 @@ impl GeometricReport {
             self.bundle_observations = b.observations;
             self.bundle_rms_px = b.rms_px;
             self.bundle_linear_iterations = [b.linear_iterations, b.linear_unconverged];
+            self.bundle_keyframes = b.keyframes.map(|k| KeyframeOutcome {
+                keyframes: k.keyframes,
+                promoted: k.promoted,
+                refined_alone: k.refined_alone,
+                unrefined: k.unrefined,
+            });
             self.bundle = StageOutcome {
                 iterations: b.iterations,
                 converged: b.converged,
@@ -349,6 +361,20 @@ impl GeometricReport {
         self.times.resection = s.resection;
         self.times.camera_split = s.camera_split;
     }
+}
+
+/// What the keyframe bundle adjustment did (run.json's `bundle_keyframes`;
+/// `posediff_sfm::bundle::KeyframeReport`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]
+pub struct KeyframeOutcome {
+    /// Cameras adjusted jointly with the points.
+    pub keyframes: usize,
+    /// Of those, promoted (too few points to be refined alone, or a camera's only image).
+    pub promoted: usize,
+    /// Cameras refined alone against the adjusted points.
+    pub refined_alone: usize,
+    /// Cameras left where they were.
+    pub unrefined: usize,
 }
 
 /// The cameras of an estimate (run.json's `cameras`).

@@ -37,7 +37,9 @@ use crate::sampson_refine::check_inputs;
 use crate::tracks::{Observation, Track};
 
 mod implicit_schur;
+pub(crate) mod keyframes;
 use implicit_schur::ImplicitSchur;
+pub use keyframes::KeyframeOptions;
 
 /// The reduced camera system solved by preconditioned conjugate gradients without forming it
 /// (`bundle::implicit_schur`; Ceres' `ITERATIVE_SCHUR` with `SCHUR_JACOBI`), used when an
@@ -119,6 +121,9 @@ pub struct BundleOptions {
     /// The iterative solver of the reduced camera system for large adjustments (`None`, the
     /// default: the sparse Cholesky at every size; see [`IterativeSchurOptions`] for why).
     pub iterative: Option<IterativeSchurOptions>,
+    /// Keyframe adjustment of large sets ([`KeyframeOptions`]; `None`: every camera adjusted
+    /// jointly at every size).
+    pub keyframes: Option<KeyframeOptions>,
 }
 
 impl Default for BundleOptions {
@@ -134,6 +139,7 @@ impl Default for BundleOptions {
             max_track_length: 20,
             max_track_span: 200,
             iterative: None,
+            keyframes: Some(KeyframeOptions::default()),
         }
     }
 }
@@ -141,14 +147,20 @@ impl Default for BundleOptions {
 /// `obs` (one track, any order) in image order cut into consecutive segments spanning fewer
 /// than `span` images each (a segment starts at its first image), each spread to at most
 /// `max` observations; segments of one observation are left out.
-fn segments(mut obs: Vec<Observation>, max: usize, span: usize) -> Vec<Vec<Observation>> {
+fn segments(obs: Vec<Observation>, max: usize, span: usize) -> Vec<Vec<Observation>> {
+    cut(obs, span).into_iter().map(|s| spread(s, max)).collect()
+}
+
+/// `obs` (one track, any order) in image order cut into consecutive segments spanning fewer
+/// than `span` images each; segments of one observation are left out.
+fn cut(mut obs: Vec<Observation>, span: usize) -> Vec<Vec<Observation>> {
     obs.sort_by_key(|o| o.image);
     let mut out = Vec::new();
     let mut start = 0;
     for k in 1..=obs.len() {
         if k == obs.len() || obs[k].image >= obs[start].image + span.max(1) {
             if k - start >= 2 {
-                out.push(spread(obs[start..k].to_vec(), max));
+                out.push(obs[start..k].to_vec());
             }
             start = k;
         }
@@ -174,7 +186,8 @@ pub struct BundleReport {
     pub tracks: usize,
     /// Points triangulated and adjusted.
     pub points: usize,
-    /// Observations used in the last adjustment.
+    /// Observations used in the last adjustment, with those of the cameras refined alone
+    /// ([`BundleOptions::keyframes`]).
     pub observations: usize,
     /// Accepted steps over both adjustments.
     pub iterations: usize,
@@ -182,13 +195,28 @@ pub struct BundleReport {
     pub termination: Termination,
     /// Whether both adjustments stopped at a minimum (not at the iteration limit).
     pub converged: bool,
-    /// RMS reprojection error of the used observations at the end, pixels.
+    /// RMS reprojection error of those observations at the end, pixels.
     pub rms_px: f64,
     /// Conjugate-gradient iterations over both adjustments (0: solved by the sparse Cholesky,
     /// [`BundleOptions::iterative`]).
     pub linear_iterations: usize,
     /// Iterative solves that stopped at their iteration limit before their tolerance.
     pub linear_unconverged: usize,
+    /// The keyframe adjustment, when it was used ([`BundleOptions::keyframes`]).
+    pub keyframes: Option<KeyframeReport>,
+}
+
+/// What the keyframe adjustment did.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct KeyframeReport {
+    /// Cameras adjusted jointly with the points, promotions included.
+    pub keyframes: usize,
+    /// Of those, promoted: too few points to be refined alone, or a camera group's only one.
+    pub promoted: usize,
+    /// Cameras refined alone against the adjusted points.
+    pub refined_alone: usize,
+    /// Cameras left where they were: fewer than 6 points within `max_error_px` of them.
+    pub unrefined: usize,
 }
 
 /// A triangulated point with the observations it keeps.
@@ -196,8 +224,12 @@ pub struct BundleReport {
 pub struct Point {
     /// World position.
     pub xyz: Vector3<f64>,
-    /// Its observations.
+    /// Its observations in the joint adjustment.
     pub observations: Vec<Observation>,
+    /// Its observations by cameras refined alone against it after the joint adjustment (the
+    /// keyframe adjustment's other cameras, [`BundleOptions::keyframes`]; empty otherwise), in
+    /// image order, each within `max_error_px` of its projection.
+    pub alone: Vec<Observation>,
 }
 
 /// Projection of `x` by camera `c` with focal `f`, and the point in the camera frame; `None`
@@ -901,27 +933,52 @@ impl LeastSquares for Problem<'_> {
 fn filter(
     points: Vec<Point>,
     cameras: &[Option<CameraPose>],
-    (intrinsics, phi, ks, kind): (&ImageIntrinsics, f64, &[LensCoefficients], LensKind),
+    lens: (&ImageIntrinsics, f64, &[LensCoefficients], LensKind),
     max_error_px: f64,
 ) -> Vec<Point> {
     points
         .into_iter()
-        .filter_map(|mut p| {
-            p.observations.retain(|o| {
-                cameras[o.image].is_some_and(|c| {
-                    project_lens(
-                        &c,
-                        intrinsics.focal(phi, o.image),
-                        intrinsics.principal[o.image],
-                        (kind, ks[intrinsics.group[o.image]]),
-                        &p.xyz,
-                    )
-                    .is_some_and(|(uv, _)| (uv[0] - o.xy[0]).hypot(uv[1] - o.xy[1]) <= max_error_px)
-                })
-            });
-            (p.observations.len() >= 2).then_some(p)
-        })
+        .filter_map(|mut p| keeps_close(&mut p, cameras, lens, max_error_px).then_some(p))
         .collect()
+}
+
+/// [`filter`] of `points` with a value per point (`held[k]` belongs to `points[k]`) that
+/// follows its point.
+fn filter_held<T>(
+    points: Vec<Point>,
+    held: Vec<T>,
+    cameras: &[Option<CameraPose>],
+    lens: (&ImageIntrinsics, f64, &[LensCoefficients], LensKind),
+    max_error_px: f64,
+) -> (Vec<Point>, Vec<T>) {
+    points
+        .into_iter()
+        .zip(held)
+        .filter_map(|(mut p, h)| keeps_close(&mut p, cameras, lens, max_error_px).then_some((p, h)))
+        .unzip()
+}
+
+/// Keeps `p`'s observations within `max_error_px` of their projection; whether two are left.
+fn keeps_close(
+    p: &mut Point,
+    cameras: &[Option<CameraPose>],
+    (intrinsics, phi, ks, kind): (&ImageIntrinsics, f64, &[LensCoefficients], LensKind),
+    max_error_px: f64,
+) -> bool {
+    let xyz = p.xyz;
+    p.observations.retain(|o| {
+        cameras[o.image].is_some_and(|c| {
+            project_lens(
+                &c,
+                intrinsics.focal(phi, o.image),
+                intrinsics.principal[o.image],
+                (kind, ks[intrinsics.group[o.image]]),
+                &xyz,
+            )
+            .is_some_and(|(uv, _)| (uv[0] - o.xy[0]).hypot(uv[1] - o.xy[1]) <= max_error_px)
+        })
+    });
+    p.observations.len() >= 2
 }
 
 /// One adjustment of `points` (in place) with the cameras, each group's focal factor and the
@@ -1065,48 +1122,257 @@ pub fn bundle_adjust(
     for &phi in factors.iter() {
         check_inputs(cameras.len(), intrinsics, cameras, phi, reference)?;
     }
-    // The stages that see one focal per image: the factors folded into the scales.
-    let folded = |factors: &[f64]| {
-        let mut folded = intrinsics.clone();
-        let phi = folded.fold_factors(factors);
-        (folded, phi)
-    };
     let min_angle = options.min_angle_deg.to_radians();
-    let (at_start, phi) = folded(factors);
-    let points: Vec<Point> = tracks
-        .par_iter()
-        .flat_map_iter(|t| {
-            segments(
-                t.iter()
-                    .filter(|o| cameras.get(o.image).copied().flatten().is_some())
-                    .copied()
-                    .collect(),
-                options.max_track_length,
-                options.max_track_span,
-            )
-        })
-        .filter_map(|t| {
-            triangulate(&t, cameras, &at_start, phi, min_angle).map(|xyz| Point {
-                xyz,
-                observations: t,
-            })
-        })
-        .collect();
-    let pinhole = vec![PINHOLE; groups];
-    let mut points = filter(
-        points,
-        cameras,
-        (&at_start, phi, &pinhole, LensKind::Brown),
-        options.max_error_px,
-    );
+    let is_estimated: Vec<bool> = cameras.iter().map(Option::is_some).collect();
+    let estimated = |t: &Track| -> Vec<Observation> {
+        t.iter()
+            .filter(|o| is_estimated.get(o.image).copied().unwrap_or(false))
+            .copied()
+            .collect()
+    };
     let mut report = BundleReport {
         tracks: tracks.len(),
         converged: true,
         termination: Termination::NothingToRefine,
         ..BundleReport::default()
     };
-    if points.is_empty() {
+    let keyframes = options
+        .keyframes
+        .and_then(|k| keyframes::spaced(cameras, reference, &k).map(|key| (key, k)));
+    let Some((mut key, key_options)) = keyframes else {
+        let (at_start, phi) = folded(intrinsics, factors);
+        let points: Vec<Point> = tracks
+            .par_iter()
+            .flat_map_iter(|t| {
+                segments(
+                    estimated(t),
+                    options.max_track_length,
+                    options.max_track_span,
+                )
+            })
+            .filter_map(|t| {
+                triangulate(&t, cameras, &at_start, phi, min_angle).map(|xyz| Point {
+                    xyz,
+                    observations: t,
+                    alone: Vec::new(),
+                })
+            })
+            .collect();
+        let held = vec![(); points.len()];
+        let (points, _) = adjust_twice(
+            (points, held),
+            intrinsics,
+            cameras,
+            factors,
+            reference,
+            options,
+            &mut report,
+        )?;
         return Ok((points, report));
+    };
+
+    // Keyframes: promotions first (a camera seeing too few points of tracks with two keyframe
+    // observations, a group without a keyframe).
+    let n = cameras.len();
+    let seen = tracks
+        .par_iter()
+        .fold(
+            || vec![0usize; n],
+            |mut seen, t| {
+                for s in cut(estimated(t), options.max_track_span) {
+                    if s.iter().filter(|o| key[o.image]).count() >= 2 {
+                        for o in s.iter().filter(|o| !key[o.image]) {
+                            seen[o.image] += 1;
+                        }
+                    }
+                }
+                seen
+            },
+        )
+        .reduce(
+            || vec![0usize; n],
+            |mut a, b| {
+                a.iter_mut().zip(b).for_each(|(a, b)| *a += b);
+                a
+            },
+        );
+    let promoted = keyframes::promote(&mut key, cameras, &seen, intrinsics, key_options.min_points);
+    // The gauge of the keyframes (the joint adjustment keeps their mean distance to the
+    // reference at one), given to every camera so the others start in the same frame.
+    let mut key_cameras: Vec<Option<CameraPose>> = cameras
+        .iter()
+        .zip(&key)
+        .map(|(c, &k)| c.filter(|_| k))
+        .collect();
+    if let Some((origin, s)) = gauge_scale(&key_cameras, reference) {
+        for c in cameras.iter_mut().chain(key_cameras.iter_mut()).flatten() {
+            c.center = origin + (c.center - origin) * s;
+        }
+    }
+    let (at_start, phi) = folded(intrinsics, factors);
+    // Each segment's point from its keyframe observations, the others held beside it.
+    let (points, held): (Vec<Point>, Vec<Vec<Observation>>) = tracks
+        .par_iter()
+        .flat_map_iter(|t| {
+            cut(estimated(t), options.max_track_span)
+                .into_iter()
+                .filter_map(|s| {
+                    let (keyed, others): (Vec<Observation>, Vec<Observation>) =
+                        s.into_iter().partition(|o| key[o.image]);
+                    (keyed.len() >= 2).then(|| (spread(keyed, options.max_track_length), others))
+                })
+        })
+        .filter_map(|(t, others)| {
+            triangulate(&t, &key_cameras, &at_start, phi, min_angle).map(|xyz| {
+                (
+                    Point {
+                        xyz,
+                        observations: t,
+                        alone: Vec::new(),
+                    },
+                    others,
+                )
+            })
+        })
+        .unzip();
+    let (mut points, held) = adjust_twice(
+        (points, held),
+        intrinsics,
+        &mut key_cameras,
+        factors,
+        reference,
+        options,
+        &mut report,
+    )?;
+    // Each other camera starts moved as its nearest keyframe in image order was moved (a
+    // warp of the world that keeps what that keyframe sees), then everything takes the
+    // keyframes' adjusted poses.
+    let moved_keys: Vec<(usize, CameraPose, CameraPose)> = (0..n)
+        .filter_map(|i| Some((i, cameras[i]?, key_cameras[i]?)))
+        .collect();
+    for (i, c) in cameras.iter_mut().enumerate() {
+        let Some(pose) = c else { continue };
+        let near = moved_keys.partition_point(|(k, _, _)| *k < i);
+        let nearest = [near.checked_sub(1), Some(near)]
+            .into_iter()
+            .flatten()
+            .filter_map(|k| moved_keys.get(k))
+            .min_by_key(|(k, _, _)| k.abs_diff(i));
+        if let Some((_, before, after)) = nearest {
+            *c = Some(keyframes::warped(pose, before, after));
+        }
+    }
+    // Every other camera alone against the adjusted points.
+    let mut per_image: Vec<Vec<(usize, Observation)>> = vec![Vec::new(); n];
+    for (j, others) in held.into_iter().enumerate() {
+        for o in others {
+            per_image[o.image].push((j, o));
+        }
+    }
+    let (at_end, phi) = folded(intrinsics, factors);
+    let alone: Vec<usize> = (0..n)
+        .filter(|&i| cameras[i].is_some() && !key[i])
+        .collect();
+    let refined = alone
+        .par_iter()
+        .map(|&i| {
+            let Some(start) = cameras[i] else {
+                return Ok(None);
+            };
+            let list = &per_image[i];
+            let correspondences: Vec<(Vector3<f64>, [f64; 2])> =
+                list.iter().map(|(j, o)| (points[*j].xyz, o.xy)).collect();
+            let refined = keyframes::refine_pose(
+                (start, None),
+                &correspondences,
+                (at_end.focal(phi, i), at_end.principal[i]),
+                options,
+                key_options.max_iterations,
+            )?;
+            Ok(refined.map(|r| {
+                let kept: Vec<(usize, Observation)> = r.inliers.iter().map(|&k| list[k]).collect();
+                (i, r.pose, kept)
+            }))
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let refined_alone = refined.iter().flatten().count();
+    for (i, pose, kept) in refined.into_iter().flatten() {
+        cameras[i] = Some(pose);
+        for (j, o) in kept {
+            points[j].alone.push(o);
+        }
+    }
+    points
+        .par_iter_mut()
+        .for_each(|p| p.alone.sort_by_key(|o| o.image));
+    // The gauge of all the cameras, as a joint adjustment leaves it.
+    if let Some((origin, s)) = gauge_scale(cameras, reference) {
+        for c in cameras.iter_mut().flatten() {
+            c.center = origin + (c.center - origin) * s;
+        }
+        for p in &mut points {
+            p.xyz = origin + (p.xyz - origin) * s;
+        }
+    }
+    report.keyframes = Some(KeyframeReport {
+        keyframes: key
+            .iter()
+            .zip(cameras.iter())
+            .filter(|(k, c)| **k && c.is_some())
+            .count(),
+        promoted,
+        refined_alone,
+        unrefined: alone.len() - refined_alone,
+    });
+    let (rms, count) = rms_error(
+        true,
+        &points,
+        cameras,
+        (
+            &at_end,
+            phi,
+            &vec![PINHOLE; intrinsics.groups()],
+            LensKind::Brown,
+        ),
+    );
+    report.points = points.len();
+    report.observations = count;
+    report.rms_px = rms;
+    Ok((points, report))
+}
+
+/// The intrinsics with `factors` folded into the scales, and the first factor (the stages
+/// that see one focal per image).
+fn folded(intrinsics: &ImageIntrinsics, factors: &[f64]) -> (ImageIntrinsics, f64) {
+    let mut folded = intrinsics.clone();
+    let phi = folded.fold_factors(factors);
+    (folded, phi)
+}
+
+/// The two adjustments of [`bundle_adjust`]: observations farther than `max_error_px` left out,
+/// one adjustment, the far ones left out again, another; `held[k]` follows `points[k]`. Fills
+/// `report`'s iterations, termination, points, observations and RMS.
+fn adjust_twice<T>(
+    (points, held): (Vec<Point>, Vec<T>),
+    intrinsics: &ImageIntrinsics,
+    cameras: &mut [Option<CameraPose>],
+    factors: &mut [f64],
+    reference: usize,
+    options: &BundleOptions,
+    report: &mut BundleReport,
+) -> Result<(Vec<Point>, Vec<T>)> {
+    let groups = intrinsics.groups();
+    let (at_start, phi) = folded(intrinsics, factors);
+    let pinhole = vec![PINHOLE; groups];
+    let (mut points, held) = filter_held(
+        points,
+        held,
+        cameras,
+        (&at_start, phi, &pinhole, LensKind::Brown),
+        options.max_error_px,
+    );
+    if points.is_empty() {
+        return Ok((points, held));
     }
     let mut ks = pinhole.clone();
     let (first, first_solves) = adjust(
@@ -1118,9 +1384,10 @@ pub fn bundle_adjust(
         options,
         (&[], LensKind::Brown),
     )?;
-    let (between, phi) = folded(factors);
-    points = filter(
+    let (between, phi) = folded(intrinsics, factors);
+    let (mut points, held) = filter_held(
         points,
+        held,
         cameras,
         (&between, phi, &ks, LensKind::Brown),
         options.max_error_px,
@@ -1141,24 +1408,31 @@ pub fn bundle_adjust(
     report.converged = t1.converged() && t2.converged();
     // The stage that did not converge, if one did not (else the last).
     report.termination = if t1.converged() { t2 } else { t1 };
-    let (at_end, phi) = folded(factors);
-    let (rms, count) = rms_error(&points, cameras, (&at_end, phi, &ks, LensKind::Brown));
+    let (at_end, phi) = folded(intrinsics, factors);
+    let (rms, count) = rms_error(
+        false,
+        &points,
+        cameras,
+        (&at_end, phi, &ks, LensKind::Brown),
+    );
     report.points = points.len();
     report.observations = count;
     report.rms_px = rms;
-    Ok((points, report))
+    Ok((points, held))
 }
 
-/// The RMS reprojection error of `points`' observations with a camera (pixels), and their
-/// count.
+/// The RMS reprojection error of `points`' observations with a camera (pixels), those of
+/// cameras refined alone too when `with_alone`, and their count.
 fn rms_error(
+    with_alone: bool,
     points: &[Point],
     cameras: &[Option<CameraPose>],
     (intrinsics, phi, ks, kind): (&ImageIntrinsics, f64, &[LensCoefficients], LensKind),
 ) -> (f64, usize) {
     let (mut sum, mut count) = (0.0, 0usize);
     for p in points {
-        for o in &p.observations {
+        let alone = if with_alone { &p.alone[..] } else { &[] };
+        for o in p.observations.iter().chain(alone) {
             if let Some(c) = cameras[o.image]
                 && let Some((uv, _)) = project_lens(
                     &c,
@@ -1249,7 +1523,7 @@ pub fn adjust_lens(
         (&folded, phi, ks, kind),
         options.max_error_px,
     );
-    let (rms_before_px, _) = rms_error(&points, cameras, (&folded, phi, ks, kind));
+    let (rms_before_px, _) = rms_error(false, &points, cameras, (&folded, phi, ks, kind));
     let (lm, _) = adjust(
         &mut points,
         intrinsics,
@@ -1261,7 +1535,7 @@ pub fn adjust_lens(
     )?;
     let mut folded = intrinsics.clone();
     let phi = folded.fold_factors(factors);
-    let (rms_after_px, observations) = rms_error(&points, cameras, (&folded, phi, ks, kind));
+    let (rms_after_px, observations) = rms_error(false, &points, cameras, (&folded, phi, ks, kind));
     let report = LensAdjustment {
         points: points.len(),
         observations,

@@ -13,6 +13,10 @@
 //! own. When that differs from the mapper's cameras, the caller maps again with them (the
 //! mapper's [`crate::mapper::MapperOptions::camera_split`]).
 
+use nalgebra::Vector3;
+use rayon::prelude::*;
+
+use crate::bundle::keyframes::refine_pose;
 use crate::bundle::{BundleOptions, LensAdjustment, LensKind, PINHOLE, Point, adjust_lens};
 use crate::camera::CameraPose;
 use crate::error::Result;
@@ -144,6 +148,41 @@ pub fn split_cameras(
             }
         }
     }
+    // The cameras refined alone after a keyframe adjustment (their observations are the
+    // points' `alone` ones): each one's pose and focal alone against the adjusted points.
+    let mut alone: Vec<Vec<(Vector3<f64>, [f64; 2])>> = vec![Vec::new(); n];
+    for p in &kept {
+        for o in &p.alone {
+            if let Some(list) = alone.get_mut(o.image) {
+                list.push((p.xyz, o.xy));
+            }
+        }
+    }
+    let iterations = bundle.keyframes.unwrap_or_default().max_iterations;
+    let alone_focal: Vec<Option<(f64, usize)>> = alone
+        .par_iter()
+        .enumerate()
+        .map(|(i, list)| {
+            let Some(start) = adjusted[i].filter(|_| !list.is_empty()) else {
+                return Ok(None);
+            };
+            let f = factors[i] * each.scale[i];
+            let refined = refine_pose(
+                (start, Some(f)),
+                list,
+                (f, each.principal[i]),
+                &bundle,
+                iterations,
+            )?;
+            Ok(refined.map(|r| (r.focal, r.inliers.len())))
+        })
+        .collect::<Result<_>>()?;
+    for (i, a) in alone_focal.iter().enumerate() {
+        if let Some((f, count)) = a {
+            factors[i] = f / each.scale[i];
+            seen[i] = *count;
+        }
+    }
     let image_focal: Vec<Option<f64>> = (0..n)
         .map(|i| {
             let f = factors[i] * each.scale[i];
@@ -173,6 +212,7 @@ pub fn split_cameras(
 mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
+    use crate::tracks::Observation;
 
     /// Ten cameras on a ring around a cloud of points, image `i` with focal `focal(i)` (640×480
     /// photos): the exact points and cameras, and intrinsics that give every image the first
@@ -234,6 +274,37 @@ mod tests {
             let f = split.phi * split.scale[i];
             assert!((f / (600.0 * zoom(i)) - 1.0).abs() < 1e-3, "image {i}: {f}");
         }
+    }
+
+    /// After a keyframe adjustment, images refined alone (their observations are the points'
+    /// `alone` ones) get their focal alone: the zoomed image 3, not a keyframe, is a camera of
+    /// its own.
+    #[test]
+    fn an_image_refined_alone_is_split_by_its_own_focal() {
+        let zoom = |i: usize| if i == 3 { 1.5 } else { 1.0 };
+        let (cameras, intrinsics, mut points) = ring(&|i| 600.0 * zoom(i));
+        let alone = [2, 3, 5];
+        for p in &mut points {
+            let (joint, other): (Vec<Observation>, Vec<Observation>) = p
+                .observations
+                .iter()
+                .partition(|o| !alone.contains(&o.image));
+            p.observations = joint;
+            p.alone = other;
+        }
+        let split = split_cameras(
+            &points,
+            (&intrinsics, 600.0 / 640.0, &[640.0; 10]),
+            &cameras,
+            &options(),
+            &CameraSplitOptions::default(),
+        )
+        .unwrap();
+        for (i, f) in split.image_focal.iter().enumerate() {
+            let f = f.unwrap();
+            assert!((f / (600.0 * zoom(i)) - 1.0).abs() < 1e-3, "image {i}: {f}");
+        }
+        assert_eq!(split.group, [0, 0, 0, 1, 0, 0, 0, 0, 0, 0]);
     }
 
     /// One focal for all: one camera (the mapper's own, so nothing is mapped again); an image

@@ -61,7 +61,11 @@ impl Ring {
                         })
                     })
                     .collect();
-                Point { xyz, observations }
+                Point {
+                    xyz,
+                    observations,
+                    alone: Vec::new(),
+                }
             })
             .collect();
         (cameras, points)

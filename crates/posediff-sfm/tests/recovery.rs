@@ -5,7 +5,7 @@
 
 use nalgebra::{Matrix3, Point3, Rotation3, Vector3};
 use posediff_geometry::PairMatches;
-use posediff_sfm::bundle::{BundleOptions, bundle_adjust};
+use posediff_sfm::bundle::{BundleOptions, KeyframeOptions, bundle_adjust};
 use posediff_sfm::sampson_refine::{SampsonRefineOptions, refine_sampson, robust_cost};
 use posediff_sfm::tracks::{Observation, Track, build_tracks};
 use posediff_sfm::{CameraPose as RefineCamera, ImageIntrinsics, Solver};
@@ -369,6 +369,85 @@ fn bundle_adjustment_recovers_exact_cameras_and_focal() {
     assert!(report.rms_px < 1e-6, "{report:?}");
     assert!((phi / s.phi - 1.0).abs() < 1e-7, "phi {phi}");
     assert!(worst_rotation(&cams, &s.cameras) < 1e-5);
+}
+
+/// With more cameras than `keyframes.max_keyframes`, the keyframes are adjusted with the
+/// points and the others refined alone: every camera and the focal still come back exactly,
+/// the others' observations are the points' `alone` ones, and the report says so.
+#[test]
+fn keyframe_bundle_adjustment_recovers_exact_cameras_and_focal() {
+    let s = scene(12, 0);
+    let tracks = multi_view_tracks(&s);
+    let mut cams: Vec<Option<RefineCamera>> = s
+        .cameras
+        .iter()
+        .enumerate()
+        .map(|(i, c)| {
+            Some(if i == 0 {
+                *c
+            } else {
+                RefineCamera {
+                    rotation: Rotation3::from_euler_angles(0.004, -0.001 * i as f64, 0.002)
+                        * c.rotation,
+                    center: c.center + Vector3::new(0.02, -0.01, 0.005 * i as f64),
+                }
+            })
+        })
+        .collect();
+    let mut phi = s.phi * 1.02;
+    let config = BundleOptions {
+        max_error_px: 1e3,
+        keyframes: Some(KeyframeOptions {
+            max_keyframes: 5,
+            ..KeyframeOptions::default()
+        }),
+        ..BundleOptions::default()
+    };
+    let (points, report) = bundle_adjust(
+        &tracks,
+        &s.intrinsics,
+        &mut cams,
+        std::slice::from_mut(&mut phi),
+        0,
+        &config,
+    )
+    .unwrap();
+    let k = report.keyframes.unwrap();
+    assert_eq!(
+        (k.keyframes, k.promoted, k.refined_alone, k.unrefined),
+        (5, 0, 7, 0)
+    );
+    assert!(report.converged, "{report:?}");
+    assert!(report.rms_px < 1e-6, "{report:?}");
+    assert!((phi / s.phi - 1.0).abs() < 1e-7, "phi {phi}");
+    assert!(worst_rotation(&cams, &s.cameras) < 1e-5);
+    // Keyframes 0, 3, 6, 8, 11 (evenly spaced) in the joint adjustment, the others alone.
+    for p in &points {
+        assert!(
+            p.observations
+                .iter()
+                .all(|o| [0, 3, 6, 8, 11].contains(&o.image))
+        );
+        assert!(p.alone.iter().all(|o| ![0, 3, 6, 8, 11].contains(&o.image)));
+        assert_eq!(p.observations.len() + p.alone.len(), 12);
+    }
+    // Without keyframes: all twelve jointly.
+    let mut cams: Vec<Option<RefineCamera>> = s.cameras.iter().copied().map(Some).collect();
+    let joint = BundleOptions {
+        keyframes: None,
+        ..config
+    };
+    let (points, report) = bundle_adjust(
+        &tracks,
+        &s.intrinsics,
+        &mut cams,
+        std::slice::from_mut(&mut phi),
+        0,
+        &joint,
+    )
+    .unwrap();
+    assert!(report.keyframes.is_none());
+    assert!(points.iter().all(|p| p.alone.is_empty()));
 }
 
 /// Two cameras (every second image through a 1.4× zoom): each group's focal comes back,
