@@ -21,6 +21,8 @@
 //! `∂uv/∂x = f ((1 + k₁ r² + k₂ r⁴) I + (2 k₁ + 4 k₂ r²) x xᵀ)`, `∂uv/∂k₁ = f r² x` and
 //! `∂uv/∂k₂ = f r⁴ x`.
 
+use std::collections::HashMap;
+
 use nalgebra::{Matrix2, Matrix3, SMatrix, SVector, Vector2, Vector3};
 use posediff_geometry::lens::{
     FISHEYE_PINHOLE, brown_coefficient_jacobian, distort_brown, distort_fisheye,
@@ -1244,31 +1246,60 @@ pub fn bundle_adjust(
         options,
         &mut report,
     )?;
-    // Each other camera starts moved as its nearest keyframe in image order was moved (a
-    // warp of the world that keeps what that keyframe sees), then everything takes the
-    // keyframes' adjusted poses.
-    let moved_keys: Vec<(usize, CameraPose, CameraPose)> = (0..n)
-        .filter_map(|i| Some((i, cameras[i]?, key_cameras[i]?)))
-        .collect();
-    for (i, c) in cameras.iter_mut().enumerate() {
-        let Some(pose) = c else { continue };
-        let near = moved_keys.partition_point(|(k, _, _)| *k < i);
-        let nearest = [near.checked_sub(1), Some(near)]
-            .into_iter()
-            .flatten()
-            .filter_map(|k| moved_keys.get(k))
-            .min_by_key(|(k, _, _)| k.abs_diff(i));
-        if let Some((_, before, after)) = nearest {
-            *c = Some(keyframes::warped(pose, before, after));
-        }
-    }
-    // Every other camera alone against the adjusted points.
     let mut per_image: Vec<Vec<(usize, Observation)>> = vec![Vec::new(); n];
     for (j, others) in held.into_iter().enumerate() {
         for o in others {
             per_image[o.image].push((j, o));
         }
     }
+    // Each other camera starts moved as the keyframe it shares the most adjusted points with
+    // was moved (a warp of the world that keeps what that keyframe sees; the nearest keyframe
+    // in image order when it shares none), then the keyframes take their adjusted poses.
+    let moved_keys: Vec<(usize, CameraPose, CameraPose)> = (0..n)
+        .filter_map(|i| Some((i, cameras[i]?, key_cameras[i]?)))
+        .collect();
+    let warp_from: Vec<Option<usize>> = (0..n)
+        .into_par_iter()
+        .map(|i| {
+            cameras[i]?;
+            if key[i] {
+                return Some(i);
+            }
+            let mut shared: HashMap<usize, usize> = HashMap::new();
+            for (j, _) in &per_image[i] {
+                for o in &points[*j].observations {
+                    *shared.entry(o.image).or_default() += 1;
+                }
+            }
+            shared
+                .into_iter()
+                .max_by_key(|&(k, count)| (count, std::cmp::Reverse(k)))
+                .map(|(k, _)| k)
+                .or_else(|| {
+                    let near = moved_keys.partition_point(|(k, _, _)| *k < i);
+                    [near.checked_sub(1), Some(near)]
+                        .into_iter()
+                        .flatten()
+                        .filter_map(|k| moved_keys.get(k))
+                        .min_by_key(|(k, _, _)| k.abs_diff(i))
+                        .map(|(k, _, _)| *k)
+                })
+        })
+        .collect();
+    for (i, from) in warp_from.iter().enumerate() {
+        if let (Some(pose), Some(k)) = (cameras[i], from)
+            && let (Some(before), Some(after)) = (cameras[*k], key_cameras[*k])
+            && *k != i
+        {
+            cameras[i] = Some(keyframes::warped(&pose, &before, &after));
+        }
+    }
+    for (c, k) in cameras.iter_mut().zip(&key_cameras) {
+        if k.is_some() {
+            *c = *k;
+        }
+    }
+    // Every other camera alone against the adjusted points.
     let (at_end, phi) = folded(intrinsics, factors);
     let alone: Vec<usize> = (0..n)
         .filter(|&i| cameras[i].is_some() && !key[i])

@@ -2,7 +2,8 @@
 //! [`KeyframeOptions::max_keyframes`], the points and the focal factors are adjusted with a
 //! subset of the cameras (keyframes, evenly spaced in image order), and every other camera is
 //! then refined alone against the adjusted points (its pose only: 6 parameters, the same Cauchy
-//! loss, an independent problem per camera).
+//! loss, an independent problem per camera), starting where the keyframe it shares the most
+//! points with took it ([`warped`]). Its observations are kept as the points' `alone` ones.
 //!
 //! Why: on a video the tracks span more frames as the frames get denser, so every camera shares
 //! points with more of the others; the reduced camera system's band, and with it the explicit
