@@ -323,6 +323,19 @@ pub fn project_lens(
     })
 }
 
+/// `∂uv/∂x_c` of the pinhole projection with focal `f` at `x_c`.
+pub(crate) fn pinhole_jacobian(f: f64, xc: &Vector3<f64>) -> SMatrix<f64, 2, 3> {
+    let iz = 1.0 / xc.z;
+    SMatrix::<f64, 2, 3>::new(
+        f * iz,
+        0.0,
+        -f * xc.x * iz * iz,
+        0.0,
+        f * iz,
+        -f * xc.y * iz * iz,
+    )
+}
+
 /// Linear triangulation from normalised rays (faer SVD); `None` when degenerate, behind a
 /// camera or narrower than `min_angle` (radians).
 pub fn triangulate(
@@ -811,14 +824,7 @@ impl LeastSquares for Problem<'_> {
                     let iz = 1.0 / xc.z;
                     let (u, v) = (xc.x * iz, xc.y * iz);
                     let d = if this.kind == LensKind::Brown && k == PINHOLE {
-                        SMatrix::<f64, 2, 3>::new(
-                            f * iz,
-                            0.0,
-                            -f * xc.x * iz * iz,
-                            0.0,
-                            f * iz,
-                            -f * xc.y * iz * iz,
-                        )
+                        pinhole_jacobian(f, &xc)
                     } else {
                         // ∂uv/∂x_c = f ∂x_d/∂x · ∂x/∂x_c, with ∂x/∂x_c = [I | −x] / z.
                         let (_, jd) = this.kind.distort(k, u, v);

@@ -233,6 +233,23 @@ mod tests {
         (cameras, intrinsics, points)
     }
 
+    /// [`split_cameras`] of a [`ring`] mapped at the first image's focal (600 of 640), with
+    /// the default options.
+    fn split(
+        points: &[Point],
+        intrinsics: &ImageIntrinsics,
+        cameras: &[Option<CameraPose>],
+    ) -> CameraSplit {
+        split_cameras(
+            points,
+            (intrinsics, 600.0 / 640.0, &[640.0; 10]),
+            cameras,
+            &options(),
+            &CameraSplitOptions::default(),
+        )
+        .unwrap()
+    }
+
     fn options() -> BundleOptions {
         BundleOptions {
             max_error_px: 1e3,
@@ -292,14 +309,7 @@ mod tests {
             p.observations = joint;
             p.alone = other;
         }
-        let split = split_cameras(
-            &points,
-            (&intrinsics, 600.0 / 640.0, &[640.0; 10]),
-            &cameras,
-            &options(),
-            &CameraSplitOptions::default(),
-        )
-        .unwrap();
+        let split = split(&points, &intrinsics, &cameras);
         for (i, f) in split.image_focal.iter().enumerate() {
             let f = f.unwrap();
             assert!((f / (600.0 * zoom(i)) - 1.0).abs() < 1e-3, "image {i}: {f}");
@@ -313,14 +323,7 @@ mod tests {
     fn one_lens_stays_one_camera() {
         let (mut cameras, intrinsics, points) = ring(&|_| 600.0);
         cameras[4] = None;
-        let split = split_cameras(
-            &points,
-            (&intrinsics, 600.0 / 640.0, &[640.0; 10]),
-            &cameras,
-            &options(),
-            &CameraSplitOptions::default(),
-        )
-        .unwrap();
+        let split = split(&points, &intrinsics, &cameras);
         assert!(split.image_focal[4].is_none());
         assert_eq!(split.image_focal.iter().flatten().count(), 9);
         assert!(split.same_cameras(&[0; 10]), "{split:?}");

@@ -5,7 +5,7 @@
 
 use nalgebra::{Matrix3, Point3, Rotation3, Vector3};
 use posediff_geometry::PairMatches;
-use posediff_sfm::bundle::{BundleOptions, KeyframeOptions, bundle_adjust};
+use posediff_sfm::bundle::{BundleOptions, BundleReport, KeyframeOptions, bundle_adjust};
 use posediff_sfm::sampson_refine::{SampsonRefineOptions, refine_sampson, robust_cost};
 use posediff_sfm::tracks::{Observation, Track, build_tracks};
 use posediff_sfm::{CameraPose as RefineCamera, ImageIntrinsics, Solver};
@@ -97,7 +97,9 @@ fn refs(m: &[PairMatches]) -> Vec<&PairMatches> {
     m.iter().collect()
 }
 
-fn perturbed(cameras: &[RefineCamera]) -> Vec<Option<RefineCamera>> {
+/// `cameras` with every one but the first turned and moved, more the later it is: Euler angles
+/// `(0.02, −0.015·i, 0.01)` and a shift `(0.1, −0.05, 0.08·i)`, both times `size`.
+fn perturbed(cameras: &[RefineCamera], size: f64) -> Vec<Option<RefineCamera>> {
     cameras
         .iter()
         .enumerate()
@@ -105,10 +107,11 @@ fn perturbed(cameras: &[RefineCamera]) -> Vec<Option<RefineCamera>> {
             if i == 0 {
                 return Some(*c);
             }
-            let d = Rotation3::from_euler_angles(0.02, -0.015 * i as f64, 0.01);
+            let d =
+                Rotation3::from_euler_angles(0.02 * size, -0.015 * size * i as f64, 0.01 * size);
             Some(RefineCamera {
                 rotation: d * c.rotation,
-                center: c.center + Vector3::new(0.1, -0.05, 0.08 * i as f64),
+                center: c.center + Vector3::new(0.1, -0.05, 0.08 * i as f64) * size,
             })
         })
         .collect()
@@ -131,7 +134,7 @@ fn worst_rotation(a: &[Option<RefineCamera>], b: &[RefineCamera]) -> f64 {
 #[test]
 fn recovers_exact_cameras_and_focal() {
     let s = scene(6, 0);
-    let mut cams = perturbed(&s.cameras);
+    let mut cams = perturbed(&s.cameras, 1.0);
     let mut phi = s.phi * 1.1;
     assert!(worst_rotation(&cams, &s.cameras) > 1.0);
     let report = refine_sampson(
@@ -168,7 +171,7 @@ fn recovers_exact_cameras_and_focal() {
 #[test]
 fn a_cap_on_the_matches_per_pair_keeps_the_exact_solution() {
     let s = scene(6, 0);
-    let mut cams = perturbed(&s.cameras);
+    let mut cams = perturbed(&s.cameras, 1.0);
     let mut phi = s.phi * 1.1;
     let pairs = s.matches.iter().filter(|p| !p.is_empty()).count();
     let total: usize = s.matches.iter().map(|p| p.len()).sum();
@@ -199,7 +202,7 @@ fn a_cap_on_the_matches_per_pair_keeps_the_exact_solution() {
     let whole = refine_sampson(
         &refs(&s.matches),
         &s.intrinsics,
-        &mut perturbed(&s.cameras),
+        &mut perturbed(&s.cameras, 1.0),
         &mut phi,
         0,
         &SampsonRefineOptions {
@@ -220,7 +223,7 @@ fn a_cap_on_the_matches_per_pair_keeps_the_exact_solution() {
     let err = refine_sampson(
         &refs(&s.matches),
         &s.intrinsics,
-        &mut perturbed(&s.cameras),
+        &mut perturbed(&s.cameras, 1.0),
         &mut phi,
         0,
         &zero,
@@ -232,7 +235,7 @@ fn a_cap_on_the_matches_per_pair_keeps_the_exact_solution() {
 #[test]
 fn gross_outliers_do_not_pull_the_solution() {
     let s = scene(5, 7);
-    let mut cams = perturbed(&s.cameras);
+    let mut cams = perturbed(&s.cameras, 1.0);
     let mut phi = s.phi * 0.95;
     let truth: Vec<Option<RefineCamera>> = s.cameras.iter().copied().map(Some).collect();
     let report = refine_sampson(
@@ -327,31 +330,21 @@ fn multi_view_tracks_with(s: &Scene, focal: &dyn Fn(usize) -> f64) -> Vec<Track>
         .collect()
 }
 
-#[test]
-fn bundle_adjustment_recovers_exact_cameras_and_focal() {
-    let s = scene(5, 0);
+/// Adjusts `scene(n, 0)`'s tracks from cameras perturbed by a fifth of [`perturbed`] and a
+/// focal 2 % off with `keyframes`; the cameras and the focal must come back exactly.
+fn exactly_adjusted(
+    n: usize,
+    keyframes: Option<KeyframeOptions>,
+) -> (Vec<Track>, Vec<posediff_sfm::bundle::Point>, BundleReport) {
+    let s = scene(n, 0);
     let tracks = multi_view_tracks(&s);
     assert!(tracks.len() > 100);
     // Small perturbation: the triangulation must still find the points in front.
-    let mut cams: Vec<Option<RefineCamera>> = s
-        .cameras
-        .iter()
-        .enumerate()
-        .map(|(i, c)| {
-            Some(if i == 0 {
-                *c
-            } else {
-                RefineCamera {
-                    rotation: Rotation3::from_euler_angles(0.004, -0.003 * i as f64, 0.002)
-                        * c.rotation,
-                    center: c.center + Vector3::new(0.02, -0.01, 0.015 * i as f64),
-                }
-            })
-        })
-        .collect();
+    let mut cams = perturbed(&s.cameras, 0.2);
     let mut phi = s.phi * 1.02;
     let config = BundleOptions {
         max_error_px: 1e3,
+        keyframes,
         ..BundleOptions::default()
     };
     let (points, report) = bundle_adjust(
@@ -365,10 +358,19 @@ fn bundle_adjustment_recovers_exact_cameras_and_focal() {
     .unwrap();
     assert_eq!(points.len(), report.points);
     assert!(report.converged, "{report:?}");
-    assert_eq!(report.points, tracks.len());
     assert!(report.rms_px < 1e-6, "{report:?}");
     assert!((phi / s.phi - 1.0).abs() < 1e-7, "phi {phi}");
     assert!(worst_rotation(&cams, &s.cameras) < 1e-5);
+    (tracks, points, report)
+}
+
+#[test]
+fn bundle_adjustment_recovers_exact_cameras_and_focal() {
+    let (tracks, points, report) = exactly_adjusted(5, Some(KeyframeOptions::default()));
+    assert_eq!(report.points, tracks.len());
+    // Five cameras: all adjusted jointly.
+    assert!(report.keyframes.is_none());
+    assert!(points.iter().all(|p| p.alone.is_empty()));
 }
 
 /// With more cameras than `keyframes.max_keyframes`, the keyframes are adjusted with the
@@ -376,51 +378,16 @@ fn bundle_adjustment_recovers_exact_cameras_and_focal() {
 /// the others' observations are the points' `alone` ones, and the report says so.
 #[test]
 fn keyframe_bundle_adjustment_recovers_exact_cameras_and_focal() {
-    let s = scene(12, 0);
-    let tracks = multi_view_tracks(&s);
-    let mut cams: Vec<Option<RefineCamera>> = s
-        .cameras
-        .iter()
-        .enumerate()
-        .map(|(i, c)| {
-            Some(if i == 0 {
-                *c
-            } else {
-                RefineCamera {
-                    rotation: Rotation3::from_euler_angles(0.004, -0.001 * i as f64, 0.002)
-                        * c.rotation,
-                    center: c.center + Vector3::new(0.02, -0.01, 0.005 * i as f64),
-                }
-            })
-        })
-        .collect();
-    let mut phi = s.phi * 1.02;
-    let config = BundleOptions {
-        max_error_px: 1e3,
-        keyframes: Some(KeyframeOptions {
-            max_keyframes: 5,
-            ..KeyframeOptions::default()
-        }),
-        ..BundleOptions::default()
+    let options = KeyframeOptions {
+        max_keyframes: 5,
+        ..KeyframeOptions::default()
     };
-    let (points, report) = bundle_adjust(
-        &tracks,
-        &s.intrinsics,
-        &mut cams,
-        std::slice::from_mut(&mut phi),
-        0,
-        &config,
-    )
-    .unwrap();
+    let (_, points, report) = exactly_adjusted(12, Some(options));
     let k = report.keyframes.unwrap();
     assert_eq!(
         (k.keyframes, k.promoted, k.refined_alone, k.unrefined),
         (5, 0, 7, 0)
     );
-    assert!(report.converged, "{report:?}");
-    assert!(report.rms_px < 1e-6, "{report:?}");
-    assert!((phi / s.phi - 1.0).abs() < 1e-7, "phi {phi}");
-    assert!(worst_rotation(&cams, &s.cameras) < 1e-5);
     // Keyframes 0, 3, 6, 8, 11 (evenly spaced) in the joint adjustment, the others alone.
     for p in &points {
         assert!(
@@ -432,20 +399,7 @@ fn keyframe_bundle_adjustment_recovers_exact_cameras_and_focal() {
         assert_eq!(p.observations.len() + p.alone.len(), 12);
     }
     // Without keyframes: all twelve jointly.
-    let mut cams: Vec<Option<RefineCamera>> = s.cameras.iter().copied().map(Some).collect();
-    let joint = BundleOptions {
-        keyframes: None,
-        ..config
-    };
-    let (points, report) = bundle_adjust(
-        &tracks,
-        &s.intrinsics,
-        &mut cams,
-        std::slice::from_mut(&mut phi),
-        0,
-        &joint,
-    )
-    .unwrap();
+    let (_, points, report) = exactly_adjusted(12, None);
     assert!(report.keyframes.is_none());
     assert!(points.iter().all(|p| p.alone.is_empty()));
 }

@@ -170,15 +170,7 @@ impl LeastSquares for PoseOnly<'_> {
             };
             let r = SVector::<f64, 2>::new(uv[0] - xy[0], uv[1] - xy[1]);
             let w = 1.0 / (1.0 + r.norm_squared() / c2);
-            let iz = 1.0 / xc.z;
-            let d = SMatrix::<f64, 2, 3>::new(
-                f * iz,
-                0.0,
-                -f * xc.x * iz * iz,
-                0.0,
-                f * iz,
-                -f * xc.y * iz * iz,
-            );
+            let d = super::pinhole_jacobian(f, &xc);
             // As the bundle adjustment's: x_c = exp(ω) R (X − C), ∂uv/∂log f = uv − pp.
             let skew = Matrix3::new(0.0, -xc.z, xc.y, xc.z, 0.0, -xc.x, -xc.y, xc.x, 0.0);
             let mut j = SMatrix::<f64, 2, 7>::zeros();
