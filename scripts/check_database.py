@@ -77,6 +77,13 @@ def main():
         d = np.abs(np.sum(x2 * fx1, 1)) / np.hypot(fx1[:, 0], fx1[:, 1])
         if np.median(d) > 1.0:
             fail(f"pair {p['first']}-{p['second']}: F fits its inliers to {np.median(d):.2f} px")
+    # COLMAP's `matches` table holds a pair's matches before verification: its inliers are
+    # among them.
+    for p in pairs:
+        raw = {tuple(r) for r in db.read_matches(p["first"] + 1, p["second"] + 1).tolist()}
+        g = db.read_two_view_geometry(image_id1=p["first"] + 1, image_id2=p["second"] + 1)
+        if not all(tuple(r) in raw for r in g.inlier_matches.tolist()):
+            fail(f"pair {p['first']}-{p['second']}: inliers that its matches lack")
     matches = sum(db.read_two_view_geometry(image_id1=p["first"] + 1,
                                             image_id2=p["second"] + 1).inlier_matches.shape[0]
                   for p in pairs)

@@ -262,6 +262,29 @@ pub fn match_pairs(
         .collect()
 }
 
+/// [`match_pairs`] with each pair's matches before verification beside the verified ones
+/// (`(raw, verified)`; COLMAP keeps both: its `matches` and `two_view_geometries` tables).
+///
+/// # Errors
+/// As [`match_pairs`].
+pub fn match_pairs_with_raw(
+    features: &[ImageFeatures],
+    pairs: &[(usize, usize)],
+    config: &MatchConfig,
+) -> Result<Vec<(PairMatches, PairMatches)>> {
+    check_pairs(features.len(), pairs)?;
+    pairs
+        .par_iter()
+        .map(|&(i, j)| {
+            let (a, b) = (&features[i], &features[j]);
+            let idx = mnn::mutual_nearest_neighbours(&a.descriptors, &b.descriptors, config.ratio);
+            let raw = raw_matches(a, b, i, j, &idx);
+            let verified = verify(raw.clone(), config)?;
+            Ok((raw, verified))
+        })
+        .collect()
+}
+
 /// Every pair names two different images of `n`.
 ///
 /// # Errors

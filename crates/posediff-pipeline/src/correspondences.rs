@@ -450,6 +450,25 @@ pub trait Correspondences: Sync {
         stage: (&dyn StepCounter, &str),
     ) -> Result<Vec<PairMatches>>;
 
+    /// [`Self::match_pairs`] with each pair's matches before verification (`(raw, verified)`,
+    /// for COLMAP's `matches` table beside its `two_view_geometries`; `None` where the matcher
+    /// does not keep them: the verified ones are stored in both then). Pairs are not left out.
+    ///
+    /// # Errors
+    /// As [`Self::match_pairs`].
+    fn match_pairs_with_raw(
+        &self,
+        features: &[ImageFeatures],
+        pairs: &[(usize, usize)],
+        stage: (&dyn StepCounter, &str),
+    ) -> Result<Vec<(Option<PairMatches>, PairMatches)>> {
+        Ok(self
+            .match_pairs(features, pairs, stage)?
+            .into_iter()
+            .map(|m| (None, m))
+            .collect())
+    }
+
     /// Whether the matcher's features change with the image's in-plane orientation (learned
     /// extractors: ALIKED and DISK are not rotation-invariant), so that images upside down
     /// relative to the others need matching turned.
@@ -500,6 +519,21 @@ impl Correspondences for OpenCvCorrespondences<'_> {
     ) -> Result<Vec<PairMatches>> {
         counter.stage(name, 0);
         Ok(posediff_matching::match_pairs(features, pairs, self.0)?)
+    }
+
+    fn match_pairs_with_raw(
+        &self,
+        features: &[ImageFeatures],
+        pairs: &[(usize, usize)],
+        (counter, name): (&dyn StepCounter, &str),
+    ) -> Result<Vec<(Option<PairMatches>, PairMatches)>> {
+        counter.stage(name, 0);
+        Ok(
+            posediff_matching::match_pairs_with_raw(features, pairs, self.0)?
+                .into_iter()
+                .map(|(raw, verified)| (Some(raw), verified))
+                .collect(),
+        )
     }
 
     /// SIFT and ORB describe each keypoint in its own orientation.
@@ -596,6 +630,15 @@ impl Correspondences for Adjusted<'_> {
         self.inner.match_pairs(features, pairs, stage)
     }
 
+    fn match_pairs_with_raw(
+        &self,
+        features: &[ImageFeatures],
+        pairs: &[(usize, usize)],
+        stage: (&dyn StepCounter, &str),
+    ) -> Result<Vec<(Option<PairMatches>, PairMatches)>> {
+        self.inner.match_pairs_with_raw(features, pairs, stage)
+    }
+
     fn depends_on_orientation(&self) -> bool {
         self.inner.depends_on_orientation()
     }
@@ -627,6 +670,15 @@ impl<T: Correspondences + ?Sized> Correspondences for &T {
         stage: (&dyn StepCounter, &str),
     ) -> Result<Vec<PairMatches>> {
         (**self).match_pairs(features, pairs, stage)
+    }
+
+    fn match_pairs_with_raw(
+        &self,
+        features: &[ImageFeatures],
+        pairs: &[(usize, usize)],
+        stage: (&dyn StepCounter, &str),
+    ) -> Result<Vec<(Option<PairMatches>, PairMatches)>> {
+        (**self).match_pairs_with_raw(features, pairs, stage)
     }
 
     fn depends_on_orientation(&self) -> bool {

@@ -56,6 +56,22 @@ pub trait FeatureStore: Send + Sync {
     /// Indices out of range; the store cannot be written.
     fn put_matches(&self, pairs: &[PairMatches]) -> Result<()>;
 
+    /// [`Self::put_matches`] with each pair's matches before verification where the matcher
+    /// kept them (`raw[k]` of `pairs[k]`; COLMAP's `matches` table holds them, its
+    /// `two_view_geometries` the verified ones). A store without a place for them stores the
+    /// verified ones only.
+    ///
+    /// # Errors
+    /// As [`Self::put_matches`]; `raw` of another length than `pairs`.
+    fn put_matches_with_raw(
+        &self,
+        pairs: &[PairMatches],
+        raw: &[Option<PairMatches>],
+    ) -> Result<()> {
+        let _ = raw;
+        self.put_matches(pairs)
+    }
+
     /// How many images the last [`Self::features`] list has.
     fn images(&self) -> usize;
 
@@ -260,7 +276,11 @@ impl Correspondences for Stored<'_> {
         counter.stage(name, missing.len() as u64);
         for chunk in missing.chunks(self.pairs_per_commit.max(1)) {
             let list: Vec<(usize, usize)> = chunk.iter().map(|&k| pairs[k]).collect();
-            let fresh = self.inner.match_pairs(features, &list, (&Quiet, name))?;
+            let (raw, fresh): (Vec<Option<PairMatches>>, Vec<PairMatches>) = self
+                .inner
+                .match_pairs_with_raw(features, &list, (&Quiet, name))?
+                .into_iter()
+                .unzip();
             if fresh.len() != list.len()
                 || fresh
                     .iter()
@@ -273,7 +293,8 @@ impl Correspondences for Stored<'_> {
                     list.len()
                 )));
             }
-            self.store.put_matches(&fresh)?;
+            self.store.put_matches_with_raw(&fresh, &raw)?;
+            drop(raw);
             for (&k, m) in chunk.iter().zip(fresh) {
                 out[k] = Some(m);
                 counter.step();

@@ -315,6 +315,14 @@ fn an_interrupted_match_resumes_to_the_same_cameras() {
 
 /// Every pair's matches by image names, as (keypoint of the first name, of the second).
 fn matches_by_name(db: &Path) -> std::collections::BTreeMap<(String, String), Vec<(u32, u32)>> {
+    rows_by_name(db, "matches")
+}
+
+/// [`matches_by_name`] of `table` (`matches` or `two_view_geometries`).
+fn rows_by_name(
+    db: &Path,
+    table: &str,
+) -> std::collections::BTreeMap<(String, String), Vec<(u32, u32)>> {
     let c = rusqlite::Connection::open(db).unwrap();
     let names: std::collections::HashMap<i64, String> = c
         .prepare("SELECT image_id, name FROM images")
@@ -323,7 +331,9 @@ fn matches_by_name(db: &Path) -> std::collections::BTreeMap<(String, String), Ve
         .unwrap()
         .map(Result::unwrap)
         .collect();
-    let mut stmt = c.prepare("SELECT pair_id, data FROM matches").unwrap();
+    let mut stmt = c
+        .prepare(&format!("SELECT pair_id, data FROM {table}"))
+        .unwrap();
     let rows: Vec<(i64, Option<Vec<u8>>)> = stmt
         .query_map([], |r| Ok((r.get(0)?, r.get(1)?)))
         .unwrap()
@@ -393,6 +403,17 @@ fn a_worker_with_other_image_ids_imports_its_pairs_turned() {
     assert!(!log.contains("selection: 6 pairs"), "{log}");
     let theirs = matches_by_name(&worker);
     assert_eq!(theirs.len(), 6);
+    // `matches` holds each pair's matches before verification, `two_view_geometries` the
+    // verified ones among them (COLMAP's layout); SIFT's mutual nearest neighbours on the
+    // fountain include outliers MAGSAC drops.
+    let verified = rows_by_name(&worker, "two_view_geometries");
+    assert_eq!(verified.len(), 6);
+    for (pair, inliers) in &verified {
+        let raw: std::collections::BTreeSet<&(u32, u32)> = theirs[pair].iter().collect();
+        assert!(inliers.iter().all(|m| raw.contains(m)), "{pair:?}");
+        assert!(raw.len() > inliers.len(), "{pair:?}: {} raw", raw.len());
+    }
+    assert_eq!(rows_by_name(&merged, "two_view_geometries"), verified);
     assert_eq!(matches_by_name(&merged), theirs);
     // The ids run the other way in the two databases.
     let first_id = |db: &Path| -> i64 {

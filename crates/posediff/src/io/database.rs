@@ -6,9 +6,11 @@
 //! - [`Database`], `--database D`: the run's store ([`posediff_pipeline::store`]). Features
 //!   and verified matches are read from it first and written to it as they are made, in
 //!   chunked commits, so that an interrupted run resumes. It holds a camera per image with its
-//!   prior (COLMAP's default), every keypoint and descriptor, each matched pair's verified
-//!   matches (an `UNCALIBRATED` two-view geometry; a `DEGENERATE` one with no rows where too
-//!   few verified, so that the pair is not matched again).
+//!   prior (COLMAP's default), every keypoint and descriptor, each matched pair's matches
+//!   before verification as `matches` (SIFT's and ORB's mutual nearest neighbours, as COLMAP's
+//!   matchers store them; a learned matcher's verified ones, which is all it keeps) and its
+//!   verified ones as the inliers of an `UNCALIBRATED` two-view geometry (a `DEGENERATE` one
+//!   with no rows where too few verified, so that the pair is not matched again).
 //!   A table of its own, `posediff_store`, records which matcher and settings made the
 //!   features, so that a run with others is refused instead of mixing them, and each stored
 //!   image's content (`image:<name>` → `sha256:<hex>`), so that a file replaced under the
@@ -254,7 +256,7 @@ pub fn write_database(
             x2.push([pb[0] + PIXEL_CENTRE_OFFSET, pb[1] + PIXEL_CENTRE_OFFSET]);
         }
         let id = pair_id(p.first as u32 + 1, p.second as u32 + 1);
-        insert_pair(&tx, &e, id, p.len(), &data, (&x1, &x2))?;
+        insert_pair(&tx, &e, id, (p.len(), &data), None, (&x1, &x2))?;
         written += 1;
     }
     tx.commit().map_err(&e)?;
@@ -265,21 +267,59 @@ pub fn write_database(
     })
 }
 
-/// Writes a pair's `rows` matches (`data`, COLMAP's order) as `matches` and as the inliers of
-/// its two-view geometry: `UNCALIBRATED` with F, the eight-point fit of the inliers `x1`, `x2`
-/// in COLMAP pixels (`x2ᵀ F x1 = 0`, row-major, as pycolmap reads it: scripts/check_database.py
-/// checks the epipolar distances), or `DEGENERATE` without rows where too few verified.
+/// A pair's matches as COLMAP stores them (keypoint ids, the smaller image id's first when
+/// `swap` is false, else the other way round, little-endian `u32` pairs) and, where both
+/// keypoints are known (`keypoints` of the pair's first and second image), their COLMAP pixels
+/// (`+0.5`) in the same order.
+#[allow(clippy::type_complexity)]
+fn colmap_rows(
+    p: &PairMatches,
+    swap: bool,
+    (ka, kb): (Option<&Vec<[f64; 2]>>, Option<&Vec<[f64; 2]>>),
+) -> (Vec<u8>, Vec<[f64; 2]>, Vec<[f64; 2]>) {
+    let mut data = Vec::with_capacity(p.len() * 8);
+    let mut x1 = Vec::with_capacity(p.len());
+    let mut x2 = Vec::with_capacity(p.len());
+    for k in 0..p.len() {
+        let (u, v) = (p.idx1[k], p.idx2[k]);
+        let (pa, pb) = (
+            ka.and_then(|kp| kp.get(u as usize)),
+            kb.and_then(|kp| kp.get(v as usize)),
+        );
+        // COLMAP orders a pair by image id: the smaller id's keypoint first.
+        let ((u, pa), (v, pb)) = if swap {
+            ((v, pb), (u, pa))
+        } else {
+            ((u, pa), (v, pb))
+        };
+        data.extend(u.to_le_bytes());
+        data.extend(v.to_le_bytes());
+        if let (Some(pa), Some(pb)) = (pa, pb) {
+            x1.push([pa[0] + PIXEL_CENTRE_OFFSET, pa[1] + PIXEL_CENTRE_OFFSET]);
+            x2.push([pb[0] + PIXEL_CENTRE_OFFSET, pb[1] + PIXEL_CENTRE_OFFSET]);
+        }
+    }
+    (data, x1, x2)
+}
+
+/// Writes a pair's `rows` verified matches (`data`, COLMAP's order) as the inliers of its
+/// two-view geometry: `UNCALIBRATED` with F, the eight-point fit of the inliers `x1`, `x2` in
+/// COLMAP pixels (`x2ᵀ F x1 = 0`, row-major, as pycolmap reads it: scripts/check_database.py
+/// checks the epipolar distances), or `DEGENERATE` without rows where too few verified; and as
+/// `matches` the raw ones before verification when given (`raw_rows`, the same layout), else
+/// the verified ones.
 fn insert_pair(
     tx: &rusqlite::Transaction<'_>,
     e: &impl Fn(rusqlite::Error) -> PosediffError,
     id: i64,
-    rows: usize,
-    data: &[u8],
+    (rows, data): (usize, &[u8]),
+    raw_rows: Option<(usize, &[u8])>,
     (x1, x2): (&[[f64; 2]], &[[f64; 2]]),
 ) -> Result<()> {
+    let (raw_count, raw_data) = raw_rows.unwrap_or((rows, data));
     tx.execute(
         "INSERT OR REPLACE INTO matches (pair_id, rows, cols, data) VALUES (?1, ?2, 2, ?3)",
-        params![id, rows as i64, data],
+        params![id, raw_count as i64, raw_data],
     )
     .map_err(e)?;
     let f = if rows > 0 && x1.len() == rows {
@@ -956,32 +996,82 @@ impl Database {
             return Ok(copied);
         }
         let got = from.matches(&reordered)?;
+        let raw = from.pair_rows("matches", &reordered)?;
         // The keypoints, for F (this also fills the keypoint cache `put_matches` reads).
         let features = self.features(images)?;
+        let pair_of = |(i, j): (usize, usize), m: StoredMatches| {
+            let point = |f: usize, k: u32| {
+                features[f]
+                    .as_ref()
+                    .and_then(|fs| fs.keypoints.get(k as usize))
+                    .copied()
+                    .unwrap_or([0.0; 2])
+            };
+            PairMatches {
+                first: i,
+                second: j,
+                kp1: m.iter().map(|&(k, _)| point(i, k)).collect(),
+                kp2: m.iter().map(|&(_, l)| point(j, l)).collect(),
+                idx1: m.iter().map(|&(k, _)| k).collect(),
+                idx2: m.iter().map(|&(_, l)| l).collect(),
+            }
+        };
+        let raw: Vec<Option<PairMatches>> = reordered
+            .iter()
+            .zip(raw)
+            .map(|(&p, m)| m.map(|m| pair_of(p, m)))
+            .collect();
         let pairs: Vec<PairMatches> = reordered
             .iter()
             .zip(got)
-            .map(|(&(i, j), m)| {
-                let m = m.unwrap_or_default();
-                let point = |f: usize, k: u32| {
-                    features[f]
-                        .as_ref()
-                        .and_then(|fs| fs.keypoints.get(k as usize))
-                        .copied()
-                        .unwrap_or([0.0; 2])
-                };
-                PairMatches {
-                    first: i,
-                    second: j,
-                    kp1: m.iter().map(|&(k, _)| point(i, k)).collect(),
-                    kp2: m.iter().map(|&(_, l)| point(j, l)).collect(),
-                    idx1: m.iter().map(|&(k, _)| k).collect(),
-                    idx2: m.iter().map(|&(_, l)| l).collect(),
-                }
-            })
+            .map(|(&p, m)| pair_of(p, m.unwrap_or_default()))
             .collect();
-        self.put_matches(&pairs)?;
+        self.put_matches_with_raw(&pairs, &raw)?;
         Ok(copied + pairs.len())
+    }
+
+    /// Each pair's rows of `table` (`two_view_geometries`: the verified matches; `matches`:
+    /// those before verification), in the run's image order (`None`: no row).
+    fn pair_rows(
+        &self,
+        table: &str,
+        pairs: &[(usize, usize)],
+    ) -> posediff_pipeline::Result<Vec<Option<StoredMatches>>> {
+        let conn = self.conn();
+        let e = self.wrap();
+        let run = self
+            .run
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        let ids = &run.ids;
+        let mut stmt = conn
+            .prepare_cached(&format!(
+                "SELECT rows, data FROM {table} WHERE pair_id = ?1"
+            ))
+            .map_err(&e)?;
+        let mut out = Vec::with_capacity(pairs.len());
+        for &(i, j) in pairs {
+            let (a, b) = (run_id(ids, i)?, run_id(ids, j)?);
+            let row: Option<(i64, Option<Vec<u8>>)> = stmt
+                .query_row(params![pair_id(a as u32, b as u32)], |r| {
+                    Ok((r.get(0)?, r.get(1)?))
+                })
+                .optional()
+                .map_err(&e)?;
+            out.push(match row {
+                None => None,
+                Some((rows, data)) => {
+                    let m = decode_matches(&self.path, rows as usize, &data.unwrap_or_default())?;
+                    // COLMAP's first column is the smaller id's keypoint.
+                    Some(if a > b {
+                        m.into_iter().map(|(x, y)| (y, x)).collect()
+                    } else {
+                        m
+                    })
+                }
+            });
+        }
+        Ok(out)
     }
 
     /// The names of the last `features` list, in its order.
@@ -1458,42 +1548,26 @@ impl FeatureStore for Database {
         &self,
         pairs: &[(usize, usize)],
     ) -> posediff_pipeline::Result<Vec<Option<StoredMatches>>> {
-        let conn = self.conn();
-        let e = self.wrap();
-        let run = self
-            .run
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner);
-        let ids = &run.ids;
-        let mut stmt = conn
-            .prepare_cached("SELECT rows, data FROM two_view_geometries WHERE pair_id = ?1")
-            .map_err(&e)?;
-        let mut out = Vec::with_capacity(pairs.len());
-        for &(i, j) in pairs {
-            let (a, b) = (run_id(ids, i)?, run_id(ids, j)?);
-            let row: Option<(i64, Option<Vec<u8>>)> = stmt
-                .query_row(params![pair_id(a as u32, b as u32)], |r| {
-                    Ok((r.get(0)?, r.get(1)?))
-                })
-                .optional()
-                .map_err(&e)?;
-            out.push(match row {
-                None => None,
-                Some((rows, data)) => {
-                    let m = decode_matches(&self.path, rows as usize, &data.unwrap_or_default())?;
-                    // COLMAP's first column is the smaller id's keypoint.
-                    Some(if a > b {
-                        m.into_iter().map(|(x, y)| (y, x)).collect()
-                    } else {
-                        m
-                    })
-                }
-            });
-        }
-        Ok(out)
+        self.pair_rows("two_view_geometries", pairs)
     }
 
     fn put_matches(&self, pairs: &[PairMatches]) -> posediff_pipeline::Result<()> {
+        self.put_matches_with_raw(pairs, &vec![None; pairs.len()])
+    }
+
+    fn put_matches_with_raw(
+        &self,
+        pairs: &[PairMatches],
+        raw: &[Option<PairMatches>],
+    ) -> posediff_pipeline::Result<()> {
+        if raw.len() != pairs.len() {
+            return Err(PosediffError::InvalidArgument(format!(
+                "{} pairs of raw matches for {} pairs to store in {}",
+                raw.len(),
+                pairs.len(),
+                self.path.display()
+            )));
+        }
         self.writable()?;
         let mut conn = self.conn();
         let e = self.wrap();
@@ -1508,38 +1582,27 @@ impl FeatureStore for Database {
             .lock()
             .unwrap_or_else(std::sync::PoisonError::into_inner);
         let tx = conn.transaction().map_err(&e)?;
-        for p in pairs {
+        for (p, raw) in pairs.iter().zip(raw) {
             let (a, b) = (run_id(&ids, p.first)?, run_id(&ids, p.second)?);
-            let swap = a > b;
-            let mut data = Vec::with_capacity(p.len() * 8);
-            let mut x1 = Vec::with_capacity(p.len());
-            let mut x2 = Vec::with_capacity(p.len());
-            let (ka, kb) = (cache.get(&a), cache.get(&b));
-            for k in 0..p.len() {
-                let (u, v) = (p.idx1[k], p.idx2[k]);
-                let (pa, pb) = (
-                    ka.and_then(|kp| kp.get(u as usize)),
-                    kb.and_then(|kp| kp.get(v as usize)),
-                );
-                // COLMAP orders a pair by image id: the smaller id's keypoint first.
-                let ((u, pa), (v, pb)) = if swap {
-                    ((v, pb), (u, pa))
-                } else {
-                    ((u, pa), (v, pb))
-                };
-                data.extend(u.to_le_bytes());
-                data.extend(v.to_le_bytes());
-                if let (Some(pa), Some(pb)) = (pa, pb) {
-                    x1.push([pa[0] + PIXEL_CENTRE_OFFSET, pa[1] + PIXEL_CENTRE_OFFSET]);
-                    x2.push([pb[0] + PIXEL_CENTRE_OFFSET, pb[1] + PIXEL_CENTRE_OFFSET]);
-                }
+            if let Some(r) = raw
+                && (r.first, r.second) != (p.first, p.second)
+            {
+                return Err(PosediffError::InvalidArgument(format!(
+                    "raw matches of pair ({}, {}) given for pair ({}, {})",
+                    r.first, r.second, p.first, p.second
+                )));
             }
+            let keypoints = (cache.get(&a), cache.get(&b));
+            let (data, x1, x2) = colmap_rows(p, a > b, keypoints);
+            let raw_rows = raw
+                .as_ref()
+                .map(|r| (r.len(), colmap_rows(r, a > b, keypoints).0));
             insert_pair(
                 &tx,
                 &e,
                 pair_id(a as u32, b as u32),
-                p.len(),
-                &data,
+                (p.len(), &data),
+                raw_rows.as_ref().map(|(n, d)| (*n, d.as_slice())),
                 (&x1, &x2),
             )?;
         }
