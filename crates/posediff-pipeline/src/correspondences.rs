@@ -381,11 +381,26 @@ impl LearnedMatcher {
     /// OpenCV errors in the verification, network errors.
     pub fn match_prepared(
         &self,
+        a: (&ImageFeatures, &PreparedImage),
+        b: (&ImageFeatures, &PreparedImage),
+        first: usize,
+        second: usize,
+        config: &MatchConfig,
+    ) -> Result<PairMatches> {
+        let raw = self.match_prepared_raw(a, b, first, second)?;
+        Ok(posediff_matching::verify(raw, config)?)
+    }
+
+    /// LightGlue's matches of two prepared images before any verification.
+    ///
+    /// # Errors
+    /// Prepared images of other keypoint counts than the features; network errors.
+    pub fn match_prepared_raw(
+        &self,
         (a, pa): (&ImageFeatures, &PreparedImage),
         (b, pb): (&ImageFeatures, &PreparedImage),
         first: usize,
         second: usize,
-        config: &MatchConfig,
     ) -> Result<PairMatches> {
         if pa.len() != a.keypoints.len() || pb.len() != b.keypoints.len() {
             return Err(PosediffError::InvalidArgument(format!(
@@ -400,8 +415,9 @@ impl LearnedMatcher {
         let m = self
             .lightglue
             .match_prepared(pa, pb, &self.lightglue_config)?;
-        let raw = posediff_matching::raw_matches(a, b, first, second, &m.matches);
-        Ok(posediff_matching::verify(raw, config)?)
+        Ok(posediff_matching::raw_matches(
+            a, b, first, second, &m.matches,
+        ))
     }
 }
 
@@ -575,7 +591,21 @@ impl Correspondences for LearnedCorrespondences<'_> {
         pairs: &[(usize, usize)],
         stage: (&dyn StepCounter, &str),
     ) -> Result<Vec<PairMatches>> {
-        learned_match_pairs(&self.learned.0, features, pairs, self.config, stage)
+        Ok(
+            learned_match_pairs(&self.learned.0, features, pairs, self.config, stage, false)?
+                .into_iter()
+                .map(|(_, verified)| verified)
+                .collect(),
+        )
+    }
+
+    fn match_pairs_with_raw(
+        &self,
+        features: &[ImageFeatures],
+        pairs: &[(usize, usize)],
+        stage: (&dyn StepCounter, &str),
+    ) -> Result<Vec<(Option<PairMatches>, PairMatches)>> {
+        learned_match_pairs(&self.learned.0, features, pairs, self.config, stage, true)
     }
 
     fn depends_on_orientation(&self) -> bool {
@@ -764,16 +794,19 @@ pub fn match_pairs_counted(
 }
 
 /// LightGlue on `pairs`, each image prepared once per window of pairs ([`prepared_windows`]).
+/// Each pair's verified matches, with those before verification when `keep_raw`.
+#[allow(clippy::type_complexity)]
 fn learned_match_pairs(
     l: &LearnedMatcher,
     features: &[ImageFeatures],
     pairs: &[(usize, usize)],
     config: &MatchConfig,
     (counter, name): (&dyn StepCounter, &str),
-) -> Result<Vec<PairMatches>> {
+    keep_raw: bool,
+) -> Result<Vec<(Option<PairMatches>, PairMatches)>> {
     counter.stage(name, pairs.len() as u64);
     posediff_matching::check_pairs(features.len(), pairs)?;
-    let mut out: Vec<Option<PairMatches>> = vec![None; pairs.len()];
+    let mut out: Vec<Option<(Option<PairMatches>, PairMatches)>> = vec![None; pairs.len()];
     for window in prepared_windows(pairs, PREPARED_IMAGES) {
         // Each image of the window once, then its pairs.
         let mut images: Vec<usize> = window
@@ -796,14 +829,16 @@ fn learned_match_pairs(
                     PosediffError::InvalidArgument(format!("image {i} was not prepared"))
                 })
         };
-        let matched: Vec<PairMatches> = window
+        let matched: Vec<(Option<PairMatches>, PairMatches)> = window
             .par_iter()
             .map(|&k| {
                 let (i, j) = pairs[k];
-                let m =
-                    l.match_prepared((&features[i], of(i)?), (&features[j], of(j)?), i, j, config);
+                let raw =
+                    l.match_prepared_raw((&features[i], of(i)?), (&features[j], of(j)?), i, j);
                 counter.step();
-                m
+                let raw = raw?;
+                let kept = keep_raw.then(|| raw.clone());
+                Ok((kept, posediff_matching::verify(raw, config)?))
             })
             .collect::<Result<_>>()?;
         for (&k, m) in window.iter().zip(matched) {

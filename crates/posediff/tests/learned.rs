@@ -136,6 +136,50 @@ fn prepared_images_give_each_pairs_own_matches() {
     }
 }
 
+/// For COLMAP's `matches` table the learned matcher keeps LightGlue's matches before
+/// verification: the verified ones are among them and are what `match_pairs` gives.
+#[test]
+fn the_learned_matcher_keeps_its_matches_before_verification() {
+    use posediff::correspondences::{Correspondences, LearnedCorrespondences, extract_all};
+    let learned = SharedLearned(std::sync::Arc::new(
+        LearnedMatcher::load(&weights_dir()).unwrap_or_else(|e| panic!("{e}")),
+    ));
+    let images = apple(3);
+    let config = MatchConfig::default();
+    let features = extract_all(&images, &config, Some(&learned)).unwrap();
+    let matcher = LearnedCorrespondences {
+        learned: &learned,
+        config: &config,
+    };
+    let asked = [(0, 1), (1, 2)];
+    let counter = posediff::correspondences::NoCounter;
+    let both = matcher
+        .match_pairs_with_raw(&features, &asked, (&counter, "matching"))
+        .unwrap();
+    let verified = matcher
+        .match_pairs(&features, &asked, (&counter, "matching"))
+        .unwrap();
+    assert_eq!(both.len(), 2);
+    for ((raw, v), alone) in both.iter().zip(&verified) {
+        let raw = raw.as_ref().unwrap();
+        assert_eq!(v, alone);
+        assert!(!v.is_empty());
+        let pairs: std::collections::HashSet<(u32, u32)> = raw
+            .idx1
+            .iter()
+            .copied()
+            .zip(raw.idx2.iter().copied())
+            .collect();
+        assert!(
+            v.idx1
+                .iter()
+                .zip(&v.idx2)
+                .all(|(a, b)| pairs.contains(&(*a, *b)))
+        );
+        assert!(raw.len() >= v.len());
+    }
+}
+
 #[test]
 fn missing_weights_fail_before_any_image_is_read_and_name_the_command() {
     let dir = posediff_fixtures::temp_dir("learned-no-weights");

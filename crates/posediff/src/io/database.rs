@@ -7,10 +7,10 @@
 //!   and verified matches are read from it first and written to it as they are made, in
 //!   chunked commits, so that an interrupted run resumes. It holds a camera per image with its
 //!   prior (COLMAP's default), every keypoint and descriptor, each matched pair's matches
-//!   before verification as `matches` (SIFT's and ORB's mutual nearest neighbours, as COLMAP's
-//!   matchers store them; a learned matcher's verified ones, which is all it keeps) and its
-//!   verified ones as the inliers of an `UNCALIBRATED` two-view geometry (a `DEGENERATE` one
-//!   with no rows where too few verified, so that the pair is not matched again).
+//!   before verification as `matches` (SIFT's and ORB's mutual nearest neighbours, LightGlue's
+//!   matches, as COLMAP's matchers and hloc store them) and its verified ones as the inliers
+//!   of an `UNCALIBRATED` two-view geometry (a `DEGENERATE` one with no rows where too few
+//!   verified, so that the pair is not matched again).
 //!   A table of its own, `posediff_store`, records which matcher and settings made the
 //!   features, so that a run with others is refused instead of mixing them, and each stored
 //!   image's content (`image:<name>` → `sha256:<hex>`), so that a file replaced under the
