@@ -11,7 +11,10 @@
 //! focal on the map's points, and [`group_by_focal`] turns those focals into cameras: the
 //! largest set that agrees within `tolerance` is one camera, every other image a camera of its
 //! own. When that differs from the mapper's cameras, the caller maps again with them (the
-//! mapper's [`crate::mapper::MapperOptions::camera_split`]).
+//! mapper's [`crate::mapper::MapperOptions::camera_split`]). After a keyframe bundle adjustment
+//! (more than `keyframes.max_keyframes` images) the adjustment holds the keyframes, and each
+//! other image's focal comes from its own pose-and-focal refinement on its `alone`
+//! observations against the adjusted points.
 
 use nalgebra::Vector3;
 use rayon::prelude::*;
