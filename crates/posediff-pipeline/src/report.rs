@@ -153,9 +153,9 @@ pub struct GeometricReport {
     /// The keyframe adjustment (`mapper.bundle.keyframes`; absent: every camera was adjusted
     /// jointly): `keyframes` adjusted with the points (`promoted` of them for too few points
     /// or as their camera's only one), `refined_alone` others refined alone against the
-    /// points, `unrefined` left where they were (fewer than 6 points within
-    /// `mapper.bundle.max_error_px`).
-    pub bundle_keyframes: Option<KeyframeOutcome>,
+    /// points, `unrefined` left where they were (fewer than
+    /// `mapper.bundle.keyframes.min_inliers` points within `mapper.bundle.max_error_px`).
+    pub bundle_keyframes: Option<posediff_sfm::bundle::KeyframeReport>,
     /// How the bundle adjustment ended.
     pub bundle: StageOutcome,
     /// Stage timings.
@@ -337,12 +337,7 @@ impl GeometricReport {
             self.bundle_observations = b.observations;
             self.bundle_rms_px = b.rms_px;
             self.bundle_linear_iterations = [b.linear_iterations, b.linear_unconverged];
-            self.bundle_keyframes = b.keyframes.map(|k| KeyframeOutcome {
-                keyframes: k.keyframes,
-                promoted: k.promoted,
-                refined_alone: k.refined_alone,
-                unrefined: k.unrefined,
-            });
+            self.bundle_keyframes = b.keyframes;
             self.bundle = StageOutcome {
                 iterations: b.iterations,
                 converged: b.converged,
@@ -361,20 +356,6 @@ impl GeometricReport {
         self.times.resection = s.resection;
         self.times.camera_split = s.camera_split;
     }
-}
-
-/// What the keyframe bundle adjustment did (run.json's `bundle_keyframes`;
-/// `posediff_sfm::bundle::KeyframeReport`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]
-pub struct KeyframeOutcome {
-    /// Cameras adjusted jointly with the points.
-    pub keyframes: usize,
-    /// Of those, promoted (too few points to be refined alone, or a camera's only image).
-    pub promoted: usize,
-    /// Cameras refined alone against the adjusted points.
-    pub refined_alone: usize,
-    /// Cameras left where they were.
-    pub unrefined: usize,
 }
 
 /// The cameras of an estimate (run.json's `cameras`).

@@ -208,8 +208,9 @@ pub struct BundleReport {
     pub keyframes: Option<KeyframeReport>,
 }
 
-/// What the keyframe adjustment did.
+/// What the keyframe adjustment did (run.json's `bundle_keyframes`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize))]
 pub struct KeyframeReport {
     /// Cameras adjusted jointly with the points, promotions included.
     pub keyframes: usize,
@@ -217,7 +218,8 @@ pub struct KeyframeReport {
     pub promoted: usize,
     /// Cameras refined alone against the adjusted points.
     pub refined_alone: usize,
-    /// Cameras left where they were: fewer than 6 points within `max_error_px` of them.
+    /// Cameras left where they were: fewer than `keyframes.min_inliers` points within
+    /// `max_error_px` of them.
     pub unrefined: usize,
 }
 
@@ -1297,7 +1299,7 @@ pub fn bundle_adjust(
             && let (Some(before), Some(after)) = (cameras[*k], key_cameras[*k])
             && *k != i
         {
-            cameras[i] = Some(keyframes::warped(&pose, &before, &after));
+            cameras[i] = Some(pose.warped(&before, &after, 1.0));
         }
     }
     for (c, k) in cameras.iter_mut().zip(&key_cameras) {
@@ -1324,7 +1326,7 @@ pub fn bundle_adjust(
                 &correspondences,
                 (at_end.focal(phi, i), at_end.principal[i]),
                 options,
-                key_options.max_iterations,
+                &key_options,
             )?;
             Ok(refined.map(|r| {
                 let kept: Vec<(usize, Observation)> = r.inliers.iter().map(|&k| list[k]).collect();

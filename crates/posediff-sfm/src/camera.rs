@@ -34,6 +34,18 @@ impl CameraPose {
         }
     }
 
+    /// This camera moved by the similarity of the world that takes camera `before` to `after`
+    /// while keeping what it sees, with scale `s` about it: `X ↦ s Q (X − C_b) + C_a`,
+    /// `Q = R_aᵀ R_b`, so `C ↦ s Q (C − C_b) + C_a` and `R ↦ R Qᵀ` (`before` itself goes to
+    /// `after`).
+    pub fn warped(&self, before: &Self, after: &Self, s: f64) -> Self {
+        let q = after.rotation.inverse() * before.rotation;
+        Self {
+            rotation: self.rotation * q.inverse(),
+            center: after.center + s * (q * (self.center - before.center)),
+        }
+    }
+
     /// The translation `t = −R C` of `x_cam = R X + t`.
     pub fn translation(&self) -> Vector3<f64> {
         -(self.rotation * self.center)

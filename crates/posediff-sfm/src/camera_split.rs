@@ -161,7 +161,7 @@ pub fn split_cameras(
             }
         }
     }
-    let iterations = bundle.keyframes.unwrap_or_default().max_iterations;
+    let alone_options = bundle.keyframes.unwrap_or_default();
     let alone_focal: Vec<Option<(f64, usize)>> = alone
         .par_iter()
         .enumerate()
@@ -175,7 +175,7 @@ pub fn split_cameras(
                 list,
                 (f, each.principal[i]),
                 &bundle,
-                iterations,
+                &alone_options,
             )?;
             Ok(refined.map(|r| (r.focal, r.inliers.len())))
         })

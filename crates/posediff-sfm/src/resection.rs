@@ -314,12 +314,7 @@ impl Move {
     /// Camera `c` of the side after the move: `x_new = s Q (x_old − c_old) + c_new`, with
     /// `Q = R_newᵀ R_old` and `s` the scale (1 when unobserved).
     fn moved(&self, c: &CameraPose) -> CameraPose {
-        let q = self.new.rotation.inverse() * self.old.rotation;
-        CameraPose {
-            rotation: c.rotation * q.inverse(),
-            center: self.new.center
-                + self.scale.unwrap_or(1.0) * (q * (c.center - self.old.center)),
-        }
+        c.warped(&self.old, &self.new, self.scale.unwrap_or(1.0))
     }
 }
 

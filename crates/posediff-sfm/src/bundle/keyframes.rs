@@ -3,7 +3,7 @@
 //! subset of the cameras (keyframes, evenly spaced in image order), and every other camera is
 //! then refined alone against the adjusted points (its pose only: 6 parameters, the same Cauchy
 //! loss, an independent problem per camera), starting where the keyframe it shares the most
-//! points with took it ([`warped`]). Its observations are kept as the points' `alone` ones.
+//! points with took it ([`CameraPose::warped`]). Its observations are kept as the points' `alone` ones.
 //!
 //! Why: on a video the tracks span more frames as the frames get denser, so every camera shares
 //! points with more of the others; the reduced camera system's band, and with it the explicit
@@ -42,6 +42,19 @@ pub struct KeyframeOptions {
     pub min_points: usize,
     /// Levenberg–Marquardt steps of each camera refined alone.
     pub max_iterations: usize,
+    /// Relative cost decrease at which a camera refined alone has converged. A pose is 6
+    /// parameters against a few hundred points, so it is run to 1e-10 (a full solve costs
+    /// microseconds), not to the joint adjustment's 1e-6.
+    pub tolerance: f64,
+    /// Points within `max_error_px` a camera refined alone needs, at the start and at the end;
+    /// with fewer it stays where the keyframes' warp put it (`unrefined` in the report). Six:
+    /// twice the three a pose needs.
+    pub min_inliers: usize,
+    /// When fewer than `min_inliers` points are within `max_error_px` of a camera's start, the
+    /// first refinement takes those within this many times the distance. On the 1000-frame
+    /// forward walk without it, 2 of 700 cameras refined alone found too few and stayed where
+    /// the warp put them; with 8, none.
+    pub start_slack: f64,
 }
 
 impl Default for KeyframeOptions {
@@ -50,6 +63,9 @@ impl Default for KeyframeOptions {
             max_keyframes: 300,
             min_points: 50,
             max_iterations: 50,
+            tolerance: 1e-10,
+            min_inliers: 6,
+            start_slack: 8.0,
         }
     }
 }
@@ -111,17 +127,6 @@ pub(super) fn promote(
         }
     }
     promoted
-}
-
-/// `pose` moved by the warp of the world that took a keyframe from `before` to `after` while
-/// keeping what it sees (`X ↦ Q (X − C_b) + C_a`, `Q = R_aᵀ R_b`): `C ↦ Q (C − C_b) + C_a`,
-/// `R ↦ R Qᵀ`. The keyframe itself goes to `after`.
-pub(super) fn warped(pose: &CameraPose, before: &CameraPose, after: &CameraPose) -> CameraPose {
-    let q = after.rotation.inverse() * before.rotation;
-    CameraPose {
-        rotation: pose.rotation * q.inverse(),
-        center: q * (pose.center - before.center) + after.center,
-    }
 }
 
 /// One camera's pose (and its focal, when `refine_focal`) against fixed points: `(point,
@@ -188,14 +193,16 @@ impl LeastSquares for PoseOnly<'_> {
     }
 
     fn solve(&mut self, lambda: f64) -> Result<Option<Vec<f64>>> {
-        let n = self.n();
-        let mut a = nalgebra::DMatrix::from_fn(n, n, |r, c| self.h[(r, c)]);
-        for k in 0..n {
+        // Without the focal its row and column are zero: the ε keeps the pivot positive and
+        // its step is 0.
+        let mut a = self.h;
+        for k in 0..7 {
             a[(k, k)] = a[(k, k)] * (1.0 + lambda) + 1e-12;
         }
-        let g = nalgebra::DVector::from_fn(n, |r, _| self.g[r]);
-        Ok(a.cholesky()
-            .map(|ch| (-ch.solve(&g)).iter().copied().collect()))
+        Ok(a.cholesky().map(|ch| {
+            let step = -ch.solve(&self.g);
+            step.iter().take(self.n()).copied().collect()
+        }))
     }
 
     fn apply(&self, (c, f): &(CameraPose, f64), step: &[f64]) -> (CameraPose, f64) {
@@ -206,11 +213,6 @@ impl LeastSquares for PoseOnly<'_> {
         (c.moved(step), f)
     }
 }
-
-/// How much farther than `max_error_px` [`refine_pose`] looks for its first correspondences
-/// when fewer than 6 are within it at the start. On the 1000-frame forward walk without it, 2
-/// of 700 cameras refined alone found too few (they stayed where the warp put them).
-const START_SLACK: f64 = 8.0;
 
 /// What [`refine_pose`] kept.
 pub(crate) struct Refined {
@@ -223,16 +225,17 @@ pub(crate) struct Refined {
 
 /// Refines `start` (a pose, and a focal to refine with it or `None`) on `points` (`(point,
 /// observed pixel)`) as the bundle adjustment does its cameras (`options`' Cauchy scale and
-/// `max_error_px`): correspondences farther than `max_error_px` at the start are left out,
-/// the pose refined, the far ones left out again and the pose refined once more. `(f, pp)`:
-/// the focal (the start's when refined) and principal point. `None` when fewer than 6
-/// correspondences are left.
+/// `max_error_px`): correspondences farther than `max_error_px` at the start are left out
+/// (`alone.start_slack` times farther when too few are within it), the pose refined, the far
+/// ones left out again and the pose refined once more. `(f, pp)`: the focal (the start's when
+/// refined) and principal point. `None` when fewer than `alone.min_inliers` correspondences
+/// are left.
 pub(crate) fn refine_pose(
     (start, focal): (CameraPose, Option<f64>),
     points: &[(Vector3<f64>, [f64; 2])],
     (f, pp): (f64, [f64; 2]),
     options: &super::BundleOptions,
-    max_iterations: usize,
+    alone: &KeyframeOptions,
 ) -> Result<Option<Refined>> {
     let close = |(c, f): &(CameraPose, f64), max_error_px: f64| -> Vec<usize> {
         (0..points.len())
@@ -244,19 +247,18 @@ pub(crate) fn refine_pose(
             .collect()
     };
     let lm = LmOptions {
-        max_iterations,
-        tolerance: 1e-10,
+        max_iterations: alone.max_iterations,
+        tolerance: alone.tolerance,
         ..LmOptions::default()
     };
     let mut state = (start, focal.unwrap_or(f));
     for pass in 0..2 {
         let mut used = close(&state, options.max_error_px);
-        if pass == 0 && used.len() < 6 {
-            // A start farther off than the adjustment's cameras: once more within
-            // `START_SLACK` times the distance.
-            used = close(&state, START_SLACK * options.max_error_px);
+        if pass == 0 && used.len() < alone.min_inliers {
+            // A start farther off than the adjustment's cameras: once more, farther.
+            used = close(&state, alone.start_slack * options.max_error_px);
         }
-        if used.len() < 6 {
+        if used.len() < alone.min_inliers {
             return Ok(None);
         }
         let subset: Vec<(Vector3<f64>, [f64; 2])> = used.iter().map(|&k| points[k]).collect();
@@ -271,7 +273,7 @@ pub(crate) fn refine_pose(
         minimize(&mut problem, &mut state, &lm)?;
     }
     let inliers = close(&state, options.max_error_px);
-    Ok((inliers.len() >= 6).then_some(Refined {
+    Ok((inliers.len() >= alone.min_inliers).then_some(Refined {
         pose: state.0,
         focal: state.1,
         inliers,
@@ -340,12 +342,12 @@ mod tests {
             rotation: Rotation3::from_euler_angles(-0.2, 0.4, 0.1),
             center: Vector3::new(-1.0, 0.5, 2.0),
         };
-        let k = warped(&before, &before, &after);
+        let k = before.warped(&before, &after, 1.0);
         assert!((k.rotation.matrix() - after.rotation.matrix()).norm() < 1e-12);
         assert!((k.center - after.center).norm() < 1e-12);
         let q = after.rotation.inverse() * before.rotation;
         let world = |x: Vector3<f64>| q * (x - before.center) + after.center;
-        let moved = warped(&other, &before, &after);
+        let moved = other.warped(&before, &after, 1.0);
         let x = Vector3::new(0.2, -0.7, 1.3);
         let seen = other.rotation * (x - other.center);
         let seen_after = moved.rotation * (world(x) - moved.center);
@@ -379,7 +381,8 @@ mod tests {
         }
         let start = truth.moved(&[0.002, -0.001, 0.0015, 0.01, 0.005, -0.01]);
         let options = crate::bundle::BundleOptions::default();
-        let refined = refine_pose((start, None), &points, (f, pp), &options, 50)
+        let alone = KeyframeOptions::default();
+        let refined = refine_pose((start, None), &points, (f, pp), &options, &alone)
             .unwrap()
             .unwrap();
         let angle = (refined.pose.rotation.inverse() * truth.rotation).angle();
@@ -389,7 +392,7 @@ mod tests {
         assert!(refined.inliers.iter().all(|k| k % 20 != 0));
         // Too few correspondences: none.
         assert!(
-            refine_pose((start, None), &points[..5], (f, pp), &options, 50)
+            refine_pose((start, None), &points[..5], (f, pp), &options, &alone)
                 .unwrap()
                 .is_none()
         );
@@ -399,7 +402,7 @@ mod tests {
             &points,
             (f * 1.02, pp),
             &options,
-            50,
+            &alone,
         )
         .unwrap()
         .unwrap();

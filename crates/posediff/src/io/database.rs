@@ -235,26 +235,17 @@ pub fn write_database(
     };
     let mut written = 0;
     for p in pairs.iter().filter(|p| !p.is_empty()) {
-        // COLMAP orders a pair by image id; its first column is the smaller id's keypoint.
-        let swap = p.first > p.second;
-        let mut data = Vec::with_capacity(p.len() * 8);
-        let mut x1 = Vec::with_capacity(p.len());
-        let mut x2 = Vec::with_capacity(p.len());
-        for k in 0..p.len() {
-            let (a, b) = (row(p.first, p.idx1[k])?, row(p.second, p.idx2[k])?);
-            let (first, second) = (&r.images[p.first], &r.images[p.second]);
-            let pa = first.camera.photo_pixel(first.keypoints[a as usize].xy);
-            let pb = second.camera.photo_pixel(second.keypoints[b as usize].xy);
-            let ((a, pa), (b, pb)) = if swap {
-                ((b, pb), (a, pa))
-            } else {
-                ((a, pa), (b, pb))
-            };
-            data.extend(a.to_le_bytes());
-            data.extend(b.to_le_bytes());
-            x1.push([pa[0] + PIXEL_CENTRE_OFFSET, pa[1] + PIXEL_CENTRE_OFFSET]);
-            x2.push([pb[0] + PIXEL_CENTRE_OFFSET, pb[1] + PIXEL_CENTRE_OFFSET]);
-        }
+        let (first, second) = (&r.images[p.first], &r.images[p.second]);
+        let rows = (0..p.len())
+            .map(|k| {
+                let (a, b) = (row(p.first, p.idx1[k])?, row(p.second, p.idx2[k])?);
+                let pa = first.camera.photo_pixel(first.keypoints[a as usize].xy);
+                let pb = second.camera.photo_pixel(second.keypoints[b as usize].xy);
+                Ok(((a, Some(pa)), (b, Some(pb))))
+            })
+            .collect::<Result<Vec<_>>>()?;
+        // COLMAP orders a pair by image id (here the image's index + 1).
+        let (data, x1, x2) = colmap_rows(rows.into_iter(), p.first > p.second);
         let id = pair_id(p.first as u32 + 1, p.second as u32 + 1);
         insert_pair(&tx, &e, id, (p.len(), &data), None, (&x1, &x2))?;
         written += 1;
@@ -267,30 +258,23 @@ pub fn write_database(
     })
 }
 
-/// A pair's matches as COLMAP stores them (keypoint ids, the smaller image id's first when
-/// `swap` is false, else the other way round, little-endian `u32` pairs) and, where both
-/// keypoints are known (`keypoints` of the pair's first and second image), their COLMAP pixels
-/// (`+0.5`) in the same order.
-#[allow(clippy::type_complexity)]
+/// A pair's matches as COLMAP stores them (keypoint ids, the smaller image id's first: the
+/// pair's own order unless `swap`, as little-endian `u32` pairs) and, where both keypoints'
+/// pixels are known, their COLMAP pixels (`+0.5`) in the same order. `matches` gives each
+/// match's keypoint id and photo pixel in the pair's first image, then in its second.
 fn colmap_rows(
-    p: &PairMatches,
+    matches: impl ExactSizeIterator<Item = ((u32, Option<[f64; 2]>), (u32, Option<[f64; 2]>))>,
     swap: bool,
-    (ka, kb): (Option<&Vec<[f64; 2]>>, Option<&Vec<[f64; 2]>>),
 ) -> (Vec<u8>, Vec<[f64; 2]>, Vec<[f64; 2]>) {
-    let mut data = Vec::with_capacity(p.len() * 8);
-    let mut x1 = Vec::with_capacity(p.len());
-    let mut x2 = Vec::with_capacity(p.len());
-    for k in 0..p.len() {
-        let (u, v) = (p.idx1[k], p.idx2[k]);
-        let (pa, pb) = (
-            ka.and_then(|kp| kp.get(u as usize)),
-            kb.and_then(|kp| kp.get(v as usize)),
-        );
+    let mut data = Vec::with_capacity(matches.len() * 8);
+    let mut x1 = Vec::with_capacity(matches.len());
+    let mut x2 = Vec::with_capacity(matches.len());
+    for (first, second) in matches {
         // COLMAP orders a pair by image id: the smaller id's keypoint first.
         let ((u, pa), (v, pb)) = if swap {
-            ((v, pb), (u, pa))
+            (second, first)
         } else {
-            ((u, pa), (v, pb))
+            (first, second)
         };
         data.extend(u.to_le_bytes());
         data.extend(v.to_le_bytes());
@@ -300,6 +284,27 @@ fn colmap_rows(
         }
     }
     (data, x1, x2)
+}
+
+/// The stored keypoints of a pair's first and second image, where known.
+type PairKeypoints<'a> = (Option<&'a Vec<[f64; 2]>>, Option<&'a Vec<[f64; 2]>>);
+
+/// [`colmap_rows`] of `p`, its keypoints' pixels from `keypoints` (of its first and second
+/// image, by keypoint id).
+fn stored_rows(
+    p: &PairMatches,
+    swap: bool,
+    (ka, kb): PairKeypoints<'_>,
+) -> (Vec<u8>, Vec<[f64; 2]>, Vec<[f64; 2]>) {
+    let pixel =
+        |kp: Option<&Vec<[f64; 2]>>, id: u32| kp.and_then(|kp| kp.get(id as usize)).copied();
+    colmap_rows(
+        p.idx1
+            .iter()
+            .zip(&p.idx2)
+            .map(|(&u, &v)| ((u, pixel(ka, u)), (v, pixel(kb, v)))),
+        swap,
+    )
 }
 
 /// Writes a pair's `rows` verified matches (`data`, COLMAP's order) as the inliers of its
@@ -1593,10 +1598,10 @@ impl FeatureStore for Database {
                 )));
             }
             let keypoints = (cache.get(&a), cache.get(&b));
-            let (data, x1, x2) = colmap_rows(p, a > b, keypoints);
+            let (data, x1, x2) = stored_rows(p, a > b, keypoints);
             let raw_rows = raw
                 .as_ref()
-                .map(|r| (r.len(), colmap_rows(r, a > b, keypoints).0));
+                .map(|r| (r.len(), stored_rows(r, a > b, keypoints).0));
             insert_pair(
                 &tx,
                 &e,
