@@ -127,6 +127,10 @@ pub struct GeometricReport {
     /// The refinement's convergence tolerance (`mapper.sampson.tolerance`, or
     /// `large_set_tolerance` where the set is above `thin_above_matches`).
     pub refine_tolerance: f64,
+    /// The refinement's step tolerance (`mapper.sampson.large_set_step_tolerance` where the
+    /// set is above `thin_above_matches`, else 0: none); `refine_termination` says
+    /// `small step` where it stopped the refinement.
+    pub refine_step_tolerance: f64,
     /// RMS Sampson distance of those inliers, px.
     pub refine_inlier_rms_px: f64,
     /// Bridges of the view graph: pairs that no cycle confirms (0: resection not run).
@@ -204,6 +208,7 @@ impl GeometricReport {
         self.refine_matches = r.matches;
         self.refine_per_pair_cap = r.per_pair_cap;
         self.refine_tolerance = r.tolerance;
+        self.refine_step_tolerance = r.step_tolerance;
         self.refine_inlier_rms_px = r.inlier_rms_px;
     }
 

@@ -106,6 +106,11 @@ pub struct LmOptions {
     pub initial_lambda: f64,
     /// Damping increases tried per iteration before giving up.
     pub max_tries: usize,
+    /// Converged when no component of an accepted step is larger than this (in the
+    /// problem's own parameter units; Ceres' `parameter_tolerance` in the maximum norm);
+    /// 0: only the cost decides. For problems whose robust cost keeps falling by a steady
+    /// small fraction while the parameters no longer move in any way that matters.
+    pub step_tolerance: f64,
 }
 
 impl Default for LmOptions {
@@ -115,6 +120,7 @@ impl Default for LmOptions {
             tolerance: 1e-10,
             initial_lambda: 1e-4,
             max_tries: 12,
+            step_tolerance: 0.0,
         }
     }
 }
@@ -125,6 +131,8 @@ pub enum Termination {
     /// The relative decrease of the last step fell below the tolerance.
     #[default]
     Converged,
+    /// No component of the last step was larger than [`LmOptions::step_tolerance`].
+    SmallStep,
     /// No damping in `max_tries` lowered the cost: a (local) minimum to the solver's precision.
     NoDecrease,
     /// `max_iterations` steps were taken.
@@ -154,6 +162,7 @@ impl Termination {
     pub fn as_str(self) -> &'static str {
         match self {
             Self::Converged => "converged",
+            Self::SmallStep => "small step",
             Self::NoDecrease => "no decrease",
             Self::IterationLimit => "iteration limit",
             Self::NothingToRefine => "nothing to refine",
@@ -212,12 +221,13 @@ pub fn minimize<P: LeastSquares>(
             let moved = problem.apply(state, &step);
             let new_cost = problem.cost(&moved);
             if new_cost.is_finite() && new_cost < cost {
-                accepted = Some((moved, new_cost));
+                let largest = step.iter().fold(0.0_f64, |a, b| a.max(b.abs()));
+                accepted = Some((moved, new_cost, largest));
                 break;
             }
             lambda *= 5.0;
         }
-        let Some((moved, new_cost)) = accepted else {
+        let Some((moved, new_cost, largest)) = accepted else {
             report.termination = Termination::NoDecrease;
             break;
         };
@@ -228,6 +238,10 @@ pub fn minimize<P: LeastSquares>(
         report.iterations += 1;
         if decrease < options.tolerance {
             report.termination = Termination::Converged;
+            break;
+        }
+        if largest <= options.step_tolerance {
+            report.termination = Termination::SmallStep;
             break;
         }
     }
@@ -334,5 +348,40 @@ mod tests {
         let r = minimize(&mut p, &mut s, &options).unwrap();
         assert_eq!(r.termination, Termination::IterationLimit);
         assert_eq!(r.iterations, 2);
+    }
+
+    /// A step tolerance stops at the first step that moves no parameter by more than it, and
+    /// reports it as converged; the same start without it runs on to the cost's minimum.
+    #[test]
+    fn a_small_step_stops_the_descent() {
+        let mut p = Rosenbrock {
+            h: [[0.0; 2]; 2],
+            g: [0.0; 2],
+        };
+        let mut full = [-1.2, 1.0];
+        let whole = minimize(&mut p, &mut full, &LmOptions::default()).unwrap();
+        assert!(
+            whole.termination.converged() && whole.termination != Termination::SmallStep,
+            "{whole:?}"
+        );
+        // Stop once the steps shrink below 1e-3: before the minimum, after some steps.
+        let mut s = [-1.2, 1.0];
+        let options = LmOptions {
+            step_tolerance: 1e-3,
+            ..LmOptions::default()
+        };
+        let r = minimize(&mut p, &mut s, &options).unwrap();
+        assert_eq!(r.termination, Termination::SmallStep);
+        assert!(r.termination.converged());
+        assert!(
+            r.iterations > 1 && r.iterations < whole.iterations,
+            "{} of {}",
+            r.iterations,
+            whole.iterations
+        );
+        // Within a few steps' length of the minimum, and not at it to 1e-9.
+        let off = ((s[0] - 1.0).powi(2) + (s[1] - 1.0).powi(2)).sqrt();
+        assert!(off < 1e-2 && off > 0.0, "{s:?}");
+        assert!(r.final_cost >= whole.final_cost);
     }
 }

@@ -69,6 +69,14 @@ pub struct SampsonRefineOptions {
     /// (docs/BENCHMARKS.md, "Video-scale speed", third session). Small sets keep `tolerance`:
     /// 1e-6 everywhere cost apple (all frames) 0.957 → 0.950 in `bench-real`.
     pub large_set_tolerance: f64,
+    /// Where the set is thinned (as `large_set_tolerance`), also converged when no parameter
+    /// moves by more than this in a step (radians for the rotations, the unit mean distance
+    /// for the centres, `log φ` for the focal; 0: the cost alone decides). On the 1000-frame
+    /// forward walk both stages otherwise crawled for a hundred steps each (the cost falling by
+    /// 2–6e-6 a step, every parameter by under 1e-5, the focal drifting by 2e-7 a step) to the
+    /// iteration limit where the keypoints came from a database, and stopped at 94 steps only
+    /// by chance elsewhere (docs/BENCHMARKS.md, "A stop for the crawling Sampson refinement").
+    pub large_set_step_tolerance: f64,
 }
 
 impl Default for SampsonRefineOptions {
@@ -83,6 +91,7 @@ impl Default for SampsonRefineOptions {
             max_matches_per_pair: Some(128),
             thin_above_matches: 100_000,
             large_set_tolerance: 1e-6,
+            large_set_step_tolerance: 1e-5,
         }
     }
 }
@@ -130,6 +139,9 @@ pub struct SampsonRefineReport {
     /// The convergence tolerance used (`tolerance`, or `large_set_tolerance` above
     /// `thin_above_matches`).
     pub tolerance: f64,
+    /// The step tolerance used (`large_set_step_tolerance` above `thin_above_matches`, else
+    /// 0: none).
+    pub step_tolerance: f64,
     /// RMS of `r` over those inliers, pixels.
     pub inlier_rms_px: f64,
 }
@@ -558,6 +570,12 @@ pub fn refine_sampson(
             )));
         }
     }
+    let step = options.large_set_step_tolerance;
+    if !(step.is_finite() && step >= 0.0) {
+        return Err(SfmError::InvalidInput(format!(
+            "large_set_step_tolerance must be a parameter change of 0 or more, not {step}"
+        )));
+    }
     if options.max_matches_per_pair == Some(0) {
         return Err(SfmError::InvalidInput(
             "max_matches_per_pair must be at least 1 (or none: all matches)".into(),
@@ -621,6 +639,7 @@ pub fn refine_sampson(
     let lm = LmOptions {
         max_iterations: options.max_iterations,
         tolerance,
+        step_tolerance: if large { step } else { 0.0 },
         ..LmOptions::default()
     };
     let first = minimize(&mut problem, &mut state, &lm)?;
@@ -669,6 +688,7 @@ pub fn refine_sampson(
     report.matches = used;
     report.per_pair_cap = cap;
     report.tolerance = tolerance;
+    report.step_tolerance = lm.step_tolerance;
     report.inlier_rms_px = if inliers > 0 {
         (sum / inliers as f64).sqrt()
     } else {

@@ -193,7 +193,11 @@ fn a_cap_on_the_matches_per_pair_keeps_the_exact_solution() {
     assert_eq!(report.matches, 20 * pairs, "{report:?}");
     assert_eq!(report.per_pair_cap, Some(20));
     assert_eq!(
-        report.tolerance, options.large_set_tolerance,
+        (report.tolerance, report.step_tolerance),
+        (
+            options.large_set_tolerance,
+            options.large_set_step_tolerance
+        ),
         "a thinned set is large"
     );
     assert!(report.converged, "{report:?}");
@@ -213,8 +217,9 @@ fn a_cap_on_the_matches_per_pair_keeps_the_exact_solution() {
     .unwrap();
     assert_eq!((whole.matches, whole.per_pair_cap), (total, None));
     assert_eq!(
-        whole.tolerance, options.tolerance,
-        "a whole set keeps the tight tolerance"
+        (whole.tolerance, whole.step_tolerance),
+        (options.tolerance, 0.0),
+        "a whole set keeps the tight tolerance and no step tolerance"
     );
     let zero = SampsonRefineOptions {
         max_matches_per_pair: Some(0),
@@ -230,6 +235,23 @@ fn a_cap_on_the_matches_per_pair_keeps_the_exact_solution() {
     )
     .unwrap_err();
     assert!(err.to_string().contains("max_matches_per_pair"), "{err}");
+    let nan_step = SampsonRefineOptions {
+        large_set_step_tolerance: f64::NAN,
+        ..SampsonRefineOptions::default()
+    };
+    let err = refine_sampson(
+        &refs(&s.matches),
+        &s.intrinsics,
+        &mut perturbed(&s.cameras, 1.0),
+        &mut phi,
+        0,
+        &nan_step,
+    )
+    .unwrap_err();
+    assert!(
+        err.to_string().contains("large_set_step_tolerance"),
+        "{err}"
+    );
 }
 
 #[test]
