@@ -103,7 +103,8 @@ def main():
             fail(f"pycolmap's {name} mapper reconstructed nothing from our database")
         best = max(recs.values(), key=lambda r: r.num_reg_images())
         registered, rra = rra5(best, gt)
-        result[name] = {"registered": registered, "rra_5": rra, "points": best.num_points3D()}
+        result[name] = {"registered": registered, "rra_5": rra, "points": best.num_points3D(),
+                        "cameras": len(best.cameras)}
     print(json.dumps(result))
 
 

@@ -493,46 +493,55 @@ fn an_empty_page_draws_nothing_so_the_screenshot_check_can_fail() {
 
 /// `--database D`: pycolmap 4.2.1 opens the database a run kept (its counts are run.json's)
 /// and both its mappers, GLOMAP's global one and the incremental one, reconstruct the
-/// fountain from it with the right rotations.
+/// fountain from it with the right rotations, with a camera per photo or one shared by all
+/// (`--camera-mode single`).
 #[test]
 fn pycolmap_maps_the_database_we_write() {
     let dir = posediff_fixtures::temp_dir("clients-database");
-    let out = dir.join("out");
-    let db = dir.join("database.db");
     let images = shared_path("data/strecha_fountainP11/images");
-    posediff(&[
-        "estimate".as_ref(),
-        images.as_os_str(),
-        "--out".as_ref(),
-        out.as_os_str(),
-        "--database".as_ref(),
-        db.as_os_str(),
-        "--quiet".as_ref(),
-    ]);
-    let r = Command::new(python())
-        .arg(workspace().join("scripts/check_database.py"))
-        .arg(&out)
-        .arg("--gt")
-        .arg(shared_path("data/strecha_fountainP11/cameras.json"))
-        .arg("--database")
-        .arg(&db)
-        .output()
-        .unwrap();
-    assert!(
-        r.status.success(),
-        "check_database.py: {}",
-        String::from_utf8_lossy(&r.stderr)
-    );
-    let found: serde_json::Value = serde_json::from_slice(&r.stdout).unwrap();
-    assert_eq!(found["images"], 11);
-    for mapper in ["global", "incremental"] {
-        assert_eq!(found[mapper]["registered"], 11, "{found}");
-        assert!(found[mapper]["rra_5"].as_f64().unwrap() >= 0.95, "{found}");
+    // The default (a camera per photo: the fountain has no EXIF camera) and one camera shared
+    // by every photo (`--camera-mode single`, COLMAP's `ImageReader.single_camera`).
+    for (mode, cameras) in [("auto", 11), ("single", 1)] {
+        let out = dir.join(format!("out-{mode}"));
+        let db = dir.join(format!("database-{mode}.db"));
+        posediff(&[
+            "estimate".as_ref(),
+            images.as_os_str(),
+            "--out".as_ref(),
+            out.as_os_str(),
+            "--database".as_ref(),
+            db.as_os_str(),
+            "--camera-mode".as_ref(),
+            mode.as_ref(),
+            "--quiet".as_ref(),
+        ]);
+        let r = Command::new(python())
+            .arg(workspace().join("scripts/check_database.py"))
+            .arg(&out)
+            .arg("--gt")
+            .arg(shared_path("data/strecha_fountainP11/cameras.json"))
+            .arg("--database")
+            .arg(&db)
+            .output()
+            .unwrap();
+        assert!(
+            r.status.success(),
+            "check_database.py: {}",
+            String::from_utf8_lossy(&r.stderr)
+        );
+        let found: serde_json::Value = serde_json::from_slice(&r.stdout).unwrap();
+        assert_eq!(found["images"], 11);
+        assert_eq!(found["cameras"], cameras, "{mode}: {found}");
+        for mapper in ["global", "incremental"] {
+            assert_eq!(found[mapper]["registered"], 11, "{mode}: {found}");
+            assert_eq!(found[mapper]["cameras"], cameras, "{mode}: {found}");
+            assert!(found[mapper]["rra_5"].as_f64().unwrap() >= 0.95, "{found}");
+        }
     }
     // A snapshot database (Python's `write(formats=["database"])`) is written new: a write
     // into an existing file is refused.
     let e = posediff::io::database::write_database(
-        &db,
+        &dir.join("database-single.db"),
         &posediff::reconstruction::Reconstruction::default(),
         &[],
     )

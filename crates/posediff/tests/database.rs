@@ -612,3 +612,61 @@ fn a_photo_replaced_under_its_name_is_refused() {
     );
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// `posediff features --camera-mode single`: every photo of one size shares one COLMAP camera
+/// and rig (a frame each), also when the photos come from two workers' databases (`--shard`,
+/// `--from`) and when a run resumes a database that holds some of them; `per-image` gives each
+/// its own.
+#[test]
+fn photos_share_one_camera_in_single_mode() {
+    let dir = posediff_fixtures::temp_dir("database-single-camera");
+    let images = shared_path("data/strecha_fountainP11/images");
+    let features = |db: &Path, mode: &str, extra: &[&OsStr]| {
+        let mut args: Vec<&OsStr> = vec![
+            "features".as_ref(),
+            images.as_os_str(),
+            "--database".as_ref(),
+            db.as_os_str(),
+            "--camera-mode".as_ref(),
+            mode.as_ref(),
+            "--quiet".as_ref(),
+        ];
+        args.extend_from_slice(extra);
+        ok(&args);
+    };
+    let counts = |db: &Path| -> (i64, i64, i64, i64) {
+        let c = rusqlite::Connection::open(db).unwrap();
+        c.query_row(
+            "SELECT (SELECT count(*) FROM images), (SELECT count(*) FROM cameras), \
+             (SELECT count(*) FROM rigs), (SELECT count(*) FROM frames)",
+            [],
+            |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?, r.get(3)?)),
+        )
+        .unwrap()
+    };
+    let (w0, w1, merged) = (dir.join("w0.db"), dir.join("w1.db"), dir.join("merged.db"));
+    features(&w0, "single", &["--shard".as_ref(), "0/2".as_ref()]);
+    features(&w1, "single", &["--shard".as_ref(), "1/2".as_ref()]);
+    let (a, b) = (counts(&w0), counts(&w1));
+    assert_eq!((a.1, a.2, b.1, b.2), (1, 1, 1, 1), "{a:?} {b:?}");
+    assert_eq!(a.0 + b.0, 11);
+    features(
+        &merged,
+        "single",
+        &[
+            "--from".as_ref(),
+            w0.as_os_str(),
+            "--from".as_ref(),
+            w1.as_os_str(),
+        ],
+    );
+    assert_eq!(counts(&merged), (11, 1, 1, 11));
+    // Resumed: a database holding the first worker's photos gets the rest on the same camera.
+    std::fs::copy(&w0, dir.join("resumed.db")).unwrap();
+    features(&dir.join("resumed.db"), "single", &[]);
+    assert_eq!(counts(&dir.join("resumed.db")), (11, 1, 1, 11));
+    let per_image = dir.join("per-image.db");
+    features(&per_image, "per-image", &[]);
+    assert_eq!(counts(&per_image), (11, 11, 11, 11));
+    std::fs::remove_dir_all(&dir).unwrap();
+}

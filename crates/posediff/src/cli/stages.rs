@@ -28,6 +28,12 @@ pub struct Args {
     /// Which pairs are matched (`posediff match`; as `posediff estimate --pairs`).
     #[arg(long)]
     pairs: Option<posediff_matching::PairSelection>,
+    /// Which photos share a camera in the database (`posediff features`; the options tree's
+    /// `cameras.mode`): `auto` (the default: one per EXIF camera and size, else one per image),
+    /// `single` (one per image size), `per-folder` (one per folder and size) or `per-image`
+    /// (COLMAP's default). Images already stored keep theirs.
+    #[arg(long, value_name = "MODE")]
+    camera_mode: Option<posediff_pipeline::options::CameraMode>,
     /// The pipeline's options from a TOML or JSON file (as `posediff estimate --config`).
     #[arg(long, value_name = "FILE")]
     config: Option<PathBuf>,
@@ -66,7 +72,7 @@ impl Args {
         let pipeline = pipeline_options(
             self.config.as_deref(),
             self.pairs.as_ref(),
-            (None, None),
+            (self.camera_mode, None),
             &self.set,
         )?;
         let options = RunOptions {

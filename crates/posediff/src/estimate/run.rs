@@ -792,6 +792,10 @@ fn configure(inputs: &Inputs, options: &RunOptions, network: bool) -> Result<Con
                 path: path.clone(),
                 name: name.clone(),
                 focal: geometric.hints.get(i).map(|h| h.focal).unwrap_or_default(),
+                camera: crate::io::database::shared_camera_key(
+                    geometric.options.cameras.mode,
+                    geometric.hints.get(i),
+                ),
             })
             .collect();
         let mut imported = (0, 0);

@@ -417,6 +417,35 @@ pub struct StoreImage {
     pub name: String,
     /// Its EXIF focal tags (the camera's prior focal, as COLMAP reads it).
     pub focal: posediff_pipeline::options::ExifFocal,
+    /// Images of the same key and size share one COLMAP camera (and its rig), as COLMAP's
+    /// `ImageReader.single_camera` / `single_camera_per_folder` do; `None`: a camera of its
+    /// own (COLMAP's default). [`shared_camera_key`] gives it from `cameras.mode`.
+    pub camera: Option<String>,
+}
+
+/// Which images share a camera in the database, from `cameras.mode` and the image's hint:
+/// `single` all (of one size), `per-folder` a folder's, `auto` an EXIF camera's (make, model,
+/// focal; images without EXIF, and every image of a set without EXIF, whose cameras the mapper
+/// decides from the data, get their own), `per-image` none.
+#[must_use]
+pub fn shared_camera_key(
+    mode: posediff_pipeline::options::CameraMode,
+    hint: Option<&posediff_pipeline::options::CameraHint>,
+) -> Option<String> {
+    use posediff_pipeline::options::CameraMode;
+    match mode {
+        CameraMode::Single => Some("single".into()),
+        CameraMode::PerImage => None,
+        CameraMode::PerFolder => Some(format!("folder {}", hint.map_or("", |h| &h.folder))),
+        CameraMode::Auto => hint
+            .and_then(|h| h.device.as_deref())
+            .map(|d| format!("exif {d}")),
+    }
+}
+
+/// The `posediff_store` key of the camera that images of `key` and size `w`×`h` share.
+fn camera_store_key(key: &str, w: u32, h: u32) -> String {
+    format!("camera {w}x{h} {key}")
 }
 
 /// `--database`: COLMAP's database as the run's [`FeatureStore`], held exclusively while the
@@ -1439,26 +1468,10 @@ impl FeatureStore for Database {
             let image = self.image(path)?;
             let (w, h) = (f.image_size.width(), f.image_size.height());
             let (fw, fh) = (f64::from(w), f64::from(h));
-            let (focal, prior) = match image.focal.prior(w, h) {
-                Some((f, _)) => (f, 1),
-                None => (1.2 * fw.max(fh), 0),
-            };
-            tx.execute(
-                "INSERT INTO cameras (model, width, height, params, prior_focal_length) VALUES (?1, ?2, ?3, ?4, ?5)",
-                params![SIMPLE_RADIAL, i64::from(w), i64::from(h), f64_blob(&[focal, fw / 2.0, fh / 2.0, 0.0]), prior],
-            )
-            .map_err(&e)?;
-            let camera = tx.last_insert_rowid();
-            tx.execute(
-                "INSERT INTO rigs (ref_sensor_id, ref_sensor_type) VALUES (?1, ?2)",
-                params![camera, SENSOR_CAMERA],
-            )
-            .map_err(&e)?;
-            let rig = tx.last_insert_rowid();
             // An image stored without keypoints (a worker's database whose features were
             // stripped, `posediff.distributed`; each image is otherwise written whole in one
             // commit) keeps its id, so that the pairs stored with it stay its pairs; its old
-            // camera, rig and frame rows go.
+            // frame rows go, and its camera and rig where no other image has them.
             let old: Option<(i64, i64)> = tx
                 .query_row(
                     "SELECT image_id, camera_id FROM images WHERE name = ?1",
@@ -1472,11 +1485,53 @@ impl FeatureStore for Database {
                     "DELETE FROM frames WHERE frame_id IN (SELECT frame_id FROM frame_data WHERE data_id = {old_id} AND sensor_type = {SENSOR_CAMERA});
                      DELETE FROM frame_data WHERE data_id = {old_id} AND sensor_type = {SENSOR_CAMERA};
                      DELETE FROM images WHERE image_id = {old_id};
-                     DELETE FROM rigs WHERE ref_sensor_id = {old_camera} AND ref_sensor_type = {SENSOR_CAMERA};
-                     DELETE FROM cameras WHERE camera_id = {old_camera};"
+                     DELETE FROM rigs WHERE ref_sensor_id = {old_camera} AND ref_sensor_type = {SENSOR_CAMERA} AND NOT EXISTS (SELECT 1 FROM images WHERE camera_id = {old_camera});
+                     DELETE FROM cameras WHERE camera_id = {old_camera} AND NOT EXISTS (SELECT 1 FROM images WHERE camera_id = {old_camera});"
                 ))
                 .map_err(&e)?;
             }
+            // The camera its key and size share, where it is stored and still there.
+            let store_key = image.camera.as_deref().map(|k| camera_store_key(k, w, h));
+            let shared: Option<(i64, i64)> = match &store_key {
+                Some(key) => tx
+                    .query_row(
+                        "SELECT c.camera_id, r.rig_id FROM posediff_store s JOIN cameras c ON c.camera_id = CAST(s.value AS INTEGER) JOIN rigs r ON r.ref_sensor_id = c.camera_id AND r.ref_sensor_type = ?2 WHERE s.key = ?1",
+                        params![key, SENSOR_CAMERA],
+                        |r| Ok((r.get(0)?, r.get(1)?)),
+                    )
+                    .optional()
+                    .map_err(&e)?,
+                None => None,
+            };
+            let (camera, rig) = match shared {
+                Some(found) => found,
+                None => {
+                    let (focal, prior) = match image.focal.prior(w, h) {
+                        Some((f, _)) => (f, 1),
+                        None => (1.2 * fw.max(fh), 0),
+                    };
+                    tx.execute(
+                        "INSERT INTO cameras (model, width, height, params, prior_focal_length) VALUES (?1, ?2, ?3, ?4, ?5)",
+                        params![SIMPLE_RADIAL, i64::from(w), i64::from(h), f64_blob(&[focal, fw / 2.0, fh / 2.0, 0.0]), prior],
+                    )
+                    .map_err(&e)?;
+                    let camera = tx.last_insert_rowid();
+                    tx.execute(
+                        "INSERT INTO rigs (ref_sensor_id, ref_sensor_type) VALUES (?1, ?2)",
+                        params![camera, SENSOR_CAMERA],
+                    )
+                    .map_err(&e)?;
+                    let rig = tx.last_insert_rowid();
+                    if let Some(key) = &store_key {
+                        tx.execute(
+                            "INSERT OR REPLACE INTO posediff_store (key, value) VALUES (?1, ?2)",
+                            params![key, camera.to_string()],
+                        )
+                        .map_err(&e)?;
+                    }
+                    (camera, rig)
+                }
+            };
             tx.execute(
                 "INSERT INTO images (image_id, name, camera_id) VALUES (?1, ?2, ?3)",
                 params![old.map(|(id, _)| id), image.name, camera],
