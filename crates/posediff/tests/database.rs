@@ -670,3 +670,57 @@ fn photos_share_one_camera_in_single_mode() {
     assert_eq!(counts(&per_image), (11, 11, 11, 11));
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// `--weights W --database D`: GGS's features and matches (the checkpoint path's own
+/// matching) go into the database; the cameras are those of the same run without it, a second
+/// run reads every image and pair back and gives the same cameras, and the checkpoint-free
+/// path (other matching settings) is refused on that database instead of mixing features.
+#[test]
+fn the_network_path_keeps_its_matches_in_the_database() {
+    let dir = posediff_fixtures::temp_dir("database-network");
+    let images = shared_path("data/strecha_fountainP11/images");
+    let weights = shared_path("reference/tiny/model_tiny.safetensors");
+    let db = dir.join("ggs.db");
+    let run = |out: &str, database: bool| {
+        let out = dir.join(out);
+        let mut args: Vec<&OsStr> = vec![
+            "estimate".as_ref(),
+            images.as_os_str(),
+            "--weights".as_ref(),
+            weights.as_os_str(),
+            "--out".as_ref(),
+            out.as_os_str(),
+            "--no-view".as_ref(),
+        ];
+        if database {
+            args.extend(["--database".as_ref(), db.as_os_str()]);
+        }
+        let log = String::from_utf8_lossy(&ok(&args).stderr).into_owned();
+        (std::fs::read(out.join("cameras.json")).unwrap(), log)
+    };
+    let (plain, _) = run("plain", false);
+    let (first, _) = run("first", true);
+    assert!(plain == first, "the database changed the cameras");
+    let (pairs, verified) = stored_pairs(&db);
+    assert_eq!(pairs, 55);
+    assert!(verified >= 10, "{verified} verified pairs");
+    let (second, log) = run("second", true);
+    assert!(
+        log.contains("11 of 11 images from the database") && log.contains("55 of 55 pairs"),
+        "{log}"
+    );
+    assert!(second == first, "the cameras from the database differ");
+    let refused = posediff(&[
+        "estimate".as_ref(),
+        images.as_os_str(),
+        "--database".as_ref(),
+        db.as_os_str(),
+        "--out".as_ref(),
+        dir.join("geometric").as_os_str(),
+        "--quiet".as_ref(),
+    ]);
+    assert!(!refused.status.success());
+    let e = String::from_utf8_lossy(&refused.stderr);
+    assert!(e.contains("holds features made with settings"), "{e}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}

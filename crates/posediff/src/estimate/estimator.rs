@@ -276,7 +276,7 @@ impl<'a> SamplingInput<'a> {
 }
 
 /// What [`Estimator::estimate`] estimates.
-#[derive(Debug, Clone, Copy)]
+#[derive(Clone, Copy)]
 pub struct EstimateInput<'a> {
     /// The image files.
     pub images: &'a [PathBuf],
@@ -289,6 +289,22 @@ pub struct EstimateInput<'a> {
     /// mode and EXIF hints, unknown intrinsics only) undistorts GGS's matches before they are
     /// mapped into the 224 crops; `None`: the matches as matched (pinhole photos).
     pub lens_from: Option<&'a posediff_pipeline::geometric::GeometricConfig>,
+    /// The matcher GGS's features and matches come from instead of matching with the
+    /// configuration's `matching` here (`--database`: the store's wrapper around that same
+    /// matching, which reads what the database holds and writes what it lacks); every pair.
+    pub matcher: Option<&'a dyn posediff_pipeline::correspondences::Correspondences>,
+}
+
+impl std::fmt::Debug for EstimateInput<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("EstimateInput")
+            .field("images", &self.images)
+            .field("root", &self.root)
+            .field("init", &self.init)
+            .field("lens_from", &self.lens_from)
+            .field("matcher", &self.matcher.map(|_| "a stored matcher"))
+            .finish()
+    }
 }
 
 impl<'a> EstimateInput<'a> {
@@ -299,6 +315,7 @@ impl<'a> EstimateInput<'a> {
             root: None,
             init: None,
             lens_from: None,
+            matcher: None,
         }
     }
 }
@@ -461,6 +478,7 @@ impl Estimator {
             root,
             init,
             lens_from,
+            matcher,
         } = input;
         if let Some((cams, _)) = init
             && cams.len() != images.len()
@@ -503,12 +521,23 @@ impl Estimator {
         let match_set = if self.config.ggs {
             progress.start("matching", 0);
             let start = Instant::now();
-            let (_, mut pairs) = crate::correspondences::match_images(
-                images,
-                None,
-                &self.config.matching,
-                self.config.learned.as_ref(),
-            )?;
+            let mut pairs = match matcher {
+                Some(m) => {
+                    let counter = progress.counter();
+                    let features = m.extract(images, counter)?;
+                    let all = posediff_matching::exhaustive_pairs(images.len());
+                    m.match_pairs(&features, &all, (counter, "pairs"))?
+                }
+                None => {
+                    crate::correspondences::match_images(
+                        images,
+                        None,
+                        &self.config.matching,
+                        self.config.learned.as_ref(),
+                    )?
+                    .1
+                }
+            };
             if let Some(config) = lens_from {
                 // The photos' distortion, measured from the matches as the checkpoint-free
                 // path does; the model's cameras are pinholes of the undistorted pixels.

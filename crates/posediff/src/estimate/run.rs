@@ -764,20 +764,19 @@ fn configure(inputs: &Inputs, options: &RunOptions, network: bool) -> Result<Con
         geometric.learned = options.load_learned()?;
     }
     let imported = if let Some(path) = &options.database {
-        if network {
-            return Err(PosediffError::InvalidArgument(
-                "--database keeps the checkpoint-free path's features and matches: run without \
-                 --weights (GGS's matching is not stored yet)"
-                    .into(),
-            ));
-        }
         let masks: Vec<(&PathBuf, &PathBuf)> = {
             let mut m: Vec<_> = geometric.masks.iter().collect();
             m.sort();
             m
         };
+        // With --weights the database holds GGS's features and matches (its own matching).
+        let matching = if network {
+            ggs_matching(options)
+        } else {
+            geometric.options.matching.clone()
+        };
         let settings = serde_json::json!({
-            "matching": geometric.options.matching,
+            "matching": matching,
             "masks": masks,
         });
         let identity = crate::io::database::StoreIdentity {
@@ -942,6 +941,14 @@ pub fn run(
     })
 }
 
+/// GGS's matching: the checkpoint path's own (`EstimateConfig`: hloc's 4096 keypoints), only
+/// the detector following `--matcher`.
+fn ggs_matching(options: &RunOptions) -> posediff_matching::MatchConfig {
+    let mut matching = crate::EstimateConfig::default().matching;
+    matching.features.detector = options.matcher.detector();
+    matching
+}
+
 /// The PoseDiffusion path: cameras, the matches of GGS, the report.
 #[allow(clippy::too_many_arguments)] // the pieces of one run, each used once
 fn network_run(
@@ -962,7 +969,12 @@ fn network_run(
             let given = match source {
                 Init::Geometric => {
                     progress.start("geometry", 0);
-                    let g = estimate_geometric_counted(files, geometric, progress.counter());
+                    // The database holds GGS's features: the start is matched apart.
+                    let apart = GeometricConfig {
+                        store: None,
+                        ..geometric.clone()
+                    };
+                    let g = estimate_geometric_counted(files, &apart, progress.counter());
                     progress.finish();
                     let g = g?;
                     warnings.extend(g.warnings);
@@ -996,10 +1008,17 @@ fn network_run(
         intrinsics: known.clone(),
         ..net.estimator.config().clone()
     };
-    // GGS keeps the checkpoint path's own matching (`EstimateConfig`: hloc's 4096 keypoints);
-    // only the detector follows `--matcher`.
-    config.matching.features.detector = options.matcher.detector();
+    config.matching = ggs_matching(options);
     config.learned = geometric.learned.clone();
+    // --database: GGS's features and matches read from and written to it.
+    let stored = (geometric.store.is_some() && options.ggs).then(|| GeometricConfig {
+        options: PipelineOptions {
+            matching: config.matching.clone(),
+            ..geometric.options.clone()
+        },
+        ..geometric.clone()
+    });
+    let matcher = stored.as_ref().map(GeometricConfig::correspondences);
     let estimator = net.estimator.with_config(config);
     let estimate = estimator.estimate(
         EstimateInput {
@@ -1007,6 +1026,7 @@ fn network_run(
             root: inputs.images.folder.as_deref(),
             init: init_cameras.as_deref().map(|c| (c, options.start_step)),
             lens_from: Some(geometric),
+            matcher: matcher.as_deref(),
         },
         progress,
     )?;
