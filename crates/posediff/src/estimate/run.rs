@@ -773,7 +773,7 @@ fn configure(inputs: &Inputs, options: &RunOptions, network: bool) -> Result<Con
         let matching = if network {
             ggs_matching(options)
         } else {
-            geometric.options.matching.clone()
+            geometric.options.matching
         };
         let settings = serde_json::json!({
             "matching": matching,
@@ -1013,7 +1013,7 @@ fn network_run(
     // --database: GGS's features and matches read from and written to it.
     let stored = (geometric.store.is_some() && options.ggs).then(|| GeometricConfig {
         options: PipelineOptions {
-            matching: config.matching.clone(),
+            matching: config.matching,
             ..geometric.options.clone()
         },
         ..geometric.clone()
