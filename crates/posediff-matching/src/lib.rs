@@ -166,8 +166,20 @@ pub fn match_pair(
     second: usize,
     config: &MatchConfig,
 ) -> Result<PairMatches> {
+    verify(mnn_matches(a, b, first, second, config), config)
+}
+
+/// The mutual nearest neighbours of two images' descriptors (with `config`'s ratio test) as
+/// matches before verification: what [`match_pair`] verifies.
+fn mnn_matches(
+    a: &ImageFeatures,
+    b: &ImageFeatures,
+    first: usize,
+    second: usize,
+    config: &MatchConfig,
+) -> PairMatches {
     let idx = mnn::mutual_nearest_neighbours(&a.descriptors, &b.descriptors, config.ratio);
-    verify(raw_matches(a, b, first, second, &idx), config)
+    raw_matches(a, b, first, second, &idx)
 }
 
 /// The matches `idx` (keypoint index in `a`, in `b`) of images `first` and `second` with their
@@ -276,9 +288,7 @@ pub fn match_pairs_with_raw(
     pairs
         .par_iter()
         .map(|&(i, j)| {
-            let (a, b) = (&features[i], &features[j]);
-            let idx = mnn::mutual_nearest_neighbours(&a.descriptors, &b.descriptors, config.ratio);
-            let raw = raw_matches(a, b, i, j, &idx);
+            let raw = mnn_matches(&features[i], &features[j], i, j, config);
             let verified = verify(raw.clone(), config)?;
             Ok((raw, verified))
         })

@@ -1068,7 +1068,7 @@ impl Database {
     /// those before verification), in the run's image order (`None`: no row).
     fn pair_rows(
         &self,
-        table: &str,
+        table: &'static str,
         pairs: &[(usize, usize)],
     ) -> posediff_pipeline::Result<Vec<Option<StoredMatches>>> {
         let conn = self.conn();
