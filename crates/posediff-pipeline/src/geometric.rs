@@ -191,10 +191,7 @@ impl GeometricConfig {
     }
 }
 
-pub use crate::report::{
-    FocalOrigin, GeometricReport, GeometricTimes, NotEstimatedImage, ResectedSide, StageOutcome,
-    SupportOutcome,
-};
+pub use crate::report::{FocalOrigin, GeometricReport, GeometricTimes, NotEstimatedImage};
 
 /// The cameras of a geometric estimate: `None` for images that were not estimated.
 #[derive(Debug, Clone, PartialEq)]
@@ -1188,7 +1185,7 @@ pub fn refine_given_cameras_counted(
         refine.refine_focal &= known_phi.is_none();
         let refs: Vec<&PairMatches> = pairs.iter().collect();
         let r = refine_sampson(&refs, &layout, &mut cameras, &mut phi, reference, &refine)?;
-        report.record_refine(&r);
+        report.given_refinement = Some(r);
         for (i, (o, c)) in out.iter_mut().zip(&cameras).enumerate() {
             if let (Some(o), Some(c)) = (o.as_mut(), c) {
                 let r = *c.rotation.matrix();

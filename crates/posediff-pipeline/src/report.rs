@@ -45,18 +45,7 @@ impl GeometricTimes {
     }
 }
 
-/// A stage that iterates: how it ended.
-#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
-pub struct StageOutcome {
-    /// Iterations (accepted steps for refinements, rounds for averaging).
-    pub iterations: usize,
-    /// Stopped at a minimum / fixed point (not at the iteration limit).
-    pub converged: bool,
-    /// Why it stopped, where the stage says.
-    pub termination: String,
-}
-
-/// An image that was not estimated, with the reason.
+/// An image not estimated (run.json).
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct NotEstimatedImage {
     /// Image index.
@@ -65,7 +54,8 @@ pub struct NotEstimatedImage {
     pub reason: String,
 }
 
-/// What the estimate did, for run.json.
+/// What the estimate did, for run.json: the pipeline's own record (pairs, turned images,
+/// cameras, times) and the outcome, with the mapper's report as the mapper wrote it.
 #[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
 pub struct GeometricReport {
     /// The pair selection used (e.g. `exhaustive`, `sequential:10,retrieval:20`).
@@ -81,20 +71,7 @@ pub struct GeometricReport {
     pub turned_images: Vec<usize>,
     /// Pairs with verified matches.
     pub pairs_with_matches: usize,
-    /// Pairs with a relative pose (general or rotation-only).
-    pub pairs_with_pose: usize,
-    /// Of those, rotation-only pairs.
-    pub rotation_only_pairs: usize,
-    /// Pairs dropped by the rotation-consistency check.
-    pub inconsistent_pairs: usize,
-    /// Pairs dropped by the cycle check (every triangle of the view graph through them
-    /// contradicts their relative rotation).
-    pub cycle_rejected_pairs: usize,
-    /// The support check of a learned matcher's pairs (`null` when not run).
-    pub support: Option<SupportOutcome>,
-    /// The pairs whose relative poses the averaging used (image indices).
-    pub averaged_pairs: Vec<[usize; 2]>,
-    /// The images estimated (the largest view-graph component).
+    /// The images estimated.
     pub estimated: Vec<usize>,
     /// The others and why.
     pub not_estimated: Vec<NotEstimatedImage>,
@@ -106,110 +83,33 @@ pub struct GeometricReport {
     pub focal_factor: f64,
     /// The cameras: which images share one, each one's focal, and how that was decided.
     pub cameras: CamerasOutcome,
-    /// Rotation averaging.
-    pub rotation_averaging: StageOutcome,
-    /// Translation averaging.
-    pub translation_averaging: StageOutcome,
-    /// Refinement: accepted steps.
-    pub refine_iterations: usize,
-    /// Refinement converged (not stopped by the iteration limit).
-    pub refine_converged: bool,
-    /// Why the refinement stopped.
-    pub refine_termination: String,
-    /// Matches within 3 px of their epipolar geometry after refinement / used.
-    pub refine_inliers: usize,
-    /// Matches used by the refinement.
-    pub refine_matches: usize,
-    /// Each pair's matches thinned to at most this many for the refinement
-    /// (`mapper.sampson.max_matches_per_pair`, the set above `thin_above_matches`); `None`:
-    /// all used.
-    pub refine_per_pair_cap: Option<usize>,
-    /// The refinement's convergence tolerance (`mapper.sampson.tolerance`, or
-    /// `large_set_tolerance` where the set is above `thin_above_matches`).
-    pub refine_tolerance: f64,
-    /// The refinement's step tolerance (`mapper.sampson.large_set_step_tolerance` where the
-    /// set is above `thin_above_matches`, else 0: none); `refine_termination` says
-    /// `small step` where it stopped the refinement.
-    pub refine_step_tolerance: f64,
-    /// RMS Sampson distance of those inliers, px.
-    pub refine_inlier_rms_px: f64,
-    /// Bridges of the view graph: pairs that no cycle confirms (0: resection not run).
-    pub bridges: usize,
-    /// The smaller sides of bridges moved to where the other side's tracks or plane resect
-    /// them.
-    pub resected_sides: Vec<ResectedSide>,
-    /// Bridges the resection could not check (the solver failed): `[first, second]` and why.
-    pub unchecked_bridges: Vec<([usize; 2], String)>,
-    /// Tracks built from the matches (0: not run).
-    pub tracks: usize,
-    /// Tracks dropped because they see an image twice.
-    pub inconsistent_tracks: usize,
-    /// Points triangulated and adjusted by the bundle adjustment (0: not run).
-    pub bundle_points: usize,
-    /// Their observations.
-    pub bundle_observations: usize,
-    /// RMS reprojection error after the bundle adjustment, px.
-    pub bundle_rms_px: f64,
-    /// Conjugate-gradient iterations of the bundle adjustment's iterative reduced solver, and
-    /// its solves stopped at their limit (`mapper.bundle.iterative`; 0 and 0: the sparse
-    /// Cholesky solved every step).
-    pub bundle_linear_iterations: [usize; 2],
-    /// The keyframe adjustment (`mapper.bundle.keyframes`; absent: every camera was adjusted
-    /// jointly): `keyframes` adjusted with the points (`promoted` of them for too few points
-    /// or as their camera's only one), `refined_alone` others refined alone against the
-    /// points, `unrefined` left where they were (fewer than
-    /// `mapper.bundle.keyframes.min_inliers` points within `mapper.bundle.max_error_px`).
-    pub bundle_keyframes: Option<posediff_sfm::bundle::KeyframeReport>,
-    /// How the bundle adjustment ended.
-    pub bundle: StageOutcome,
+    /// The mapper's report of the map kept, stage by stage, as `posediff_sfm` writes it
+    /// ([`MapperReport`]: pairs with a pose and those the checks dropped, the averaging,
+    /// the Sampson refinement, tracks, bridge resection, the bundle adjustment, every focal
+    /// start); `null` when given cameras were refined without the mapper (`--init`).
+    pub mapper: Option<MapperReport>,
+    /// The Sampson refinement of given cameras (`--init` with `--refine converge`); `null`
+    /// otherwise (the mapper's own is in `mapper.sampson`).
+    pub given_refinement: Option<SampsonRefineReport>,
     /// Stage timings.
     pub times: GeometricTimes,
 }
 
-/// The support check of a learned matcher's pairs (run.json).
-#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
-pub struct SupportOutcome {
-    /// Pairs with matches that the extractor's descriptors support.
-    pub supported: usize,
-    /// Unsupported pairs confirmed by a triangle of kept pairs.
-    pub confirmed: usize,
-    /// Unsupported pairs dropped before the mapper used them.
-    pub rejected: usize,
-}
-
-/// One side of a view-graph bridge moved by resection (run.json).
-#[derive(Debug, Clone, PartialEq, serde::Serialize)]
-pub struct ResectedSide {
-    /// The bridge pair (image indices).
-    pub bridge: [usize; 2],
-    /// The camera placed by the evidence.
-    pub image: usize,
-    /// Cameras moved (the side).
-    pub images: usize,
-    /// What placed it: `tracks` (PnP) or `plane` (the bridge's homography and the plane).
-    pub evidence: &'static str,
-    /// The correspondences weighed: 2D–3D (tracks) or the bridge pair's matches (plane).
-    pub correspondences: usize,
-    /// Inliers among them with the pose before.
-    pub inliers_before: usize,
-    /// Inliers among them with the new pose.
-    pub inliers_after: usize,
-    /// The side's scale change; `null` when unobserved (kept).
-    pub scale: Option<f64>,
-}
-
 impl GeometricReport {
-    /// Takes the refinement's statistics.
-    pub(crate) fn record_refine(&mut self, r: &SampsonRefineReport) {
-        self.refine_iterations = r.iterations;
-        self.refine_converged = r.converged;
-        self.refine_termination = r.termination.as_str().into();
-        self.refine_inliers = r.inliers;
-        self.refine_matches = r.matches;
-        self.refine_per_pair_cap = r.per_pair_cap;
-        self.refine_tolerance = r.tolerance;
-        self.refine_step_tolerance = r.step_tolerance;
-        self.refine_inlier_rms_px = r.inlier_rms_px;
+    /// The Sampson refinement that ran: the mapper's, or that of the given cameras.
+    pub fn sampson(&self) -> Option<&SampsonRefineReport> {
+        self.mapper
+            .as_ref()
+            .and_then(|m| m.sampson.as_ref())
+            .or(self.given_refinement.as_ref())
+    }
+
+    /// The mapper's bundle adjustment, where it ran and was kept.
+    pub fn bundle(&self) -> Option<&posediff_sfm::bundle::BundleReport> {
+        self.mapper
+            .as_ref()
+            .filter(|m| !m.bundle_undone)
+            .and_then(|m| m.bundle.as_ref())
     }
 
     /// Takes the mapper's report.
@@ -263,18 +163,9 @@ impl GeometricReport {
         };
     }
 
+    /// Takes the mapper's report: the outcome and the report itself.
     pub(crate) fn record_mapper(&mut self, m: &MapperReport) {
         self.pairs_with_matches = m.pairs_with_matches;
-        self.pairs_with_pose = m.pairs_with_pose;
-        self.rotation_only_pairs = m.rotation_only_pairs;
-        self.inconsistent_pairs = m.inconsistent_pairs;
-        self.averaged_pairs = m.averaged_pairs.clone();
-        self.cycle_rejected_pairs = m.cycle_rejected_pairs;
-        self.support = m.support.as_ref().map(|s| SupportOutcome {
-            supported: s.supported,
-            confirmed: s.confirmed,
-            rejected: s.rejected,
-        });
         self.estimated = m.estimated.clone();
         self.not_estimated = m
             .not_estimated
@@ -287,71 +178,6 @@ impl GeometricReport {
         self.focal_source = m.focal_source.into();
         self.focal_factor_initial = m.focal_factor_initial;
         self.focal_factor = m.focal_factor;
-        let r = &m.rotation_averaging;
-        self.rotation_averaging = StageOutcome {
-            iterations: r.iterations,
-            converged: r.converged,
-            termination: format!("median residual {:.3}°", r.median_residual_deg),
-        };
-        let t = &m.translation_averaging;
-        self.translation_averaging = StageOutcome {
-            iterations: t.iterations,
-            converged: t.converged,
-            termination: format!(
-                "{} centres, {} edges, {} scales at the bound, {} unreachable, \
-                 {} tie groups split, {} attached to a tied partner",
-                t.centres,
-                t.edges,
-                t.scales_at_bound,
-                t.unreachable,
-                t.split_tie_groups,
-                t.attached
-            ),
-        };
-        if let Some(r) = &m.sampson {
-            self.record_refine(r);
-        }
-        if let Some(r) = &m.resection {
-            self.bridges = r.bridges;
-            self.resected_sides = r
-                .moved
-                .iter()
-                .map(|s| ResectedSide {
-                    bridge: [s.first, s.second],
-                    image: s.image,
-                    images: s.images,
-                    evidence: s.evidence.as_str(),
-                    correspondences: s.correspondences,
-                    inliers_before: s.inliers_before,
-                    inliers_after: s.inliers_after,
-                    scale: s.scale,
-                })
-                .collect();
-            self.unchecked_bridges = r
-                .unchecked
-                .iter()
-                .map(|(a, b, why)| ([*a, *b], why.clone()))
-                .collect();
-        }
-        if let Some(t) = &m.tracks {
-            self.tracks = t.tracks;
-            self.inconsistent_tracks = t.inconsistent;
-        }
-        if let (Some(b), false) = (&m.bundle, m.bundle_undone) {
-            self.bundle_points = b.points;
-            self.bundle_observations = b.observations;
-            self.bundle_rms_px = b.rms_px;
-            self.bundle_linear_iterations = [b.linear_iterations, b.linear_unconverged];
-            self.bundle_keyframes = b.keyframes;
-            self.bundle = StageOutcome {
-                iterations: b.iterations,
-                converged: b.converged,
-                termination: b.termination.as_str().into(),
-            };
-        } else if m.bundle_undone {
-            self.bundle.termination =
-                "undone: the points drove the focal out of the search range".into();
-        }
         let s = &m.times;
         self.times.two_view = s.pair_geometry + s.two_view;
         self.times.averaging = s.averaging;
@@ -360,6 +186,7 @@ impl GeometricReport {
         self.times.refinement = s.resection + s.bundle;
         self.times.resection = s.resection;
         self.times.camera_split = s.camera_split;
+        self.mapper = Some(m.clone());
     }
 }
 

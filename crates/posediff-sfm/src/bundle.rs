@@ -183,6 +183,7 @@ fn spread(obs: Vec<Observation>, max: usize) -> Vec<Observation> {
 
 /// What the adjustment did.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize))]
 pub struct BundleReport {
     /// Tracks given.
     pub tracks: usize,

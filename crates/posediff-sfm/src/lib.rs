@@ -32,6 +32,18 @@
 #![deny(missing_docs)]
 #![forbid(unsafe_code)]
 
+/// `impl serde::Serialize` writing a value as its `as_str()` name (the reports' enums).
+#[cfg(feature = "serde")]
+macro_rules! serialize_as_str {
+    ($($t:ty),*) => {$(
+        impl serde::Serialize for $t {
+            fn serialize<S: serde::Serializer>(&self, s: S) -> std::result::Result<S::Ok, S::Error> {
+                s.serialize_str(self.as_str())
+            }
+        }
+    )*};
+}
+
 pub mod bundle;
 pub mod bundle_refine;
 pub mod camera;

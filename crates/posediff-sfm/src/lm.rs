@@ -141,16 +141,8 @@ pub enum Termination {
     NothingToRefine,
 }
 
-/// Written as its [`Termination::as_str`] name.
 #[cfg(feature = "serde")]
-impl serde::Serialize for Termination {
-    fn serialize<S: serde::Serializer>(
-        &self,
-        serializer: S,
-    ) -> std::result::Result<S::Ok, S::Error> {
-        serializer.serialize_str(self.as_str())
-    }
-}
+serialize_as_str!(Termination);
 
 impl Termination {
     /// Whether the problem is at a minimum (not stopped by the iteration limit).

@@ -51,6 +51,9 @@ impl NotEstimated {
     }
 }
 
+#[cfg(feature = "serde")]
+serialize_as_str!(FocalSource, NotEstimated);
+
 /// One round of the cameras split by the bundle adjustment ([`crate::camera_split`]).
 #[derive(Debug, Clone, PartialEq, Default)]
 #[cfg_attr(feature = "serde", derive(serde::Serialize))]
@@ -80,6 +83,7 @@ pub struct CameraSplitRound {
 
 /// The cameras the view-graph calibration found ([`crate::view_graph_calibration`]).
 #[derive(Debug, Clone, PartialEq, Default)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize))]
 pub struct CameraCalibrationReport {
     /// Whether the cameras were decided from the data (otherwise given).
     pub from_data: bool,
@@ -104,6 +108,7 @@ pub struct CameraCalibrationReport {
 
 /// One focal start of the multi-start.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize))]
 pub struct FocalStart {
     /// `φ` it started from.
     pub start: f64,
@@ -121,6 +126,7 @@ pub struct FocalStart {
 
 /// Seconds per stage, summed over the focal starts.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize))]
 pub struct StageTimes {
     /// Homography tests and least-squares fundamental matrices (per pair, once).
     pub pair_geometry: f64,
@@ -143,6 +149,7 @@ pub struct StageTimes {
 
 /// The support check: which unsupported pairs were confirmed by triangles of kept pairs.
 #[derive(Debug, Clone, PartialEq, Default)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize))]
 pub struct SupportReport {
     /// Pairs with matches that the caller marked supported.
     pub supported: usize,
@@ -156,6 +163,7 @@ pub struct SupportReport {
 
 /// What the mapper did.
 #[derive(Debug, Clone, PartialEq, Default)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize))]
 pub struct MapperReport {
     /// Pairs with matches.
     pub pairs_with_matches: usize,

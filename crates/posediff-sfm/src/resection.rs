@@ -151,8 +151,12 @@ impl Evidence {
     }
 }
 
+#[cfg(feature = "serde")]
+serialize_as_str!(Evidence);
+
 /// One bridge whose smaller side was moved.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize))]
 pub struct MovedSide {
     /// The bridge pair.
     pub first: usize,
@@ -176,6 +180,7 @@ pub struct MovedSide {
 
 /// What the bridge resection did.
 #[derive(Debug, Clone, PartialEq, Default)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize))]
 pub struct ResectionReport {
     /// Bridges of the view graph of the estimated cameras.
     pub bridges: usize,

@@ -55,6 +55,7 @@ impl Default for RotationAveragingOptions {
 
 /// What the averaging did.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize))]
 pub struct RotationAveragingReport {
     /// Images with a rotation (reachable from the reference).
     pub images: usize,

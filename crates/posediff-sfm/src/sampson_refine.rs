@@ -118,6 +118,7 @@ fn thinned(p: &PairMatches, max: usize) -> Option<PairMatches> {
 
 /// What the refinement did.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize))]
 pub struct SampsonRefineReport {
     /// Accepted steps over both stages.
     pub iterations: usize,

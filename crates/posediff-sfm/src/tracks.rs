@@ -24,6 +24,7 @@ pub type Track = Vec<Observation>;
 
 /// What [`build_tracks`] did.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize))]
 pub struct TrackReport {
     /// Distinct keypoints in any match.
     pub keypoints: usize,

@@ -69,6 +69,7 @@ impl Default for TranslationAveragingOptions {
 
 /// What the averaging did.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize))]
 pub struct TranslationAveragingReport {
     /// Distinct centres solved for (tied images share one).
     pub centres: usize,

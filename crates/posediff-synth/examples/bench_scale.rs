@@ -98,6 +98,7 @@ fn run_case(images_dir: &Path, gt: &Path, out: &Path, pairs: &str) -> Result<()>
     let estimate = estimate_from_matches(&sizes, matches, &config)?;
     let rss = peak_rss_mb();
     let t = &estimate.report.times;
+    let bundle = estimate.report.bundle();
     stages.push(("two-view", t.two_view, rss));
     stages.push(("averaging", t.averaging, rss));
     stages.push((
@@ -131,10 +132,10 @@ fn run_case(images_dir: &Path, gt: &Path, out: &Path, pairs: &str) -> Result<()>
         "maa_30": scores.maa_30,
         "cc_10": cc,
         "registered": registered,
-        "bundle_points": estimate.report.bundle_points,
-        "bundle_observations": estimate.report.bundle_observations,
-        "bundle_iterations": estimate.report.bundle.iterations,
-        "sampson_iterations": estimate.report.refine_iterations,
+        "bundle_points": bundle.map_or(0, |b| b.points),
+        "bundle_observations": bundle.map_or(0, |b| b.observations),
+        "bundle_iterations": bundle.map_or(0, |b| b.iterations),
+        "sampson_iterations": estimate.report.sampson().map_or(0, |s| s.iterations),
         "focal_factor": estimate.report.focal_factor,
     });
     std::fs::write(out, serde_json::to_string_pretty(&report)?)

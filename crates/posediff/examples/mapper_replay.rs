@@ -540,7 +540,11 @@ fn main() -> Result<()> {
                             (Some(a), Some(b)) => correct_fraction(p, a, b),
                             _ => -1.0,
                         };
-                        let used = e.report.averaged_pairs.contains(&[p.first, p.second]);
+                        let used = e
+                            .report
+                            .mapper
+                            .as_ref()
+                            .is_some_and(|m| m.averaged_pairs.contains(&[p.first, p.second]));
                         println!(
                             "MAPCHECK N{m} {i}-{j} n {} gt {:.3} est {est:.3} used {used}",
                             p.len(),
@@ -548,7 +552,11 @@ fn main() -> Result<()> {
                         );
                     }
                 }
-                let used = &e.report.averaged_pairs;
+                let used = e
+                    .report
+                    .mapper
+                    .as_ref()
+                    .map_or(&[][..], |m| &m.averaged_pairs);
                 let wrong: Vec<String> = used
                     .iter()
                     .filter(|[a, b]| {
@@ -558,12 +566,17 @@ fn main() -> Result<()> {
                     .map(|[a, b]| format!("{}-{}", members[*a], members[*b]))
                     .collect();
                 if m > 10 {
-                    let support = e.report.support.map_or_else(String::new, |s| {
-                        format!(
-                            ", support: {} supported, {} confirmed, {} rejected",
-                            s.supported, s.confirmed, s.rejected
-                        )
-                    });
+                    let support = e
+                        .report
+                        .mapper
+                        .as_ref()
+                        .and_then(|m| m.support.as_ref())
+                        .map_or_else(String::new, |s| {
+                            format!(
+                                ", support: {} supported, {} confirmed, {} rejected",
+                                s.supported, s.confirmed, s.rejected
+                            )
+                        });
                     println!(
                         "  {m} images ({selected} pairs matched, mapper {mapper_s:.1} s, times {:?}): focal {:.3}, wrong pairs used: {}{support}",
                         e.report.times,

@@ -83,8 +83,12 @@ fn fountain_cameras_and_focal_match_the_ground_truth() {
         (focal / truth - 1.0).abs() < 0.01,
         "focal {focal} vs {truth}"
     );
-    assert!(e.report.refine_converged);
-    assert!(e.report.refine_inlier_rms_px < 1.0);
+    let sampson = e
+        .report
+        .sampson()
+        .expect("the mapper ran its Sampson refinement");
+    assert!(sampson.converged);
+    assert!(sampson.inlier_rms_px < 1.0);
 }
 
 /// The zoomed copy of a shared set (every second photo zoomed 1.3–1.6×, its ground truth
@@ -253,6 +257,14 @@ fn given_cameras_are_refined_towards_the_truth() {
     let (rot, trans) = worst_pair_errors(&after, gt);
     assert!(rot0 > 3.0, "the perturbation is visible: {rot0}°");
     assert!(rot < 1.0 && trans < 2.0, "worst pair: {rot}° / {trans}°");
+    // Refined without the mapper: its report says so, the refinement's is its own.
+    assert!(e.report.mapper.is_none());
+    let refined = e
+        .report
+        .given_refinement
+        .expect("the given cameras were refined");
+    assert_eq!(e.report.sampson(), Some(&refined));
+    assert!(refined.iterations > 0 && refined.final_cost < refined.initial_cost);
 }
 
 #[test]
@@ -361,6 +373,21 @@ fn a_second_group_is_reported_not_estimated() {
         run_json["report"]["estimated"],
         serde_json::json!([0, 2, 4])
     );
+    // The mapper's own report, stage by stage, as posediff-sfm derives it (schema 3).
+    assert_eq!(run_json["schema"], 3);
+    let mapper = &run_json["report"]["mapper"];
+    assert_eq!(mapper["estimated"], serde_json::json!([0, 2, 4]));
+    assert_eq!(mapper["not_estimated"].as_array().unwrap().len(), 2);
+    assert_eq!(
+        mapper["not_estimated"][0][1],
+        "shares no usable two-view geometry with the largest group of images"
+    );
+    assert_eq!(mapper["focal_source"], run_json["report"]["focal_source"]);
+    assert!(mapper["rotation_averaging"]["iterations"].as_u64().unwrap() > 0);
+    assert!(mapper["sampson"]["termination"].is_string());
+    assert!(mapper["bundle"]["points"].as_u64().unwrap() > 0);
+    assert!(!mapper["starts"].as_array().unwrap().is_empty());
+    assert!(run_json["report"]["given_refinement"].is_null());
 }
 
 /// Writes `image` seen by a camera rotated by `r` about its own centre: `x' = K R K⁻¹ x`.
@@ -445,7 +472,7 @@ fn identical_images_get_the_same_camera() {
     assert!((cams[3].center() - cams[0].center()).norm() < 1e-3 * scale);
     let rel = cams[3].cam_from_world.rotation * cams[0].cam_from_world.rotation.transpose();
     assert!(posediff_geometry::rotation_angle_between_deg(&Matrix3::identity(), &rel) < 0.05);
-    assert!(e.report.rotation_only_pairs >= 1);
+    assert!(e.report.mapper.as_ref().unwrap().rotation_only_pairs >= 1);
 }
 
 #[test]
@@ -741,7 +768,8 @@ fn the_support_check_drops_a_wrong_pair_and_keeps_confirmed_bridges() {
     let support: Vec<bool> = pairs.iter().map(|p| p.second == p.first + 1).collect();
 
     let e = estimate_from_supported_matches(&sizes, pairs.clone(), Some(support), &config).unwrap();
-    let s = e.report.support.unwrap();
+    let mapper = e.report.mapper.as_ref().unwrap();
+    let s = mapper.support.as_ref().unwrap();
     assert_eq!(s.supported, 5);
     assert_eq!((s.confirmed, s.rejected), (9, 1), "{s:?}");
     let rejected = e
@@ -753,7 +781,7 @@ fn the_support_check_drops_a_wrong_pair_and_keeps_confirmed_bridges() {
         rejected.is_empty(),
         "a rejected pair keeps no matches downstream"
     );
-    assert!(!e.report.averaged_pairs.contains(&[0, 5]));
+    assert!(!mapper.averaged_pairs.contains(&[0, 5]));
     let est: Vec<Camera> = e.cameras.iter().map(|c| c.unwrap()).collect();
     let (rot, trans) = worst_pair_errors(&est, gt);
     assert!(rot < 1.0 && trans < 2.0, "worst pair: {rot}° / {trans}°");

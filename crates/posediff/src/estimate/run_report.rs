@@ -21,7 +21,7 @@ pub struct Written {
 }
 
 /// The version of run.json's layout; raised when a field changes meaning or goes.
-pub const RUN_REPORT_SCHEMA: u32 = 2;
+pub const RUN_REPORT_SCHEMA: u32 = 3;
 
 /// How the cameras were estimated, with what that path reports.
 #[derive(Debug, Clone, Serialize)]
