@@ -10,7 +10,7 @@
 //! result back: four extra passes and five allocations per layer. Other dtypes, devices and
 //! tracked tensors keep that path ([`attention_candle`]).
 
-use candle_core::{CpuStorage, CustomOp1, DType, Layout, Shape, Tensor};
+use candle_core::{CpuStorage, DType, Shape, Tensor};
 use faer::{Accum, MatMut, MatRef, Par};
 use rayon::prelude::*;
 
@@ -23,9 +23,11 @@ use crate::tiles::MatmulPrecision;
 /// A last dimension that is not `3 · heads · D`, tensor errors.
 pub fn self_attention(qkv: &Tensor, heads: usize, scale: f64) -> Result<Tensor> {
     if qkv.dtype() == DType::F32 && qkv.device().is_cpu() && !qkv.track_op() {
-        return Ok(qkv
-            .contiguous()?
-            .apply_op1_no_bwd(&FusedAttention { heads, scale })?);
+        let op = crate::CpuOp {
+            name: "fused-self-attention-f32",
+            run: |ops: &[crate::Operand<'_>]| fused_attention(ops[0], heads, scale as f32),
+        };
+        return Ok(qkv.contiguous()?.apply_op1_no_bwd(&op)?);
     }
     attention_candle(qkv, heads, scale)
 }
@@ -49,32 +51,21 @@ pub fn attention_candle(qkv: &Tensor, heads: usize, scale: f64) -> Result<Tensor
     Ok(attn.matmul(&v)?.transpose(1, 2)?.reshape((b, n, c))?)
 }
 
-struct FusedAttention {
-    heads: usize,
-    scale: f64,
-}
-
-impl CustomOp1 for FusedAttention {
-    fn name(&self) -> &'static str {
-        "fused-self-attention-f32"
+/// The op of [`self_attention`]: `qkv` `(B, N, 3·C)` contiguous F32 into `(B, N, C)`.
+fn fused_attention(
+    (storage, layout): crate::Operand<'_>,
+    h: usize,
+    scale: f32,
+) -> candle_core::Result<(CpuStorage, Shape)> {
+    let qkv = crate::contiguous_f32(storage, layout, "fused attention: qkv")?;
+    let (b, n, c3) = layout.shape().dims3()?;
+    if h == 0 || c3 % (3 * h) != 0 {
+        candle_core::bail!("fused attention: {c3} is not 3 × {h} heads × a head width");
     }
-
-    fn cpu_fwd(
-        &self,
-        storage: &CpuStorage,
-        layout: &Layout,
-    ) -> candle_core::Result<(CpuStorage, Shape)> {
-        let qkv = crate::contiguous_f32(storage, layout, "fused attention: qkv")?;
-        let (b, n, c3) = layout.shape().dims3()?;
-        let h = self.heads;
-        if h == 0 || c3 % (3 * h) != 0 {
-            candle_core::bail!("fused attention: {c3} is not 3 × {h} heads × a head width");
-        }
-        let c = c3 / 3;
-        let mut out = vec![0f32; b * n * c];
-        attend(qkv, &mut out, (b, n, c, h), self.scale as f32);
-        Ok((CpuStorage::F32(out), Shape::from((b, n, c))))
-    }
+    let c = c3 / 3;
+    let mut out = vec![0f32; b * n * c];
+    attend(qkv, &mut out, (b, n, c, h), scale);
+    Ok((CpuStorage::F32(out), Shape::from((b, n, c))))
 }
 
 /// Per-thread buffers of one head: `Q`, `K`, `V`, the output (`N × D` each) and the scores.
@@ -146,7 +137,9 @@ fn attend_head(
     }
 }
 
-use crate::head_scratch::{HEAD_BLOCK, SCORES};
+use crate::head_scratch::{
+    COLUMN_WEIGHTS, ColumnProducts, HEAD_BLOCK, HeadProducts, cross_head, for_each_head, self_head,
+};
 
 /// [`attend_heads`] on tensors: `q` `(h, m, d)` (already scaled), `k` and `v` `(h, n, d)`, F32
 /// on the CPU, untracked; `(h, m, d)`. The buffers are read in place (no copies in or out).
@@ -176,39 +169,31 @@ pub fn attention_heads_with(
             got: [k.dims(), v.dims()].concat(),
         });
     }
-    Ok(q.contiguous()?.apply_op3_no_bwd(
-        &k.contiguous()?,
-        &v.contiguous()?,
-        &HeadsAttention(precision),
-    )?)
+    let op = crate::CpuOp {
+        name: "attention-heads-f32",
+        run: |ops: &[crate::Operand<'_>]| heads_attention(ops, precision),
+    };
+    Ok(q.contiguous()?
+        .apply_op3_no_bwd(&k.contiguous()?, &v.contiguous()?, &op)?)
 }
 
-struct HeadsAttention(MatmulPrecision);
-
-impl candle_core::CustomOp3 for HeadsAttention {
-    fn name(&self) -> &'static str {
-        "attention-heads-f32"
-    }
-
-    fn cpu_fwd(
-        &self,
-        s1: &CpuStorage,
-        l1: &Layout,
-        s2: &CpuStorage,
-        l2: &Layout,
-        s3: &CpuStorage,
-        l3: &Layout,
-    ) -> candle_core::Result<(CpuStorage, Shape)> {
-        let q = crate::contiguous_f32(s1, l1, "attention: q")?;
-        let k = crate::contiguous_f32(s2, l2, "attention: k")?;
-        let v = crate::contiguous_f32(s3, l3, "attention: v")?;
-        let (h, m, d) = l1.shape().dims3()?;
-        let n = l2.shape().dims3()?.1;
-        let mut out = vec![0f32; h * m * d];
-        attend_heads_with(q, k, v, &mut out, (h, m, n, d), self.0)
-            .map_err(|e| candle_core::Error::Msg(e.to_string()))?;
-        Ok((CpuStorage::F32(out), Shape::from((h, m, d))))
-    }
+/// The op of [`attention_heads_with`]: `q`, `k`, `v` contiguous F32 into `(h, m, d)`.
+fn heads_attention(
+    ops: &[crate::Operand<'_>],
+    precision: MatmulPrecision,
+) -> candle_core::Result<(CpuStorage, Shape)> {
+    let [(s1, l1), (s2, l2), (s3, l3)] = ops else {
+        candle_core::bail!("attention: q, k and v expected");
+    };
+    let q = crate::contiguous_f32(s1, l1, "attention: q")?;
+    let k = crate::contiguous_f32(s2, l2, "attention: k")?;
+    let v = crate::contiguous_f32(s3, l3, "attention: v")?;
+    let (h, m, d) = l1.shape().dims3()?;
+    let n = l2.shape().dims3()?.1;
+    let mut out = vec![0f32; h * m * d];
+    attend_heads_with(q, k, v, &mut out, (h, m, n, d), precision)
+        .map_err(|e| candle_core::Error::Msg(e.to_string()))?;
+    Ok((CpuStorage::F32(out), Shape::from((h, m, d))))
 }
 
 /// `softmax(Q Kᵀ) V` per head for row-major per-head buffers: `q` `(h, m, d)` (already
@@ -264,55 +249,112 @@ pub fn attend_heads_with(
         return crate::tiles::attend_heads(q, k, v, out, (h, m, n, d));
     }
     let rows = (HEAD_BLOCK / n).clamp(1, m);
-    let head = |(i, dst): (usize, &mut [f32])| {
+    for_each_head(out, m * d, h, |(i, dst)| {
         let (qh, kh, vh) = (
             &q[i * m * d..(i + 1) * m * d],
             &k[i * n * d..(i + 1) * n * d],
             &v[i * n * d..(i + 1) * n * d],
         );
-        // Row-major N × D buffers are column-major D × N: Kᵀ, Vᵀ.
-        let kt = MatRef::from_column_major_slice(kh, d, n);
-        let vt = MatRef::from_column_major_slice(vh, d, n);
-        SCORES.with_borrow_mut(|(scores, inv_sums)| {
-            if scores.len() < rows * n {
-                scores.resize(rows * n, 0.0);
-            }
-            if inv_sums.len() < rows {
-                inv_sums.resize(rows, 0.0);
-            }
-            for start in (0..m).step_by(rows) {
-                let len = rows.min(m - start);
-                let qt = MatRef::from_column_major_slice(&qh[start * d..(start + len) * d], d, len);
-                let s = &mut scores[..len * n];
-                // Sᵀ = K Qᵀ column-major is S row-major (len × n).
-                let st = MatMut::from_column_major_slice_mut(s, n, len);
-                faer::linalg::matmul::matmul(st, Accum::Replace, kt.transpose(), qt, 1.0, Par::Seq);
-                let o = &mut dst[start * d..(start + len) * d];
-                softmax_times(s, &mut inv_sums[..len], vt, o);
-            }
-        });
-    };
-    if h > 1 && crate::threads() > 1 {
-        out.par_chunks_mut(m * d).enumerate().for_each(head);
-    } else {
-        out.chunks_mut(m * d).enumerate().for_each(head);
-    }
-    Ok(())
+        let mut products = F32Products::new(kh, vh, n, d);
+        self_head(&mut products, qh, dst, (m, n, d), rows)
+    })
 }
 
-/// `o = softmax_rows(S) V` for one block of `inv.len()` score rows `s` (row-major, `n` wide,
-/// overwritten), with `vt` = `Vᵀ` (`d × n` column-major) and `o` the block's `d`-wide output
-/// rows: `exp(S − max)` per row, the product, then each output row scaled by its row's `1/Σ`
-/// (`d` multiplications a row instead of `n`).
-fn softmax_times(s: &mut [f32], inv: &mut [f32], vt: MatRef<'_, f32>, o: &mut [f32]) {
-    let (d, n, len) = (vt.nrows(), vt.ncols(), inv.len());
-    crate::softmax::exp_rows_dispatch(s, n, inv);
-    let st = MatRef::from_column_major_slice(s, n, len);
-    // Oᵀ = Vᵀ Sᵀ column-major is O row-major (len × d).
-    let ot = MatMut::from_column_major_slice_mut(o, d, len);
-    faer::linalg::matmul::matmul(ot, Accum::Replace, vt, st, 1.0, Par::Seq);
-    for (row, &c) in o.chunks_exact_mut(d).zip(inv.iter()) {
-        row.iter_mut().for_each(|x| *x *= c);
+/// faer's F32 products of one head ([`HeadProducts`]): its keys and values as `Kᵀ`, `Vᵀ`
+/// (row-major `n × d` buffers are column-major `d × n`).
+struct F32Products<'a> {
+    kt: MatRef<'a, f32>,
+    vt: MatRef<'a, f32>,
+}
+
+impl<'a> F32Products<'a> {
+    fn new(k: &'a [f32], v: &'a [f32], n: usize, d: usize) -> Self {
+        Self {
+            kt: MatRef::from_column_major_slice(k, d, n),
+            vt: MatRef::from_column_major_slice(v, d, n),
+        }
+    }
+}
+
+impl HeadProducts for F32Products<'_> {
+    fn scores(&mut self, rows: &[f32], len: usize, s: &mut [f32]) -> Result<()> {
+        let (d, n) = (self.kt.nrows(), self.kt.ncols());
+        let qt = MatRef::from_column_major_slice(rows, d, len);
+        // Sᵀ = K Qᵀ column-major is S row-major (len × n).
+        let st = MatMut::from_column_major_slice_mut(s, n, len);
+        faer::linalg::matmul::matmul(st, Accum::Replace, self.kt.transpose(), qt, 1.0, Par::Seq);
+        Ok(())
+    }
+
+    /// `exp(S − max)` per row ([`crate::softmax`]), then the product.
+    fn weighted_values(&mut self, s: &mut [f32], inv: &mut [f32], o: &mut [f32]) -> Result<()> {
+        let (d, n, len) = (self.vt.nrows(), self.vt.ncols(), inv.len());
+        crate::softmax::exp_rows_dispatch(s, n, inv);
+        let st = MatRef::from_column_major_slice(s, n, len);
+        // Oᵀ = Vᵀ Sᵀ column-major is O row-major (len × d).
+        let ot = MatMut::from_column_major_slice_mut(o, d, len);
+        faer::linalg::matmul::matmul(ot, Accum::Replace, self.vt, st, 1.0, Par::Seq);
+        Ok(())
+    }
+}
+
+/// The F32 column side: the row products of the other side's keys and values, with the `n`
+/// side's unnormalised output accumulated in place (`n × d` row-major, i.e. `d × n`
+/// column-major) and the block's weights in the thread's `COLUMN_WEIGHTS`.
+struct F32Columns<'a> {
+    rows: F32Products<'a>,
+    out: &'a mut [f32],
+}
+
+impl HeadProducts for F32Columns<'_> {
+    fn scores(&mut self, rows: &[f32], len: usize, s: &mut [f32]) -> Result<()> {
+        self.rows.scores(rows, len, s)
+    }
+
+    fn weighted_values(&mut self, s: &mut [f32], inv: &mut [f32], o: &mut [f32]) -> Result<()> {
+        self.rows.weighted_values(s, inv, o)
+    }
+}
+
+impl ColumnProducts for F32Columns<'_> {
+    fn rescale_columns(&mut self, alpha: &[f32]) {
+        let d = self.rows.kt.nrows();
+        for (row, &a) in self.out.chunks_exact_mut(d).zip(alpha) {
+            if a != 1.0 {
+                row.iter_mut().for_each(|x| *x *= a);
+            }
+        }
+    }
+
+    fn accumulate_columns(
+        &mut self,
+        s: &[f32],
+        (col_max, cut, col_sum): (&[f32], f32, &mut [f32]),
+        other_values: &[f32],
+        len: usize,
+    ) -> Result<()> {
+        let (d, n) = (self.rows.kt.nrows(), self.rows.kt.ncols());
+        COLUMN_WEIGHTS.with_borrow_mut(|weights| {
+            if weights.len() < len * n {
+                weights.resize(len * n, 0.0);
+            }
+            let w = &mut weights[..len * n];
+            crate::softmax::exp_offsets_dispatch(s, w, n, col_max, cut, col_sum);
+            // out_b (d × n column-major) += vaᵀ (d × len) · W (len × n).
+            let vat = MatRef::from_column_major_slice(other_values, d, len);
+            let wt = MatRef::from_column_major_slice(w, n, len);
+            let ob = MatMut::from_column_major_slice_mut(self.out, d, n);
+            faer::linalg::matmul::matmul(ob, Accum::Add, vat, wt.transpose(), 1.0, Par::Seq);
+        });
+        Ok(())
+    }
+
+    fn finish_columns(self, col_sum: &[f32]) {
+        let d = self.rows.kt.nrows();
+        for (row, &sum) in self.out.chunks_exact_mut(d).zip(col_sum) {
+            let c = 1.0 / sum;
+            row.iter_mut().for_each(|x| *x *= c);
+        }
     }
 }
 
@@ -373,7 +415,7 @@ pub fn cross_attend_heads_with(
         return crate::tiles::cross_attend_heads((a, b), (va, vb), out, (h, m, n, d));
     }
     let rows = (HEAD_BLOCK / n).clamp(1, m);
-    let head = |(i, dst): (usize, &mut [f32])| {
+    for_each_head(out, (m + n) * d, h, |(i, dst)| {
         let (dst_a, dst_b) = dst.split_at_mut(m * d);
         let (ah, vah) = (
             &a[i * m * d..(i + 1) * m * d],
@@ -383,72 +425,14 @@ pub fn cross_attend_heads_with(
             &b[i * n * d..(i + 1) * n * d],
             &vb[i * n * d..(i + 1) * n * d],
         );
-        let bt = MatRef::from_column_major_slice(bh, d, n);
-        let vbt = MatRef::from_column_major_slice(vbh, d, n);
-        // The n side: running column maxima and sums, and the unnormalised output (n × d,
-        // row-major, i.e. d × n column-major).
-        let mut col_max = vec![f32::NEG_INFINITY; n];
-        let mut col_sum = vec![0f32; n];
         dst_b.fill(0.0);
-        let cut = crate::softmax::flush_below(m);
-        CROSS.with_borrow_mut(|(scores, weights, inv, block_max)| {
-            scores.resize(rows * n, 0.0);
-            weights.resize(rows * n, 0.0);
-            inv.resize(rows, 0.0);
-            block_max.resize(n, 0.0);
-            for start in (0..m).step_by(rows) {
-                let len = rows.min(m - start);
-                let at = &ah[start * d..(start + len) * d];
-                let s = &mut scores[..len * n];
-                let st = MatMut::from_column_major_slice_mut(s, n, len);
-                let at_ = MatRef::from_column_major_slice(at, d, len);
-                faer::linalg::matmul::matmul(
-                    st,
-                    Accum::Replace,
-                    bt.transpose(),
-                    at_,
-                    1.0,
-                    Par::Seq,
-                );
-                // Columns: raise the maxima, rescale what was accumulated, weights of this block.
-                let w = &mut weights[..len * n];
-                raise_column_maxima(
-                    s,
-                    block_max,
-                    (&mut col_max, &mut col_sum),
-                    cut,
-                    |j, alpha| {
-                        dst_b[j * d..(j + 1) * d]
-                            .iter_mut()
-                            .for_each(|x| *x *= alpha);
-                    },
-                );
-                crate::softmax::exp_offsets_dispatch(s, w, n, &col_max, cut, &mut col_sum);
-                // out_b (d × n column-major) += vaᵀ (d × len) · W (len × n).
-                let vat =
-                    MatRef::from_column_major_slice(&vah[start * d..(start + len) * d], d, len);
-                let wt = MatRef::from_column_major_slice(w, n, len);
-                let ob = MatMut::from_column_major_slice_mut(dst_b, d, n);
-                faer::linalg::matmul::matmul(ob, Accum::Add, vat, wt.transpose(), 1.0, Par::Seq);
-                // Rows: the softmax of this block, as `attend_heads`.
-                let o = &mut dst_a[start * d..(start + len) * d];
-                softmax_times(s, &mut inv[..len], vbt, o);
-            }
-        });
-        for (row, &sum) in dst_b.chunks_exact_mut(d).zip(&col_sum) {
-            let c = 1.0 / sum;
-            row.iter_mut().for_each(|x| *x *= c);
-        }
-    };
-    if h > 1 && crate::threads() > 1 {
-        out.par_chunks_mut((m + n) * d).enumerate().for_each(head);
-    } else {
-        out.chunks_mut((m + n) * d).enumerate().for_each(head);
-    }
-    Ok(())
+        let columns = F32Columns {
+            rows: F32Products::new(bh, vbh, n, d),
+            out: dst_b,
+        };
+        cross_head(columns, (ah, vah), dst_a, (m, n, d), rows)
+    })
 }
-
-use crate::head_scratch::raise_column_maxima;
 
 /// [`cross_attend_heads`] on tensors: `a` `(h, m, d)`, `b` `(h, n, d)` (already scaled), `va`
 /// `(h, m, d)`, `vb` `(h, n, d)`, F32 on the CPU; returns `(out_a, out_b)`.
@@ -504,8 +488,6 @@ pub fn cross_attention_heads_with(
     let out = Tensor::from_vec(out, (h, m + n, d), a.device())?;
     Ok((out.narrow(1, 0, m)?, out.narrow(1, m, n)?))
 }
-
-use crate::head_scratch::CROSS;
 
 #[cfg(test)]
 mod tests {

@@ -107,6 +107,67 @@ impl candle_core::InplaceOp1 for SliceOp {
     }
 }
 
+/// A CPU kernel over one, two or three contiguous tensors as a candle op (`CustomOp1`, `2` and
+/// `3`, `apply_opN_no_bwd`): `run` gets each operand's storage and layout, in order, and
+/// returns the output. The one wrapper of the products' ops (the linear layers at both
+/// precisions, the attention kernels); [`SliceOp`] is the element- and row-wise kernels' (it
+/// also runs in place).
+pub(crate) struct CpuOp<F> {
+    /// The op's name in candle's errors.
+    pub(crate) name: &'static str,
+    /// The kernel.
+    pub(crate) run: F,
+}
+
+/// One operand of a [`CpuOp`].
+pub(crate) type Operand<'a> = (&'a candle_core::CpuStorage, &'a candle_core::Layout);
+
+type OpOutput = candle_core::Result<(candle_core::CpuStorage, candle_core::Shape)>;
+
+impl<F: Fn(&[Operand<'_>]) -> OpOutput + Send + Sync> candle_core::CustomOp1 for CpuOp<F> {
+    fn name(&self) -> &'static str {
+        self.name
+    }
+
+    fn cpu_fwd(&self, s: &candle_core::CpuStorage, l: &candle_core::Layout) -> OpOutput {
+        (self.run)(&[(s, l)])
+    }
+}
+
+impl<F: Fn(&[Operand<'_>]) -> OpOutput + Send + Sync> candle_core::CustomOp2 for CpuOp<F> {
+    fn name(&self) -> &'static str {
+        self.name
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &candle_core::CpuStorage,
+        l1: &candle_core::Layout,
+        s2: &candle_core::CpuStorage,
+        l2: &candle_core::Layout,
+    ) -> OpOutput {
+        (self.run)(&[(s1, l1), (s2, l2)])
+    }
+}
+
+impl<F: Fn(&[Operand<'_>]) -> OpOutput + Send + Sync> candle_core::CustomOp3 for CpuOp<F> {
+    fn name(&self) -> &'static str {
+        self.name
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &candle_core::CpuStorage,
+        l1: &candle_core::Layout,
+        s2: &candle_core::CpuStorage,
+        l2: &candle_core::Layout,
+        s3: &candle_core::CpuStorage,
+        l3: &candle_core::Layout,
+    ) -> OpOutput {
+        (self.run)(&[(s1, l1), (s2, l2), (s3, l3)])
+    }
+}
+
 /// The threads the CPU kernels split over: candle's count (`RAYON_NUM_THREADS`, else the
 /// physical cores), read once. candle's `get_num_threads` reads the environment and
 /// `/proc/cpuinfo` on every call (about 3 % of a denoiser step in a profile).

@@ -9,7 +9,7 @@
 //! docs/BENCHMARKS.md). The bias is the product's initial value (one pass less). Other dtypes
 //! (the F64 parity tests), devices and tracked tensors (training) keep candle's ops.
 
-use candle_core::{CpuStorage, CustomOp2, CustomOp3, DType, Layout, Shape, Tensor};
+use candle_core::{CpuStorage, DType, Layout, Shape, Tensor};
 use candle_nn::VarBuilder;
 use faer::{Accum, MatMut, MatRef, Par};
 
@@ -108,7 +108,10 @@ impl Linear {
         };
         // The input's storage is read in place (no host copy); the op checks its width.
         let x = x.contiguous()?;
-        let op = LinearTiles { packed };
+        let op = crate::CpuOp {
+            name: "linear-tiles",
+            run: |ops: &[crate::Operand<'_>]| linear_tiles(packed, ops[0], ops.get(1).copied()),
+        };
         Ok(match &self.bias {
             Some(b) => x.apply_op2_no_bwd(&b.contiguous()?, &op)?,
             None => x.apply_op1_no_bwd(&op)?,
@@ -129,9 +132,13 @@ impl Linear {
         } else {
             self.weight.contiguous()?
         };
+        let op = crate::CpuOp {
+            name: "linear-f32",
+            run: |ops: &[crate::Operand<'_>]| linear_f32(ops[0], ops[1], ops.get(2).copied()),
+        };
         Ok(match &self.bias {
-            Some(b) => x.apply_op3_no_bwd(&weight, &b.contiguous()?, &LinearF32)?,
-            None => x.apply_op2_no_bwd(&weight, &LinearF32)?,
+            Some(b) => x.apply_op3_no_bwd(&weight, &b.contiguous()?, &op)?,
+            None => x.apply_op2_no_bwd(&weight, &op)?,
         })
     }
 }
@@ -191,53 +198,17 @@ impl<'a> Output<'a> {
 
 /// The tile product of [`Linear::forward_with`]: `x (…, in)` and the bias `(out)` contiguous
 /// F32, the weight packed.
-struct LinearTiles<'a> {
-    packed: &'a posediff_amx::PackedB,
+fn linear_tiles(
+    packed: &posediff_amx::PackedB,
+    x: (&CpuStorage, &Layout),
+    b: Option<(&CpuStorage, &Layout)>,
+) -> candle_core::Result<(CpuStorage, Shape)> {
+    let (in_dim, out_dim) = (packed.rows(), packed.cols());
+    let mut y = Output::new("linear-tiles", x, b, in_dim, out_dim)?;
+    crate::tiles::linear(&mut y.out, y.xs, packed, y.rows, in_dim)
+        .map_err(|e| candle_core::Error::Msg(e.to_string()))?;
+    Ok(y.finish())
 }
-
-impl LinearTiles<'_> {
-    fn run(
-        &self,
-        x: (&CpuStorage, &Layout),
-        b: Option<(&CpuStorage, &Layout)>,
-    ) -> candle_core::Result<(CpuStorage, Shape)> {
-        let (in_dim, out_dim) = (self.packed.rows(), self.packed.cols());
-        let mut y = Output::new("linear-tiles", x, b, in_dim, out_dim)?;
-        crate::tiles::linear(&mut y.out, y.xs, self.packed, y.rows, in_dim)
-            .map_err(|e| candle_core::Error::Msg(e.to_string()))?;
-        Ok(y.finish())
-    }
-}
-
-impl candle_core::CustomOp1 for LinearTiles<'_> {
-    fn name(&self) -> &'static str {
-        "linear-tiles"
-    }
-
-    fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> candle_core::Result<(CpuStorage, Shape)> {
-        self.run((s, l), None)
-    }
-}
-
-impl CustomOp2 for LinearTiles<'_> {
-    fn name(&self) -> &'static str {
-        "linear-tiles"
-    }
-
-    fn cpu_fwd(
-        &self,
-        s1: &CpuStorage,
-        l1: &Layout,
-        s2: &CpuStorage,
-        l2: &Layout,
-    ) -> candle_core::Result<(CpuStorage, Shape)> {
-        self.run((s1, l1), Some((s2, l2)))
-    }
-}
-
-/// The custom op: `x (…, in)` and `b (out)` contiguous F32, `w (out, in)` F32 row-major
-/// (contiguous) or column-major (its transpose contiguous).
-struct LinearF32;
 
 /// The weight's values and whether they are stored column-major.
 fn weight_slice<'a>(
@@ -261,26 +232,26 @@ fn weight_slice<'a>(
     }
 }
 
-impl LinearF32 {
-    fn run(
-        x: (&CpuStorage, &Layout),
-        w: (&CpuStorage, &Layout),
-        b: Option<(&CpuStorage, &Layout)>,
-    ) -> candle_core::Result<(CpuStorage, Shape)> {
-        let (ws, column_major) = weight_slice(w.0, w.1)?;
-        let (out_dim, in_dim) = w.1.shape().dims2()?;
-        let mut y = Output::new("linear-f32", x, b, in_dim, out_dim)?;
-        product(
-            &mut y.out,
-            y.xs,
-            (ws, column_major),
-            y.rows,
-            in_dim,
-            out_dim,
-            b.is_some(),
-        );
-        Ok(y.finish())
-    }
+/// The F32 op of [`Linear::forward`]: `x (…, in)` and `b (out)` contiguous F32, `w (out, in)`
+/// F32 row-major (contiguous) or column-major (its transpose contiguous).
+fn linear_f32(
+    x: (&CpuStorage, &Layout),
+    w: (&CpuStorage, &Layout),
+    b: Option<(&CpuStorage, &Layout)>,
+) -> candle_core::Result<(CpuStorage, Shape)> {
+    let (ws, column_major) = weight_slice(w.0, w.1)?;
+    let (out_dim, in_dim) = w.1.shape().dims2()?;
+    let mut y = Output::new("linear-f32", x, b, in_dim, out_dim)?;
+    product(
+        &mut y.out,
+        y.xs,
+        (ws, column_major),
+        y.rows,
+        in_dim,
+        out_dim,
+        b.is_some(),
+    );
+    Ok(y.finish())
 }
 
 /// `out (rows, out_dim) (+)= x (rows, in_dim) · wᵀ`, `out` and `x` row-major. In faer's
@@ -316,40 +287,6 @@ fn product(
         Accum::Replace
     };
     faer::linalg::matmul::matmul(dst, accum, lhs, rhs, 1.0f32, par);
-}
-
-impl CustomOp2 for LinearF32 {
-    fn name(&self) -> &'static str {
-        "linear-f32"
-    }
-
-    fn cpu_fwd(
-        &self,
-        s1: &CpuStorage,
-        l1: &Layout,
-        s2: &CpuStorage,
-        l2: &Layout,
-    ) -> candle_core::Result<(CpuStorage, Shape)> {
-        Self::run((s1, l1), (s2, l2), None)
-    }
-}
-
-impl CustomOp3 for LinearF32 {
-    fn name(&self) -> &'static str {
-        "linear-f32"
-    }
-
-    fn cpu_fwd(
-        &self,
-        s1: &CpuStorage,
-        l1: &Layout,
-        s2: &CpuStorage,
-        l2: &Layout,
-        s3: &CpuStorage,
-        l3: &Layout,
-    ) -> candle_core::Result<(CpuStorage, Shape)> {
-        Self::run((s1, l1), (s2, l2), Some((s3, l3)))
-    }
 }
 
 #[cfg(test)]

@@ -21,6 +21,7 @@ use posediff_amx::{PackedA, PackedB, Split};
 use rayon::prelude::*;
 
 use crate::error::Result;
+use crate::head_scratch::{ColumnProducts, HeadProducts, cross_head, for_each_head, self_head};
 
 /// How the F32 matrix products of a network are computed on the CPU, after PyTorch's
 /// `torch.set_float32_matmul_precision`.
@@ -108,9 +109,8 @@ struct Scratch {
     weights: PackedA,
     /// The block's other values transposed, `vaᵀ` (`d × len`) as `A`.
     other_values: PackedA,
-    /// `out_bᵀ` (`d × n`), and the column rescaling of a block.
+    /// `out_bᵀ` (`d × n`).
     column_out: Vec<f32>,
-    alpha: Vec<f32>,
     /// One or two rows of softmax numerators before they are split into BF16 terms.
     numerators: Vec<f32>,
 }
@@ -125,7 +125,6 @@ impl Scratch {
             weights: PackedA::new(SPLIT),
             other_values: PackedA::new(SPLIT),
             column_out: Vec::new(),
-            alpha: Vec::new(),
             numerators: Vec::new(),
         }
     }
@@ -163,7 +162,7 @@ pub(crate) fn attend_heads(
     (h, m, n, d): (usize, usize, usize, usize),
 ) -> Result<()> {
     let rows = block_rows(m, n, SELF_BLOCK);
-    let head = |(i, dst): (usize, &mut [f32])| -> Result<()> {
+    for_each_head(out, m * d, h, |(i, dst)| {
         let (qh, kh, vh) = (
             &q[i * m * d..(i + 1) * m * d],
             &k[i * n * d..(i + 1) * n * d],
@@ -171,33 +170,10 @@ pub(crate) fn attend_heads(
         );
         SCRATCH.with_borrow_mut(|slot| -> Result<()> {
             let t = slot.get_or_insert_with(|| Box::new(Scratch::new()));
-            // S = Q Kᵀ: B = Kᵀ (d × n); O = P V: B = V (n × d).
-            t.keys.pack_transposed(kh, n, d, d)?;
-            t.values.pack(vh, n, d, d)?;
-            crate::head_scratch::SCORES.with_borrow_mut(|(scores, inv)| -> Result<()> {
-                scores.resize(rows * n, 0.0);
-                inv.resize(rows, 0.0);
-                for start in (0..m).step_by(rows) {
-                    let len = rows.min(m - start);
-                    t.rows.pack(&qh[start * d..(start + len) * d], len, d, d)?;
-                    let s = &mut scores[..len * n];
-                    posediff_amx::matmul(s, n, &t.rows, 0..len, &t.keys, false)?;
-                    exp_rows_packed(s, n, &mut inv[..len], &mut t.weights, &mut t.numerators)?;
-                    let o = &mut dst[start * d..(start + len) * d];
-                    posediff_amx::matmul(o, d, &t.weights, 0..len, &t.values, false)?;
-                    for (row, &c) in o.chunks_exact_mut(d).zip(inv.iter()) {
-                        row.iter_mut().for_each(|x| *x *= c);
-                    }
-                }
-                Ok(())
-            })
+            let mut products = TileProducts::new(t, kh, vh, (n, d))?;
+            self_head(&mut products, qh, dst, (m, n, d), rows)
         })
-    };
-    if h > 1 && crate::threads() > 1 {
-        out.par_chunks_mut(m * d).enumerate().try_for_each(head)
-    } else {
-        out.chunks_mut(m * d).enumerate().try_for_each(head)
-    }
+    })
 }
 
 /// [`crate::attention::cross_attend_heads`] on tiles; the shapes are checked by the caller
@@ -209,7 +185,7 @@ pub(crate) fn cross_attend_heads(
     (h, m, n, d): (usize, usize, usize, usize),
 ) -> Result<()> {
     let rows = block_rows(m, n, crate::head_scratch::HEAD_BLOCK);
-    let head = |(i, dst): (usize, &mut [f32])| -> Result<()> {
+    for_each_head(out, (m + n) * d, h, |(i, dst)| {
         let (dst_a, dst_b) = dst.split_at_mut(m * d);
         let (ah, vah) = (
             &a[i * m * d..(i + 1) * m * d],
@@ -219,101 +195,122 @@ pub(crate) fn cross_attend_heads(
             &b[i * n * d..(i + 1) * n * d],
             &vb[i * n * d..(i + 1) * n * d],
         );
-        let mut col_max = vec![f32::NEG_INFINITY; n];
-        let mut col_sum = vec![0f32; n];
-        let cut = crate::softmax::flush_below(m);
         SCRATCH.with_borrow_mut(|slot| -> Result<()> {
             let t = slot.get_or_insert_with(|| Box::new(Scratch::new()));
-            // S = A Bᵀ: B = Bᵀ (d × n); out_a = P vb: B = vb (n × d).
-            t.keys.pack_transposed(bh, n, d, d)?;
-            t.values.pack(vbh, n, d, d)?;
             // The column side accumulates out_bᵀ = vaᵀ W (d × n): the block's weights W are
             // packed as they lie, without a transpose of len × n values.
             t.column_out.clear();
             t.column_out.resize(d * n, 0.0);
-            t.alpha.resize(n, 1.0);
-            crate::head_scratch::CROSS.with_borrow_mut(
-                |(scores, _, inv, block_max)| -> Result<()> {
-                    scores.resize(rows * n, 0.0);
-                    inv.resize(rows, 0.0);
-                    block_max.resize(n, 0.0);
-                    for start in (0..m).step_by(rows) {
-                        let len = rows.min(m - start);
-                        t.rows.pack(&ah[start * d..(start + len) * d], len, d, d)?;
-                        let s = &mut scores[..len * n];
-                        posediff_amx::matmul(s, n, &t.rows, 0..len, &t.keys, false)?;
-                        // Columns: raise the maxima, rescale what was accumulated, this
-                        // block's weights (as the F32 kernel).
-                        // The accumulated out_bᵀ's columns are rescaled in one pass.
-                        t.alpha.fill(1.0);
-                        let mut rescaled = false;
-                        crate::head_scratch::raise_column_maxima(
-                            s,
-                            block_max,
-                            (&mut col_max, &mut col_sum),
-                            cut,
-                            |j, alpha| {
-                                t.alpha[j] = alpha;
-                                rescaled = true;
-                            },
-                        );
-                        if rescaled && start > 0 {
-                            for row in t.column_out.chunks_exact_mut(n) {
-                                row.iter_mut().zip(&t.alpha).for_each(|(x, a)| *x *= a);
-                            }
-                        }
-                        // W = exp(S − column maxima), packed as it is computed.
-                        exp_offsets_packed(
-                            s,
-                            n,
-                            &col_max,
-                            cut,
-                            &mut col_sum,
-                            (&mut t.column_weights, &mut t.numerators),
-                        )?;
-                        // out_bᵀ (d × n) += vaᵀ (d × len) · W (len × n).
-                        t.other_values.pack_transposed(
-                            &vah[start * d..(start + len) * d],
-                            d,
-                            len,
-                            d,
-                        )?;
-                        posediff_amx::matmul(
-                            &mut t.column_out,
-                            n,
-                            &t.other_values,
-                            0..d,
-                            &t.column_weights,
-                            true,
-                        )?;
-                        // Rows: this block's softmax times vb.
-                        let weights = &mut t.weights;
-                        exp_rows_packed(s, n, &mut inv[..len], weights, &mut t.numerators)?;
-                        let o = &mut dst_a[start * d..(start + len) * d];
-                        posediff_amx::matmul(o, d, &t.weights, 0..len, &t.values, false)?;
-                        for (row, &c) in o.chunks_exact_mut(d).zip(inv.iter()) {
-                            row.iter_mut().for_each(|x| *x *= c);
-                        }
-                    }
-                    Ok(())
-                },
-            )?;
-            // out_b = (out_bᵀ)ᵀ / Σ per column.
-            for (j, (row, &sum)) in dst_b.chunks_exact_mut(d).zip(&col_sum).enumerate() {
-                let c = 1.0 / sum;
-                for (r, x) in row.iter_mut().enumerate() {
-                    *x = t.column_out[r * n + j] * c;
-                }
-            }
-            Ok(())
+            let columns = TileColumns {
+                rows: TileProducts::new(t, bh, vbh, (n, d))?,
+                out: dst_b,
+            };
+            cross_head(columns, (ah, vah), dst_a, (m, n, d), rows)
         })
-    };
-    if h > 1 && crate::threads() > 1 {
-        out.par_chunks_mut((m + n) * d)
-            .enumerate()
-            .try_for_each(head)
-    } else {
-        out.chunks_mut((m + n) * d).enumerate().try_for_each(head)
+    })
+}
+
+/// One head's products on tiles ([`HeadProducts`]): its keys packed as `Kᵀ` and its values as
+/// they lie, once per head; each block's rows and softmax numerators packed as they come.
+struct TileProducts<'a> {
+    t: &'a mut Scratch,
+    n: usize,
+    d: usize,
+}
+
+impl<'a> TileProducts<'a> {
+    /// Packs the head's keys (`S = Q Kᵀ`: `B = Kᵀ`, `d × n`) and values (`O = P V`: `B = V`,
+    /// `n × d`).
+    fn new(t: &'a mut Scratch, k: &[f32], v: &[f32], (n, d): (usize, usize)) -> Result<Self> {
+        t.keys.pack_transposed(k, n, d, d)?;
+        t.values.pack(v, n, d, d)?;
+        Ok(Self { t, n, d })
+    }
+}
+
+impl HeadProducts for TileProducts<'_> {
+    fn scores(&mut self, rows: &[f32], len: usize, s: &mut [f32]) -> Result<()> {
+        let t = &mut *self.t;
+        t.rows.pack(rows, len, self.d, self.d)?;
+        posediff_amx::matmul(s, self.n, &t.rows, 0..len, &t.keys, false)?;
+        Ok(())
+    }
+
+    fn weighted_values(&mut self, s: &mut [f32], inv: &mut [f32], o: &mut [f32]) -> Result<()> {
+        let t = &mut *self.t;
+        exp_rows_packed(s, self.n, inv, &mut t.weights, &mut t.numerators)?;
+        posediff_amx::matmul(o, self.d, &t.weights, 0..inv.len(), &t.values, false)?;
+        Ok(())
+    }
+}
+
+/// The column side on tiles: `out_bᵀ` (`d × n`) accumulated in the scratch's `column_out`,
+/// written transposed into `out` (`n × d`) at the end.
+struct TileColumns<'a> {
+    rows: TileProducts<'a>,
+    out: &'a mut [f32],
+}
+
+impl HeadProducts for TileColumns<'_> {
+    fn scores(&mut self, rows: &[f32], len: usize, s: &mut [f32]) -> Result<()> {
+        self.rows.scores(rows, len, s)
+    }
+
+    fn weighted_values(&mut self, s: &mut [f32], inv: &mut [f32], o: &mut [f32]) -> Result<()> {
+        self.rows.weighted_values(s, inv, o)
+    }
+}
+
+impl ColumnProducts for TileColumns<'_> {
+    /// The accumulated `out_bᵀ`'s columns rescaled in one pass.
+    fn rescale_columns(&mut self, alpha: &[f32]) {
+        let n = self.rows.n;
+        for row in self.rows.t.column_out.chunks_exact_mut(n) {
+            row.iter_mut().zip(alpha).for_each(|(x, a)| *x *= a);
+        }
+    }
+
+    fn accumulate_columns(
+        &mut self,
+        s: &[f32],
+        (col_max, cut, col_sum): (&[f32], f32, &mut [f32]),
+        other_values: &[f32],
+        len: usize,
+    ) -> Result<()> {
+        let (n, d) = (self.rows.n, self.rows.d);
+        let t = &mut *self.rows.t;
+        // W = exp(S − column maxima), packed as it is computed.
+        exp_offsets_packed(
+            s,
+            n,
+            col_max,
+            cut,
+            col_sum,
+            (&mut t.column_weights, &mut t.numerators),
+        )?;
+        // out_bᵀ (d × n) += vaᵀ (d × len) · W (len × n).
+        t.other_values.pack_transposed(other_values, d, len, d)?;
+        posediff_amx::matmul(
+            &mut t.column_out,
+            n,
+            &t.other_values,
+            0..d,
+            &t.column_weights,
+            true,
+        )?;
+        Ok(())
+    }
+
+    /// `out_b = (out_bᵀ)ᵀ / Σ` per column.
+    fn finish_columns(self, col_sum: &[f32]) {
+        let (n, d) = (self.rows.n, self.rows.d);
+        let column_out = &self.rows.t.column_out;
+        for (j, (row, &sum)) in self.out.chunks_exact_mut(d).zip(col_sum).enumerate() {
+            let c = 1.0 / sum;
+            for (r, x) in row.iter_mut().enumerate() {
+                *x = column_out[r * n + j] * c;
+            }
+        }
     }
 }
 
