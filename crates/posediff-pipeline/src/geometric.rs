@@ -17,7 +17,8 @@ use posediff_guidance::GgsConfig;
 use posediff_matching::pairs::{BagOfWords, RetrievalOptions, select_pairs_with};
 use posediff_matching::{ImageFeatures, PairMatches, PairRule, PairSelection};
 use posediff_sfm::bundle::{LensCoefficients, Point};
-use posediff_sfm::sampson_refine::{SampsonRefineOptions, refine_sampson};
+use posediff_sfm::bundle_refine::{given_focal_factor, sampson_refine_cameras};
+use posediff_sfm::sampson_refine::SampsonRefineOptions;
 use posediff_sfm::{CameraPose, GlobalMapper, ImageIntrinsics, MapperOptions, SfmError};
 
 pub use crate::bundle_refine::{BundleRefinement, bundle_refine_cameras};
@@ -1150,16 +1151,7 @@ pub fn refine_given_cameras_counted(
         &[],
         config.options.mapper.focal_prior,
     )?;
-    let given: Vec<f64> = init
-        .iter()
-        .zip(&layout.scale)
-        .filter_map(|(c, s)| c.map(|c| 0.5 * (c.intrinsics.fx() + c.intrinsics.fy()) / s))
-        .collect();
-    let mut phi = known_phi.unwrap_or(given.iter().sum::<f64>() / given.len() as f64);
-    let mut cameras: Vec<Option<CameraPose>> = init
-        .iter()
-        .map(|c| c.as_ref().map(CameraPose::of_camera))
-        .collect();
+    let mut phi = known_phi.unwrap_or(given_focal_factor(init, &layout));
     let mut report = GeometricReport {
         pair_selection: selection,
         pairs_matched: pairs.len(),
@@ -1183,19 +1175,18 @@ pub fn refine_given_cameras_counted(
     let mut out: Vec<Option<Camera>> = init.to_vec();
     if let Refinement::Converge(mut refine) = config.refinement {
         refine.refine_focal &= known_phi.is_none();
-        let refs: Vec<&PairMatches> = pairs.iter().collect();
-        let r = refine_sampson(&refs, &layout, &mut cameras, &mut phi, reference, &refine)?;
+        let known = match &config.intrinsics {
+            KnownIntrinsics::PerImage(k) => Some(&k[..]),
+            _ => None,
+        };
+        let r = sampson_refine_cameras(
+            &mut out,
+            &pairs,
+            (&layout, &mut phi, known),
+            reference,
+            &refine,
+        )?;
         report.given_refinement = Some(r);
-        for (i, (o, c)) in out.iter_mut().zip(&cameras).enumerate() {
-            if let (Some(o), Some(c)) = (o.as_mut(), c) {
-                let r = *c.rotation.matrix();
-                o.cam_from_world = Pose::new(r, c.translation());
-                o.intrinsics = match &config.intrinsics {
-                    KnownIntrinsics::PerImage(k) => k[i],
-                    _ => layout.intrinsics(phi, i)?,
-                };
-            }
-        }
     }
     if let Refinement::Official(ggs) = config.refinement {
         let mut ggs = ggs;
