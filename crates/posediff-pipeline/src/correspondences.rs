@@ -34,14 +34,6 @@ pub const LEARNED_IMAGE_SIDE: u32 = 1024;
 /// ALIKED keypoints per image (the reference setting measured in `docs/BENCHMARKS.md`).
 pub const LEARNED_MAX_KEYPOINTS: usize = 2048;
 
-/// The precision of LightGlue's products: PyTorch's "high" (each F32 operand as two BF16
-/// values on AMX tiles where the CPU has them, F32 products elsewhere). It gives the reference
-/// fixtures' matches, stopping layers and pruning exactly (the parity test
-/// `high_precision_gives_the_reference_matches`), and on the dev sets the same kept pairs as
-/// F32 (docs/BENCHMARKS.md, "LightGlue on AMX tiles"). `POSEDIFF_NO_AMX=1` turns the tiles off.
-pub const LEARNED_PRECISION: posediff_diffusion::MatmulPrecision =
-    posediff_diffusion::MatmulPrecision::High;
-
 /// The matcher of a run.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum MatcherChoice {
@@ -157,6 +149,17 @@ pub fn learned_weight_files(dir: &Path, extractor: WeightSet) -> Result<(PathBuf
 }
 
 impl LearnedMatcher {
+    /// Computes LightGlue's large products at `precision` from now on
+    /// ([`crate::options::LearnedOptions::precision`]; F32 when loaded).
+    pub fn set_precision(&mut self, precision: posediff_diffusion::MatmulPrecision) {
+        self.lightglue.set_precision(precision);
+    }
+
+    /// The precision of LightGlue's large products.
+    pub fn precision(&self) -> posediff_diffusion::MatmulPrecision {
+        self.lightglue.precision()
+    }
+
     /// Loads ALIKED n16 and LightGlue from `dir` (see [`posediff_learned::weights`]) onto the
     /// CPU.
     ///
@@ -185,8 +188,7 @@ impl LearnedMatcher {
                 )));
             }
         };
-        let mut lightglue = LightGlue::load(&lightglue, &Device::Cpu)?;
-        lightglue.set_precision(LEARNED_PRECISION);
+        let lightglue = LightGlue::load(&lightglue, &Device::Cpu)?;
         Ok(Self {
             extractor,
             lightglue,

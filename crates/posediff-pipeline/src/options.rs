@@ -105,6 +105,8 @@ pub struct PipelineOptions {
     pub video: VideoOptions,
     /// `--database`: how often features and matches are committed to it.
     pub database: DatabaseOptions,
+    /// The learned matcher's arithmetic (`--matcher aliked-lightglue|disk-lightglue`).
+    pub learned: LearnedOptions,
 }
 
 impl Default for PipelineOptions {
@@ -124,6 +126,43 @@ impl Default for PipelineOptions {
             mapper: MapperOptions::default(),
             video: VideoOptions::default(),
             database: DatabaseOptions::default(),
+            learned: LearnedOptions::default(),
+        }
+    }
+}
+
+/// The learned matcher's arithmetic (ALIKED/DISK + LightGlue).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct LearnedOptions {
+    /// The precision of LightGlue's large products (its input projection, attention and
+    /// feed-forward layers). `highest` (the default): F32, the reference's arithmetic, the
+    /// same matches on every CPU. `high`: PyTorch's "high", each F32 operand as the sum of two
+    /// BF16 values on AMX tiles where the CPU has them (F32 elsewhere), LightGlue about 1.3×
+    /// faster there. Opt-in because it does not give the same matches on every shared set:
+    /// with it, two of the apple's 80 pairs keep other verified matches (534 and 335 against
+    /// F32's 527 and 333) and its cameras move by up to 0.02°, mAA(30) unchanged
+    /// (docs/BENCHMARKS.md, "AMX tiles on or off: the shared sets").
+    pub precision: LearnedPrecision,
+}
+
+/// [`LearnedOptions::precision`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum LearnedPrecision {
+    /// F32 products.
+    #[default]
+    Highest,
+    /// Two BF16 terms per operand on AMX tiles where available.
+    High,
+}
+
+impl LearnedPrecision {
+    /// The network crate's precision.
+    pub fn matmul(self) -> posediff_diffusion::MatmulPrecision {
+        match self {
+            Self::Highest => posediff_diffusion::MatmulPrecision::Highest,
+            Self::High => posediff_diffusion::MatmulPrecision::High,
         }
     }
 }

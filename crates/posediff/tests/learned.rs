@@ -574,3 +574,27 @@ fn the_orientation_check_turns_a_group_before_the_map() {
     assert_rotations_with_turned(&rotations, &[3, 4, 5]);
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// LightGlue's products are F32 unless `learned.precision` asks for the tiles' "high"
+/// (`--set`, a config file, Python's `options`); a value that is not a precision is refused.
+#[test]
+fn the_learned_precision_is_an_option_and_f32_by_default() {
+    use posediff::estimate::run::RunOptions;
+    use posediff_diffusion::MatmulPrecision;
+    let mut options = RunOptions {
+        matcher: MatcherChoice::AlikedLightGlue,
+        weights_dir: Some(weights_dir()),
+        ..RunOptions::default()
+    };
+    let loaded = options.load_learned().unwrap().expect("a learned matcher");
+    assert_eq!(loaded.0.precision(), MatmulPrecision::Highest);
+    options.pipeline = options
+        .pipeline
+        .with_field("learned.precision", "high")
+        .unwrap();
+    let loaded = options.load_learned().unwrap().expect("a learned matcher");
+    assert_eq!(loaded.0.precision(), MatmulPrecision::High);
+    let wrong = options.pipeline.with_field("learned.precision", "bf16");
+    let message = wrong.unwrap_err().to_string();
+    assert!(message.contains("learned.precision"), "{message}");
+}

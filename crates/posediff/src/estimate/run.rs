@@ -393,9 +393,9 @@ impl RunOptions {
             return Ok(None);
         };
         let dir = self.learned_weights_dir();
-        Ok(Some(SharedLearned(std::sync::Arc::new(
-            LearnedMatcher::load_with(&dir, extractor)?,
-        ))))
+        let mut matcher = LearnedMatcher::load_with(&dir, extractor)?;
+        matcher.set_precision(self.pipeline.learned.precision.matmul());
+        Ok(Some(SharedLearned(std::sync::Arc::new(matcher))))
     }
 
     /// The options tree as the run uses it: the detector is the matcher's.
