@@ -29,10 +29,7 @@ use crate::error::{PosediffError, Result};
 
 pub use crate::progress::{NoCounter, StepCounter};
 
-/// Long side the learned matcher resizes every image to (the reference setting).
-pub const LEARNED_IMAGE_SIDE: u32 = 1024;
-/// ALIKED keypoints per image (the reference setting measured in `docs/BENCHMARKS.md`).
-pub const LEARNED_MAX_KEYPOINTS: usize = 2048;
+pub use crate::options::{LEARNED_IMAGE_SIDE, LEARNED_MAX_KEYPOINTS};
 
 /// The matcher of a run.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -149,6 +146,15 @@ pub fn learned_weight_files(dir: &Path, extractor: WeightSet) -> Result<(PathBuf
 }
 
 impl LearnedMatcher {
+    /// Takes the options tree's `learned` settings: the long side the images are resized to,
+    /// the keypoints per image (ALIKED's and DISK's) and LightGlue's precision.
+    pub fn configure(&mut self, options: &crate::options::LearnedOptions) {
+        self.image_side = options.image_side;
+        self.aliked_config.max_keypoints = options.max_keypoints;
+        self.disk_config.max_keypoints = options.max_keypoints;
+        self.set_precision(options.precision.matmul());
+    }
+
     /// Computes LightGlue's large products at `precision` from now on
     /// ([`crate::options::LearnedOptions::precision`]; F32 when loaded).
     pub fn set_precision(&mut self, precision: posediff_diffusion::MatmulPrecision) {

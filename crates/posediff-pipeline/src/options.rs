@@ -8,6 +8,7 @@ use posediff_matching::pairs::AutoPairs;
 use posediff_matching::{MatchConfig, PairRule, PairSelection, TwoViewConfig};
 use posediff_sfm::MapperOptions;
 use posediff_sfm::intrinsics::image_centre;
+use posediff_sfm::points::PointOptions;
 use serde::{Deserialize, Serialize};
 
 use crate::error::{PosediffError, Result};
@@ -107,6 +108,14 @@ pub struct PipelineOptions {
     pub database: DatabaseOptions,
     /// The learned matcher's arithmetic (`--matcher aliked-lightglue|disk-lightglue`).
     pub learned: LearnedOptions,
+    /// The sparse points of the exports (COLMAP model, PLY, viewer), triangulated from the
+    /// verified matches with the final cameras whichever path made them
+    /// (`posediff_sfm::points::PointOptions`): an observation further than
+    /// `max_reprojection_px` = 4 px from its point's projection is dropped (COLMAP's
+    /// `filter_max_reproj_error`, 4), a point whose widest ray angle is below `min_angle_deg` =
+    /// 1.5° is not kept (COLMAP's `filter_min_tri_angle`, 1.5), `iterations` = 10 Gauss–Newton
+    /// steps per point (converged well before on the shared sets).
+    pub points: PointOptions,
 }
 
 impl Default for PipelineOptions {
@@ -127,14 +136,29 @@ impl Default for PipelineOptions {
             video: VideoOptions::default(),
             database: DatabaseOptions::default(),
             learned: LearnedOptions::default(),
+            points: PointOptions::default(),
         }
     }
 }
 
-/// The learned matcher's arithmetic (ALIKED/DISK + LightGlue).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+/// Long side the learned matcher resizes every image to (the reference pipeline's setting,
+/// `LearnedOptions::image_side`).
+pub const LEARNED_IMAGE_SIDE: u32 = 1024;
+/// ALIKED's or DISK's keypoints per image (`LearnedOptions::max_keypoints`).
+pub const LEARNED_MAX_KEYPOINTS: usize = 2048;
+
+/// The learned matcher (ALIKED/DISK + LightGlue): image size, keypoints, arithmetic.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct LearnedOptions {
+    /// Long side each image is resized to before extraction (OpenCV INTER_AREA; keypoints are
+    /// mapped back to the original pixels): 1024, the reference pipeline's.
+    pub image_side: u32,
+    /// Keypoints per image, the strongest after NMS with no detection threshold (so weak
+    /// texture still gets keypoints): 2048, the reference setting; at 2048 the apple's 20
+    /// frames gain mAA(30) over SIFT at every subset size (docs/BENCHMARKS.md, "Learned
+    /// matching").
+    pub max_keypoints: usize,
     /// The precision of LightGlue's large products (its input projection, attention and
     /// feed-forward layers). `highest` (the default): F32, the reference's arithmetic, the
     /// same matches on every CPU. `high`: PyTorch's "high", each F32 operand as the sum of two
@@ -144,6 +168,16 @@ pub struct LearnedOptions {
     /// F32's 527 and 333) and its cameras move by up to 0.02°, mAA(30) unchanged
     /// (docs/BENCHMARKS.md, "AMX tiles on or off: the shared sets").
     pub precision: LearnedPrecision,
+}
+
+impl Default for LearnedOptions {
+    fn default() -> Self {
+        Self {
+            image_side: LEARNED_IMAGE_SIDE,
+            max_keypoints: LEARNED_MAX_KEYPOINTS,
+            precision: LearnedPrecision::default(),
+        }
+    }
 }
 
 /// [`LearnedOptions::precision`].
@@ -742,6 +776,20 @@ impl PipelineOptions {
             .keyframes
             .check()
             .map_err(|e| PosediffError::InvalidArgument(e.to_string()))?;
+        if !(64..=8192).contains(&self.learned.image_side) {
+            return bad("learned.image_side must be within 64-8192 pixels");
+        }
+        if self.learned.max_keypoints < 8 {
+            return bad("learned.max_keypoints must be at least 8");
+        }
+        if !(self.points.max_reprojection_px.is_finite() && self.points.max_reprojection_px > 0.0) {
+            return bad("points.max_reprojection_px must be a positive number of pixels");
+        }
+        if !(self.points.min_angle_deg.is_finite()
+            && (0.0..90.0).contains(&self.points.min_angle_deg))
+        {
+            return bad("points.min_angle_deg must be within 0-90 degrees");
+        }
         Ok(())
     }
 }

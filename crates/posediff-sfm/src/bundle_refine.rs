@@ -93,6 +93,7 @@ pub fn bundle_refine_cameras(
     cameras: &mut [Camera],
     pairs: &[PairMatches],
     known_intrinsics: bool,
+    (sampson, bundle): (&SampsonRefineOptions, &BundleOptions),
 ) -> Result<BundleRefinement> {
     if cameras.len() < 2 {
         return Err(SfmError::InvalidInput(format!(
@@ -121,13 +122,13 @@ pub fn bundle_refine_cameras(
     let refs: Vec<&PairMatches> = pairs.iter().filter(|p| !p.is_empty()).collect();
     let sampson = SampsonRefineOptions {
         refine_focal: !known_intrinsics,
-        ..SampsonRefineOptions::default()
+        ..*sampson
     };
     let first = refine_sampson(&refs, &layout, &mut poses, &mut phi, 0, &sampson)?;
     let (tracks, track_report) = build_tracks(cameras.len(), pairs)?;
     let options = BundleOptions {
         refine_focal: !known_intrinsics,
-        ..BundleOptions::default()
+        ..*bundle
     };
     let (_, report) = bundle_adjust(
         &tracks,

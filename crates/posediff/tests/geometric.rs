@@ -716,7 +716,17 @@ fn the_bundle_refinement_pulls_given_cameras_to_the_truth() {
             / c.len() as f64
     };
     let scale0 = spread(&cams);
-    let r = posediff::estimate::geometric::bundle_refine_cameras(&mut cams, &pairs, false).unwrap();
+    let defaults = (
+        posediff_sfm::sampson_refine::SampsonRefineOptions::default(),
+        posediff_sfm::bundle::BundleOptions::default(),
+    );
+    let r = posediff::estimate::geometric::bundle_refine_cameras(
+        &mut cams,
+        &pairs,
+        false,
+        (&defaults.0, &defaults.1),
+    )
+    .unwrap();
     let (rot, trans) = worst_pair_errors(&cams, gt);
     assert!(rot0 > 1.0, "the perturbation is visible: {rot0}°");
     assert!(
@@ -902,6 +912,8 @@ fn the_options_tree_is_read_from_a_file_and_overridden_per_field() {
             "pairs.auto.exhaustive_up_to=60",
             "--set",
             "mapper.focal_prior=1.5",
+            "--set",
+            "points.max_reprojection_px=2",
         ],
         true,
     );
@@ -909,6 +921,8 @@ fn the_options_tree_is_read_from_a_file_and_overridden_per_field() {
     assert_eq!(r["report"]["pair_selection"], "exhaustive");
     assert_eq!(r["options"]["pairs"]["auto"]["exhaustive_up_to"], 60);
     assert_eq!(r["options"]["mapper"]["focal_prior"], 1.5);
+    // The exports' points are triangulated with the tree's threshold.
+    assert_eq!(r["points"]["max_reprojection_px"], 2.0);
     // `--pairs` is `pairs.selection`.
     let (out, _) = run("flag", &["--pairs", "sequential:2"], true);
     assert_eq!(report(&out)["report"]["pair_selection"], "sequential:2");
@@ -929,6 +943,8 @@ fn the_options_tree_is_read_from_a_file_and_overridden_per_field() {
     assert!(err.contains("--set orientation.tests"), "{err}");
     let (_, err) = run("no-equals", &["--set", "orientation.tests"], false);
     assert!(err.contains("key.path=value"), "{err}");
+    let (_, err) = run("bad-angle", &["--set", "points.min_angle_deg=-1"], false);
+    assert!(err.contains("points.min_angle_deg"), "{err}");
 }
 
 /// A synthetic orbit rendered through an exact SIMPLE_RADIAL lens (`k = −0.1`, posediff-synth):

@@ -576,7 +576,8 @@ fn the_orientation_check_turns_a_group_before_the_map() {
 }
 
 /// LightGlue's products are F32 unless `learned.precision` asks for the tiles' "high"
-/// (`--set`, a config file, Python's `options`); a value that is not a precision is refused.
+/// (`--set`, a config file, Python's `options`), and the tree's keypoints reach the extractor;
+/// a value that is not a precision is refused.
 #[test]
 fn the_learned_precision_is_an_option_and_f32_by_default() {
     use posediff::estimate::run::RunOptions;
@@ -592,8 +593,14 @@ fn the_learned_precision_is_an_option_and_f32_by_default() {
         .pipeline
         .with_field("learned.precision", "high")
         .unwrap();
+    options.pipeline = options
+        .pipeline
+        .with_field("learned.max_keypoints", "1024")
+        .unwrap();
     let loaded = options.load_learned().unwrap().expect("a learned matcher");
     assert_eq!(loaded.0.precision(), MatmulPrecision::High);
+    assert_eq!(loaded.0.aliked_config.max_keypoints, 1024);
+    assert_eq!(loaded.0.image_side, 1024);
     let wrong = options.pipeline.with_field("learned.precision", "bf16");
     let message = wrong.unwrap_err().to_string();
     assert!(message.contains("learned.precision"), "{message}");

@@ -12,7 +12,6 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use posediff_geometry::{Camera, PairMatches};
-use posediff_sfm::points::PointOptions;
 
 use crate::correspondences::{LearnedMatcher, MatcherChoice, SharedLearned, learned_weight_files};
 use crate::error::{PosediffError, Result};
@@ -394,7 +393,7 @@ impl RunOptions {
         };
         let dir = self.learned_weights_dir();
         let mut matcher = LearnedMatcher::load_with(&dir, extractor)?;
-        matcher.set_precision(self.pipeline.learned.precision.matmul());
+        matcher.configure(&self.pipeline.learned);
         Ok(Some(SharedLearned(std::sync::Arc::new(matcher))))
     }
 
@@ -926,7 +925,7 @@ pub fn run(
     report.masks = masks;
     report.video = inputs.video.clone();
     report.warnings = warnings;
-    let point_options = PointOptions::default();
+    let point_options = options.pipeline.points;
     let (mut reconstruction, points) =
         Reconstruction::triangulate(entries, None, &pairs, &point_options)?;
     // Colours (and the viewer's thumbnails) from one decode of each image.
@@ -1040,10 +1039,15 @@ fn network_run(
             ));
         }
         let mut cams: Vec<Camera> = first.iter().map(|c| c.camera).collect();
+        let mapper = &options.pipeline.mapper;
         let report = bundle_refine_cameras(
             &mut cams,
             &estimate.pairs,
             !matches!(known, KnownIntrinsics::Unknown),
+            (
+                &mapper.sampson.unwrap_or_default(),
+                &mapper.bundle.unwrap_or_default(),
+            ),
         )?;
         for (named, c) in first.iter_mut().zip(cams) {
             named.camera = c;
