@@ -306,17 +306,13 @@ struct F32Columns<'a> {
     out: &'a mut [f32],
 }
 
-impl HeadProducts for F32Columns<'_> {
-    fn scores(&mut self, rows: &[f32], len: usize, s: &mut [f32]) -> Result<()> {
-        self.rows.scores(rows, len, s)
+impl<'a> ColumnProducts for F32Columns<'a> {
+    type Rows = F32Products<'a>;
+
+    fn rows(&mut self) -> &mut Self::Rows {
+        &mut self.rows
     }
 
-    fn weighted_values(&mut self, s: &mut [f32], inv: &mut [f32], o: &mut [f32]) -> Result<()> {
-        self.rows.weighted_values(s, inv, o)
-    }
-}
-
-impl ColumnProducts for F32Columns<'_> {
     fn rescale_columns(&mut self, alpha: &[f32]) {
         let d = self.rows.kt.nrows();
         for (row, &a) in self.out.chunks_exact_mut(d).zip(alpha) {

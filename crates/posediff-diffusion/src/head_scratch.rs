@@ -23,7 +23,13 @@ pub(crate) trait HeadProducts {
 /// The column side of cross-attention's products: the `n`-side output accumulated block by
 /// block under running column maxima ([`raise_column_maxima`]), owned by the implementor until
 /// [`ColumnProducts::finish_columns`] writes it out.
-pub(crate) trait ColumnProducts: HeadProducts {
+pub(crate) trait ColumnProducts {
+    /// The row side's products (the other side's keys and values).
+    type Rows: HeadProducts;
+
+    /// The row side.
+    fn rows(&mut self) -> &mut Self::Rows;
+
     /// Scales what column `j` accumulated by `alpha[j]` (1 where its maximum did not rise).
     fn rescale_columns(&mut self, alpha: &[f32]);
 
@@ -89,8 +95,8 @@ pub(crate) fn self_head<P: HeadProducts>(
 }
 
 /// One head of bidirectional cross-attention: with `S = a Bᵀ` (`a` `m × d`), `out_a =
-/// softmax_rows(S) vb` (`m × d`) through [`HeadProducts`], and `softmax_rows(Sᵀ) va` through
-/// [`ColumnProducts`] (running column maxima and sums, the flash-attention rescaling): each
+/// softmax_rows(S) vb` (`m × d`) through [`ColumnProducts::rows`], and `softmax_rows(Sᵀ) va`
+/// through the [`ColumnProducts`]' column side (running column maxima and sums, the flash-attention rescaling): each
 /// block of `S`'s rows is computed once and serves both directions.
 pub(crate) fn cross_head<P: ColumnProducts>(
     mut products: P,
@@ -110,7 +116,9 @@ pub(crate) fn cross_head<P: ColumnProducts>(
         for start in (0..m).step_by(rows) {
             let len = rows.min(m - start);
             let s = &mut scores[..len * n];
-            products.scores(&a[start * d..(start + len) * d], len, s)?;
+            products
+                .rows()
+                .scores(&a[start * d..(start + len) * d], len, s)?;
             // Columns: raise the maxima, rescale what was accumulated, this block's weights.
             alpha.fill(1.0);
             let mut rescaled = false;
@@ -125,7 +133,7 @@ pub(crate) fn cross_head<P: ColumnProducts>(
             products.accumulate_columns(s, (&col_max, cut, &mut col_sum), other, len)?;
             // Rows: this block's softmax times vb.
             let o = &mut out_a[start * d..(start + len) * d];
-            products.weighted_values(s, &mut inv[..len], o)?;
+            products.rows().weighted_values(s, &mut inv[..len], o)?;
             for (row, &c) in o.chunks_exact_mut(d).zip(inv.iter()) {
                 row.iter_mut().for_each(|x| *x *= c);
             }

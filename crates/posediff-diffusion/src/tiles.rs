@@ -251,17 +251,13 @@ struct TileColumns<'a> {
     out: &'a mut [f32],
 }
 
-impl HeadProducts for TileColumns<'_> {
-    fn scores(&mut self, rows: &[f32], len: usize, s: &mut [f32]) -> Result<()> {
-        self.rows.scores(rows, len, s)
+impl<'a> ColumnProducts for TileColumns<'a> {
+    type Rows = TileProducts<'a>;
+
+    fn rows(&mut self) -> &mut Self::Rows {
+        &mut self.rows
     }
 
-    fn weighted_values(&mut self, s: &mut [f32], inv: &mut [f32], o: &mut [f32]) -> Result<()> {
-        self.rows.weighted_values(s, inv, o)
-    }
-}
-
-impl ColumnProducts for TileColumns<'_> {
     /// The accumulated `out_bᵀ`'s columns rescaled in one pass.
     fn rescale_columns(&mut self, alpha: &[f32]) {
         let n = self.rows.n;
