@@ -674,7 +674,8 @@ fn photos_share_one_camera_in_single_mode() {
 /// `--weights W --database D`: GGS's features and matches (the checkpoint path's own
 /// matching) go into the database; the cameras are those of the same run without it, a second
 /// run reads every image and pair back and gives the same cameras, and the checkpoint-free
-/// path (other matching settings) is refused on that database instead of mixing features.
+/// path (other matching settings) is refused on that database instead of mixing features, and
+/// so is `--no-ggs` (no matching to store).
 #[test]
 fn the_network_path_keeps_its_matches_in_the_database() {
     let dir = posediff_fixtures::temp_dir("database-network");
@@ -722,5 +723,22 @@ fn the_network_path_keeps_its_matches_in_the_database() {
     assert!(!refused.status.success());
     let e = String::from_utf8_lossy(&refused.stderr);
     assert!(e.contains("holds features made with settings"), "{e}");
+    // --no-ggs skips matching: a database there is refused by name before any work.
+    let no_ggs = posediff(&[
+        "estimate".as_ref(),
+        images.as_os_str(),
+        "--weights".as_ref(),
+        weights.as_os_str(),
+        "--no-ggs".as_ref(),
+        "--database".as_ref(),
+        db.as_os_str(),
+        "--out".as_ref(),
+        dir.join("no-ggs").as_os_str(),
+        "--quiet".as_ref(),
+    ]);
+    assert!(!no_ggs.status.success());
+    let e = String::from_utf8_lossy(&no_ggs.stderr);
+    assert!(e.contains("--no-ggs") && e.contains("ggs.db"), "{e}");
+    assert!(!dir.join("no-ggs").join("cameras.json").exists());
     std::fs::remove_dir_all(&dir).unwrap();
 }

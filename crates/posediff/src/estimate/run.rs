@@ -759,6 +759,14 @@ fn configure(inputs: &Inputs, options: &RunOptions, network: bool) -> Result<Con
         geometric.options.pairs.selection = geometric.options.video.pairs.clone();
     }
     let needs_matches = !network || options.ggs;
+    if let (Some(path), false) = (&options.database, needs_matches) {
+        // --no-ggs skips matching: the database would be opened and nothing stored in it.
+        return Err(PosediffError::invalid(
+            path,
+            "--database stores the features and matches GGS uses, and --no-ggs skips them: \
+             drop one of the two",
+        ));
+    }
     if needs_matches {
         geometric.learned = options.load_learned()?;
     }
