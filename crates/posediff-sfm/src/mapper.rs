@@ -12,6 +12,7 @@
 //! Only the largest connected component of the view graph is estimated; every other image is
 //! reported with its reason ([`NotEstimated`]).
 
+use crate::report::FocalRivalReport;
 use std::collections::HashSet;
 use std::time::Instant;
 
@@ -124,6 +125,43 @@ pub struct MapperOptions {
     /// pairs), and the whole set is solved once, from the winner's refined focal. The
     /// multi-start then costs the same at 1000 images as at this many.
     pub focal_selection_images: usize,
+    /// A second opinion on the focal from the bundle adjustment (`None`: the lowest start
+    /// cost wins alone). See [`FocalRival`].
+    pub focal_rival: Option<FocalRival>,
+}
+
+/// When another focal start's cost is within `max_cost_ratio` of the winner's at a focal at
+/// least `min_focal_ratio` apart, both maps are bundle-adjusted with the tracks and the rival
+/// wins if its RMS reprojection error is below `max_rms_ratio` of the winner's. The start
+/// cost (robust Sampson distances) cannot always tell a long focal from a short one on a
+/// narrow ring: on the temple with LightGlue's AMX matches a start at φ 1.128 cost 8853
+/// against 9274 at the true φ 2.37, while the bundle adjustment gave 0.696 against 0.398 px
+/// (docs/BENCHMARKS.md, "AMX tiles on or off: the shared sets"). Only where the starts are
+/// compared on the whole set (at most `focal_selection_images` images).
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(default, deny_unknown_fields)
+)]
+pub struct FocalRival {
+    /// A rival's start cost at most this multiple of the winner's.
+    pub max_cost_ratio: f64,
+    /// Its focal at least this factor from the winner's (either way).
+    pub min_focal_ratio: f64,
+    /// It wins if its RMS error after the bundle adjustment is below this multiple of the
+    /// winner's.
+    pub max_rms_ratio: f64,
+}
+
+impl Default for FocalRival {
+    fn default() -> Self {
+        Self {
+            max_cost_ratio: 1.06,
+            min_focal_ratio: 1.3,
+            max_rms_ratio: 0.8,
+        }
+    }
 }
 
 impl Default for MapperOptions {
@@ -147,6 +185,7 @@ impl Default for MapperOptions {
             calibration: Some(ViewGraphCalibrationOptions::default()),
             cameras_from_data: false,
             camera_split: Some(CameraSplitOptions::default()),
+            focal_rival: None,
         }
     }
 }
@@ -302,6 +341,7 @@ pub struct GlobalMapper {
 }
 
 /// Cameras initialised and refined from one starting focal.
+#[derive(Clone)]
 struct Solution {
     cameras: Vec<Option<CameraPose>>,
     members: Vec<usize>,
@@ -625,6 +665,7 @@ impl GlobalMapper {
             Ok((!out_of_range).then_some(s))
         };
         let mut best: Option<Solution> = None;
+        let mut tried: Vec<Solution> = Vec::new();
         for &(start, free) in &candidates {
             let s = attempt(
                 start,
@@ -634,10 +675,58 @@ impl GlobalMapper {
                 &intrinsics,
                 &mut report,
             )?;
-            if let Some(s) = s
-                && best.as_ref().is_none_or(|b| s.score < b.score)
-            {
-                best = Some(s);
+            if let Some(s) = s {
+                if o.focal_rival.is_some() && subset.is_none() {
+                    tried.push(s.clone());
+                }
+                if best.as_ref().is_none_or(|b| s.score < b.score) {
+                    best = Some(s);
+                }
+            }
+        }
+        if let (Some(rival_options), Some(bundle), Some(winner)) =
+            (o.focal_rival, o.bundle, best.as_ref())
+        {
+            let rival = tried
+                .iter()
+                .filter(|s| {
+                    let ratio = s.phi / winner.phi;
+                    ratio.max(1.0 / ratio) >= rival_options.min_focal_ratio
+                        && s.score <= winner.score * rival_options.max_cost_ratio
+                })
+                .min_by(|a, b| a.score.total_cmp(&b.score));
+            if let Some(rival) = rival {
+                let (tracks, _) = build_tracks(n, pairs)?;
+                let rms = |s: &Solution| -> Result<f64> {
+                    let mut cameras = s.cameras.clone();
+                    let Some(reference) = cameras.iter().position(Option::is_some) else {
+                        return Ok(f64::INFINITY);
+                    };
+                    let mut factors = vec![s.phi; intrinsics.groups()];
+                    let mut options = bundle;
+                    options.refine_focal &= s.free_focal;
+                    let (_, r) = bundle_adjust(
+                        &tracks,
+                        &intrinsics,
+                        &mut cameras,
+                        &mut factors,
+                        reference,
+                        &options,
+                    )?;
+                    Ok(r.rms_px)
+                };
+                let (winner_rms, rival_rms) = (rms(winner)?, rms(rival)?);
+                let switched = rival_rms < rival_options.max_rms_ratio * winner_rms;
+                report.focal_rival = Some(FocalRivalReport {
+                    winner_phi: winner.phi,
+                    rival_phi: rival.phi,
+                    winner_rms_px: winner_rms,
+                    rival_rms_px: rival_rms,
+                    switched,
+                });
+                if switched {
+                    best = Some(rival.clone());
+                }
             }
         }
         if let (Some(_), Some(chosen)) = (&subset, &best) {

@@ -124,6 +124,22 @@ pub struct FocalStart {
     pub out_of_range: bool,
 }
 
+/// The bundle adjustment's second opinion on the focal ([`crate::mapper::FocalRival`]).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize))]
+pub struct FocalRivalReport {
+    /// `φ` of the lowest start cost.
+    pub winner_phi: f64,
+    /// `φ` of the rival.
+    pub rival_phi: f64,
+    /// RMS reprojection error of the winner's map after the bundle adjustment, px.
+    pub winner_rms_px: f64,
+    /// The same of the rival's.
+    pub rival_rms_px: f64,
+    /// Whether the rival's map was kept.
+    pub switched: bool,
+}
+
 /// Seconds per stage, summed over the focal starts.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 #[cfg_attr(feature = "serde", derive(serde::Serialize))]
@@ -203,6 +219,9 @@ pub struct MapperReport {
     pub camera_split: Vec<CameraSplitRound>,
     /// Every focal start tried.
     pub starts: Vec<FocalStart>,
+    /// The bundle adjustment's second opinion on the focal ([`crate::mapper::FocalRival`];
+    /// `null`: off, or no rival).
+    pub focal_rival: Option<FocalRivalReport>,
     /// Rotation averaging of the chosen start.
     pub rotation_averaging: RotationAveragingReport,
     /// Translation averaging of the chosen start.

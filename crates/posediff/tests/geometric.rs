@@ -1284,3 +1284,58 @@ fn a_fisheye_copy_is_calibrated_with_its_model() {
     let (rot, _) = worst_pair_errors(&est, &gt);
     assert!(rot < 1.0, "worst pair rotation error {rot}°");
 }
+
+/// The bundle adjustment's second opinion on the focal (`mapper.focal_rival`, off by default):
+/// with every other start let in as a rival, the fountain's right focal keeps its map (the
+/// rival's error is not lower); told to take any rival, the map takes it and says so.
+#[test]
+fn a_focal_rival_is_weighed_by_the_bundle_adjustment() {
+    let (images, gt) = set("strecha_fountainP11");
+    let dir = posediff_fixtures::temp_dir("geometric-focal-rival");
+    let images_dir = images[0].parent().unwrap().to_path_buf();
+    let run = |name: &str, rival: &str| -> (serde_json::Value, Vec<Camera>) {
+        let out = dir.join(name);
+        posediff(
+            [
+                OsString::from("estimate"),
+                OsString::from(&images_dir),
+                OsString::from("--out"),
+                OsString::from(&out),
+                OsString::from("--quiet"),
+                OsString::from("--no-view"),
+                OsString::from("--set"),
+                OsString::from(format!("mapper.focal_rival={rival}")),
+            ],
+            true,
+        );
+        let run: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("run.json")).unwrap()).unwrap();
+        let cameras = read_cameras_json(&out.join("cameras.json")).unwrap();
+        (run, cameras.into_iter().map(|c| c.camera).collect())
+    };
+    let truth = gt[0].intrinsics.fx();
+    let (kept, cameras) = run(
+        "kept",
+        r#"{"max_cost_ratio": 10, "min_focal_ratio": 1.01, "max_rms_ratio": 0.8}"#,
+    );
+    let r = &kept["report"]["mapper"]["focal_rival"];
+    assert_eq!(r["switched"], false, "{r}");
+    let (winner, rival) = (
+        r["winner_rms_px"].as_f64().unwrap(),
+        r["rival_rms_px"].as_f64().unwrap(),
+    );
+    assert!(winner < 1.0 && rival >= 0.8 * winner, "{r}");
+    let focal = cameras[0].intrinsics.fx();
+    assert!((focal / truth - 1.0).abs() < 0.01, "{focal} vs {truth}");
+    let (taken, _) = run(
+        "taken",
+        r#"{"max_cost_ratio": 10, "min_focal_ratio": 1.01, "max_rms_ratio": 1000}"#,
+    );
+    let r = &taken["report"]["mapper"]["focal_rival"];
+    assert_eq!(r["switched"], true, "{r}");
+    let phi = taken["report"]["mapper"]["focal_factor_initial"]
+        .as_f64()
+        .unwrap();
+    assert!(phi.is_finite());
+    std::fs::remove_dir_all(&dir).unwrap();
+}
