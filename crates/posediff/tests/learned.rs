@@ -605,3 +605,62 @@ fn the_learned_precision_is_an_option_and_f32_by_default() {
     let message = wrong.unwrap_err().to_string();
     assert!(message.contains("learned.precision"), "{message}");
 }
+
+/// A database made by the learned matcher records its `learned.*` settings: the same run
+/// reads its features back, and one with other keypoints or precision is refused by name
+/// before any work instead of mixing features.
+#[test]
+fn a_learned_database_refuses_other_learned_settings() {
+    let dir = posediff_fixtures::temp_dir("learned-database-settings");
+    let images = dir.join("images");
+    std::fs::create_dir_all(&images).unwrap();
+    for img in &apple(3) {
+        std::fs::copy(img, images.join(img.file_name().unwrap())).unwrap();
+    }
+    let db = dir.join("learned.db");
+    let run = |out: &str, extra: &[&str]| {
+        let mut args: Vec<OsString> = [
+            "estimate".into(),
+            images.clone().into_os_string(),
+            "--matcher".into(),
+            "aliked-lightglue".into(),
+            "--weights-dir".into(),
+            weights_dir().into_os_string(),
+            "--database".into(),
+            db.clone().into_os_string(),
+            "--out".into(),
+            dir.join(out).into_os_string(),
+            "--quiet".into(),
+            "--no-view".into(),
+        ]
+        .into();
+        args.extend(extra.iter().map(OsString::from));
+        Command::new(env!("CARGO_BIN_EXE_posediff"))
+            .args(&args)
+            .output()
+            .unwrap()
+    };
+    let first = run("first", &[]);
+    assert!(
+        first.status.success(),
+        "{}",
+        String::from_utf8_lossy(&first.stderr)
+    );
+    let again = run("again", &[]);
+    assert!(
+        again.status.success(),
+        "{}",
+        String::from_utf8_lossy(&again.stderr)
+    );
+    for setting in ["learned.max_keypoints=1024", "learned.precision=high"] {
+        let other = run("other", &["--set", setting]);
+        let e = String::from_utf8_lossy(&other.stderr);
+        assert!(!other.status.success(), "{setting}: accepted");
+        assert!(
+            e.contains("holds features made with settings"),
+            "{setting}: {e}"
+        );
+        assert!(!dir.join("other").join("cameras.json").exists());
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}

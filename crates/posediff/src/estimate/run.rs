@@ -782,10 +782,15 @@ fn configure(inputs: &Inputs, options: &RunOptions, network: bool) -> Result<Con
         } else {
             geometric.options.matching
         };
-        let settings = serde_json::json!({
+        let mut settings = serde_json::json!({
             "matching": matching,
             "masks": masks,
         });
+        if options.matcher.extractor_weights().is_some() {
+            // The learned matcher's image side, keypoints and precision decide its features
+            // and matches too: a database made with other ones is refused, not mixed.
+            settings["learned"] = serde_json::to_value(geometric.options.learned)?;
+        }
         let identity = crate::io::database::StoreIdentity {
             matcher: options.matcher.as_str().to_owned(),
             settings: settings.to_string(),
